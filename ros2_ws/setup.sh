@@ -1,0 +1,99 @@
+#!/usr/bin/env bash
+# Create (once) and update the project's virtual environment at <repo root>/.venv.
+#
+#   ros2_ws/setup.sh            # idempotent; fast (< 2 s) when nothing changed
+#   ros2_ws/setup.sh --force    # reinstall requirements and the src/ packages
+#
+# Other scripts call "$(dirname "$0")/setup.sh" and then use .venv/bin/python or .venv/bin/NAME.
+# Environment: PYTHON=/path/to/python3.11 picks the interpreter (default: python3.11 on PATH).
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$ROOT/.venv"
+REQ="$ROOT/ros2_ws/requirements.txt"
+LOG="$VENV/setup-pip.log"
+FORCE=0
+
+case "${1:-}" in
+  -h|--help)
+    sed -n '2,9p' "$0" | sed 's/^# \{0,1\}//'
+    exit 0 ;;
+  --force) FORCE=1 ;;
+  "") ;;
+  *) echo "setup: unknown option '$1' (see --help)" >&2; exit 2 ;;
+esac
+
+say() { echo "setup: $*" >&2; }
+die() { echo "setup: error: $*" >&2; exit 1; }
+
+is_py311() { "$1" -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else 1)' >/dev/null 2>&1; }
+
+hash_files() {  # sha256 over the names and contents of the given files (missing ones are skipped)
+  local f
+  for f in "$@"; do
+    [ -f "$f" ] || continue
+    printf '%s\n' "${f#"$ROOT"/}"
+    sha256sum <"$f"
+  done | sha256sum | cut -d' ' -f1
+}
+
+run_pip() {  # quiet pip; the full output goes to $LOG and is shown (tail) only on failure
+  if ! "$VENV/bin/python" -m pip --disable-pip-version-check --no-input "$@" >>"$LOG" 2>&1; then
+    echo "setup: pip failed; last lines of $LOG:" >&2
+    grep -v "is ignored: it is neither a file nor a directory" "$LOG" | tail -n 30 >&2
+    exit 1
+  fi
+}
+
+# --- 1. the virtual environment ------------------------------------------------------------------
+if [ ! -x "$VENV/bin/python" ] || ! is_py311 "$VENV/bin/python"; then
+  PY="${PYTHON:-}"
+  if [ -z "$PY" ]; then
+    PY="$(command -v python3.11 || true)"
+  fi
+  [ -n "$PY" ] || die "python3.11 not found on PATH (install Python 3.11, or set PYTHON=/path/to/python3.11)"
+  is_py311 "$PY" || die "'$PY' is not a working Python 3.11 (set PYTHON=/path/to/python3.11)"
+  [ -e "$VENV" ] && { say "removing broken $VENV"; rm -rf "$VENV"; }
+  say "creating virtual environment $VENV with $PY"
+  "$PY" -m venv "$VENV" || die "could not create $VENV"
+fi
+
+# One setup at a time (tests may start several scripts at once).
+exec 9>"$VENV/.setup.lock"
+flock 9
+
+# --- 2. pinned requirements ----------------------------------------------------------------------
+[ -f "$REQ" ] || die "missing $REQ"
+REQ_STAMP="$VENV/.stamp-requirements"
+req_hash="$(hash_files "$REQ")"
+if [ "$FORCE" = 1 ] || [ "$(cat "$REQ_STAMP" 2>/dev/null || true)" != "$req_hash" ]; then
+  say "installing requirements (ros2_ws/requirements.txt; the first time takes about a minute)…"
+  : >"$LOG"
+  run_pip install -r "$REQ"
+  echo "$req_hash" >"$REQ_STAMP"
+  rm -f "$VENV/.stamp-src"   # packages are re-checked against the new requirements
+fi
+
+# --- 3. the project's packages under src/ (editable) ---------------------------------------------
+SRC_STAMP="$VENV/.stamp-src"
+pkgs=()
+meta=()
+if [ -d "$ROOT/src" ]; then
+  while IFS= read -r setup_py; do
+    d="$(dirname "$setup_py")"
+    pkgs+=("$d")
+    meta+=("$d/setup.py" "$d/setup.cfg" "$d/package.xml" "$d/pyproject.toml")
+  done < <(find "$ROOT/src" -mindepth 2 -maxdepth 2 -name setup.py -not -path '*/.*' | LC_ALL=C sort)
+fi
+src_hash="$(hash_files "${meta[@]+"${meta[@]}"}")"
+if [ "${#pkgs[@]}" -gt 0 ] && { [ "$FORCE" = 1 ] || [ "$(cat "$SRC_STAMP" 2>/dev/null || true)" != "$src_hash" ]; }; then
+  names=()
+  edit_args=()
+  for d in "${pkgs[@]}"; do names+=("$(basename "$d")"); edit_args+=(-e "$d"); done
+  say "installing src packages (editable): ${names[*]}…"
+  : >"$LOG"
+  run_pip install --no-build-isolation --use-pep517 "${edit_args[@]}"
+  echo "$src_hash" >"$SRC_STAMP"
+fi
+
+exit 0

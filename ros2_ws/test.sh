@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Install (on first use) and run the whole test suite: ruff, then pytest.
+#
+#   ros2_ws/test.sh                 # everything (CI runs exactly this)
+#   ros2_ws/test.sh -k controller   # extra arguments go to pytest
+#
+# ROS tests pick their own ROS_DOMAIN_ID and keep discovery on this host
+# (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST); see tests/README.md.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+case "${1:-}" in -h|--help) sed -n '2,8p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;; esac
+"$ROOT/ros2_ws/setup.sh"
+cd "$ROOT"
+echo "test: ruff check" >&2
+.venv/bin/ruff check src tests
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+exec .venv/bin/python -m pytest tests "$@"

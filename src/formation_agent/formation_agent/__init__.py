@@ -1,0 +1,1 @@
+"""The agent of a formation: the prescribed-performance controller (ROS-free) and its node."""

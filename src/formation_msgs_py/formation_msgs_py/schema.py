@@ -1,0 +1,495 @@
+"""The formation-file schema: one declaration that validates, fills defaults and documents.
+
+Every field has a kind, a default (or ``REQUIRED``) and a description. ``parse`` walks a
+YAML document against the schema and returns plain Python values with defaults filled in;
+it rejects unknown keys and wrong types with a :class:`FormationSpecError` that names the
+field path. ``schema_markdown`` renders the same declaration as the reference table of
+``docs/formation_file.md`` (a test keeps the two in step).
+
+Semantic checks (tree, distance bounds, funnels) live in :mod:`formation_msgs_py.spec`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from formation_msgs_py.errors import FormationSpecError
+
+
+class _Required:
+    def __repr__(self) -> str:
+        return "required"
+
+
+REQUIRED: Any = _Required()
+AGENT_ID_PATTERN = re.compile(r"^[A-Za-z0-9_]+$")
+
+
+@dataclass(frozen=True)
+class Field:
+    """One key of a mapping in the formation file."""
+
+    name: str
+    kind: str
+    default: Any = REQUIRED
+    doc: str = ""
+    unit: str = ""
+    children: tuple[Field, ...] = ()
+    choices: tuple[str, ...] = ()
+    variants: Mapping[str, tuple[Field, ...]] = field(default_factory=dict)
+    #: ``positive``, ``nonnegative`` or ``""`` for numbers
+    sign: str = ""
+
+
+# --- shared blocks ----------------------------------------------------------------------------
+
+_ROTATION_DOC = (
+    "exactly one of `matrix` (3x3, rows), `quaternion` [x, y, z, w], `rpy` [roll, pitch, yaw] "
+    "(fixed axes x-y-z, rad) or `axis_angle` {axis: [x, y, z], angle: rad}; optional "
+    "`project: true` replaces a matrix that is not a rotation by its nearest rotation; or the "
+    "string `identity`"
+)
+
+_MODEL_PARAMS = {
+    "none": (),
+    "paper": (
+        Field("amplitude", "float", REQUIRED, "A in A·sin(‖p_ref‖₁·tr(R_i)·ω·t + φ)·v_i", "", sign="nonnegative"),
+        Field("frequency", "float", REQUIRED, "ω in the paper's sinusoid", "rad/s", sign="nonnegative"),
+        Field("phase", "float", 0.0, "φ in the paper's sinusoid", "rad"),
+        Field(
+            "position_reference",
+            "enum",
+            "first_agent",
+            "whose position enters ‖p_ref‖₁: the first agent's (the paper, literally) or the agent's own",
+            choices=("first_agent", "self"),
+        ),
+    ),
+    "constant": (Field("value", "float_or_vec6", REQUIRED, "constant body-frame value [linear, angular]"),),
+    "random": (
+        Field("bound", "float_or_vec6", REQUIRED, "per-channel bound of the signal", sign="nonnegative"),
+        Field("max_frequency", "float", 1.0, "highest frequency of the seeded sum of sinusoids", "Hz", sign="positive"),
+        Field("components", "int", 4, "sinusoids per channel (seeded by simulation.seed)", sign="positive"),
+    ),
+}
+
+_FUNNEL_V = (
+    Field(
+        "rho_0",
+        "auto_or_vec6",
+        "auto",
+        "initial width ρ_v0 per channel, or `auto`: auto_scale·|e_v(0)| + auto_offset, "
+        "computed by the agent at its first step",
+    ),
+    Field("auto_scale", "float", 2.0, "scale of |e_v(0)| when rho_0 is auto", sign="positive"),
+    Field("auto_offset", "float", 1.0, "offset added when rho_0 is auto", "m/s, rad/s", sign="positive"),
+    Field("rho_inf", "float_or_vec6", 0.1, "steady width ρ_v∞ per channel", "m/s, rad/s", sign="positive"),
+    Field("decay", "float_or_vec6", 0.2, "decay rate l_v per channel", "1/s", sign="positive"),
+)
+
+AGENT_FIELDS: tuple[Field, ...] = (
+    Field("id", "agent_id", REQUIRED, "agent name: letters, digits, underscore (topics use agent_<id>)"),
+    Field("radius", "float", REQUIRED, "radius r_i of the ball the agent occupies", "m", sign="positive"),
+    Field("sensing_radius", "float", REQUIRED, "sensing radius s_i", "m", sign="positive"),
+    Field("position", "vec3", REQUIRED, "initial position p_i(0) in the world frame", "m"),
+    Field("orientation", "rotation", "identity", "initial R_world_body R_i(0); " + _ROTATION_DOC),
+    Field("linear_velocity", "vec3", (0.0, 0.0, 0.0), "initial body-frame linear velocity", "m/s"),
+    Field("angular_velocity", "vec3", (0.0, 0.0, 0.0), "initial body-frame angular velocity", "rad/s"),
+    Field(
+        "controller",
+        "map",
+        {},
+        "what the agent knows of itself: gains and velocity funnel",
+        children=(
+            Field("delta", "float", 0.1, "gain δ_i of the desired velocity", sign="positive"),
+            Field("gamma", "float", 15.0, "gain γ_i of the wrench", sign="positive"),
+            Field("velocity_funnel", "map", {}, "velocity performance functions ρ_v", children=_FUNNEL_V),
+            Field(
+                "saturation_margin",
+                "float",
+                1e-6,
+                "a normalised error outside its funnel is clamped to (1 − margin) of it: finite, saturated wrench",
+                sign="positive",
+            ),
+            Field("max_force", "optional_float", None, "optional norm limit of the force", "N", sign="positive"),
+            Field("max_torque", "optional_float", None, "optional norm limit of the torque", "N·m", sign="positive"),
+            Field(
+                "measurement_timeout",
+                "float",
+                0.1,
+                "older measurements (sim time) are rejected: zero wrench and ERROR",
+                "s",
+                sign="positive",
+            ),
+        ),
+    ),
+    Field(
+        "dynamics",
+        "map",
+        REQUIRED,
+        "true plant, read by the simulator only",
+        children=(
+            Field("mass", "float", REQUIRED, "mass m_i", "kg", sign="positive"),
+            Field("inertia", "inertia", REQUIRED, "body-frame inertia: 3 diagonal entries or a 3x3 matrix", "kg·m²"),
+            Field(
+                "disturbance",
+                "variant",
+                {"model": "none"},
+                "w_i(x, v, t): `model` none | paper | constant | random",
+                variants=_MODEL_PARAMS,
+            ),
+            Field(
+                "velocity_noise",
+                "variant",
+                {"model": "none"},
+                "n_i(x, t) added to the measured velocity: `model` none | paper | constant | random",
+                variants=_MODEL_PARAMS,
+            ),
+        ),
+    ),
+    Field(
+        "measurement_noise",
+        "map",
+        {},
+        "noise on the relative poses this agent receives (simulator only, seeded)",
+        children=(
+            Field("position_std", "float", 0.0, "std of Gaussian noise per axis", "m", sign="nonnegative"),
+            Field(
+                "rotation_std", "float", 0.0, "std of a Gaussian rotation vector per axis", "rad", sign="nonnegative"
+            ),
+        ),
+    ),
+)
+
+EDGE_FIELDS: tuple[Field, ...] = (
+    Field("tail", "agent_id", REQUIRED, "k1, the tail of the edge"),
+    Field("head", "agent_id", REQUIRED, "k2, the head of the edge"),
+    Field("distance", "float", REQUIRED, "desired distance d_k,des", "m", sign="positive"),
+    Field("orientation", "rotation", "identity", "desired R_k,des = R_headᵀ R_tail; " + _ROTATION_DOC),
+    Field("d_col", "optional_float", None, "collision distance (default r_tail + r_head)", "m", sign="positive"),
+    Field("d_con", "optional_float", None, "connectivity distance (default min(s_tail, s_head))", "m", sign="positive"),
+    Field(
+        "distance_funnel",
+        "map",
+        {},
+        "ρ_e of the edge",
+        children=(
+            Field("rho_inf", "float", 0.1, "steady width ρ_e∞ in (0, max(C_col, C_con))", "m²", sign="positive"),
+            Field("decay", "float", 1.5, "decay rate l_e", "1/s", sign="positive"),
+        ),
+    ),
+    Field(
+        "orientation_funnel",
+        "map",
+        {},
+        "ρ_ψ of the edge",
+        children=(
+            Field("rho_0", "float", 1.99, "initial width ρ_ψ0 in (ψ(0), 2)", sign="positive"),
+            Field("rho_inf", "float", 0.1, "steady width ρ_ψ∞ in (0, ρ_ψ0)", sign="positive"),
+            Field("decay", "float", 1.5, "decay rate l_ψ", "1/s", sign="positive"),
+        ),
+    ),
+)
+
+SIMULATION_FIELDS: tuple[Field, ...] = (
+    Field(
+        "mode", "enum", "lockstep", "ROS 2 runs: lockstep (deterministic) or realtime", choices=("lockstep", "realtime")
+    ),
+    Field("duration", "float", 5.0, "simulated time", "s", sign="positive"),
+    Field(
+        "physics_rate", "float", 10000.0, "integrator rate; an integer multiple of control_rate", "Hz", sign="positive"
+    ),
+    Field(
+        "control_rate",
+        "float",
+        1000.0,
+        "rate at which agents compute wrenches (zero-order hold)",
+        "Hz",
+        sign="positive",
+    ),
+    Field(
+        "controller",
+        "enum",
+        "sampled",
+        "headless runs: sampled at control_rate, or continuous (evaluated at every integrator stage)",
+        choices=("sampled", "continuous"),
+    ),
+    Field(
+        "record_rate",
+        "float",
+        1000.0,
+        "rate of trajectory.npz and plots (funnels are checked at every step)",
+        "Hz",
+        sign="positive",
+    ),
+    Field("seed", "int", 0, "seed of every random draw (noise, random disturbances)"),
+    Field("gravity", "vec3", (0.0, 0.0, 0.0), "gravity in the world frame (the paper: off)", "m/s²"),
+    Field(
+        "spanning_tree",
+        "bool",
+        False,
+        "reduce a cyclic sensing graph to a spanning tree (the dropped edges are printed)",
+    ),
+    Field(
+        "rate_check",
+        "enum",
+        "refuse",
+        "a control rate below what the velocity loop needs: refuse to run, or warn",
+        choices=("refuse", "warn"),
+    ),
+    Field(
+        "step_timeout",
+        "float",
+        5.0,
+        "lockstep: wall time to wait for every wrench before reporting the missing agents",
+        "s",
+        sign="positive",
+    ),
+    Field(
+        "command_timeout",
+        "float",
+        0.05,
+        "realtime: a wrench older than this (sim time) is replaced by zero",
+        "s",
+        sign="positive",
+    ),
+)
+
+TOP_FIELDS: tuple[Field, ...] = (
+    Field("name", "str", "", "name of the formation (default: the file name)"),
+    Field("description", "str", "", "free text"),
+    Field("simulation", "map", {}, "run settings", children=SIMULATION_FIELDS),
+    Field(
+        "defaults",
+        "defaults",
+        {},
+        "`agent:` and `edge:` mappings merged under every agent and edge (the item's own keys win)",
+    ),
+    Field("agents", "agents", REQUIRED, "list of agents (at least 2)", children=AGENT_FIELDS),
+    Field("edges", "edges", REQUIRED, "list of edges of the sensing tree", children=EDGE_FIELDS),
+)
+
+
+# --- parsing ----------------------------------------------------------------------------------
+
+
+def _type_name(value: Any) -> str:
+    return type(value).__name__ if value is not None else "null"
+
+
+def _fail(path: str, message: str, value: Any = None) -> FormationSpecError:
+    return FormationSpecError(path, message, value)
+
+
+def _as_float(value: Any, path: str, sign: str = "") -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _fail(path, f"expected a number, got {_type_name(value)} {value!r}", value)
+    x = float(value)
+    if not math.isfinite(x):
+        raise _fail(path, f"{value!r} is not finite", value)
+    if sign == "positive" and x <= 0:
+        raise _fail(path, f"{value!r} must be > 0", value)
+    if sign == "nonnegative" and x < 0:
+        raise _fail(path, f"{value!r} must be >= 0", value)
+    return x
+
+
+def _as_vector(value: Any, n: int, path: str, sign: str = "") -> tuple[float, ...]:
+    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != n:
+        raise _fail(path, f"expected a list of {n} numbers, got {value!r}", value)
+    return tuple(_as_float(x, f"{path}[{i}]", sign) for i, x in enumerate(value))
+
+
+def _as_matrix(value: Any, path: str) -> tuple[tuple[float, ...], ...]:
+    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 3:
+        raise _fail(path, f"expected a 3x3 matrix (3 rows of 3 numbers), got {value!r}", value)
+    return tuple(_as_vector(row, 3, f"{path}[{i}]") for i, row in enumerate(value))
+
+
+def _parse_rotation(value: Any, path: str) -> dict[str, Any]:
+    if value == "identity":
+        return {"matrix": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), "project": False}
+    if not isinstance(value, Mapping):
+        raise _fail(path, f"expected a rotation mapping or 'identity', got {value!r}", value)
+    forms = [k for k in ("matrix", "quaternion", "rpy", "axis_angle") if k in value]
+    unknown = sorted(set(value) - {"matrix", "quaternion", "rpy", "axis_angle", "project"})
+    if unknown:
+        raise _fail(
+            f"{path}.{unknown[0]}",
+            "unknown key (rotations take matrix, quaternion, rpy, axis_angle, project)",
+            unknown[0],
+        )
+    if len(forms) != 1:
+        raise _fail(path, f"give exactly one of matrix, quaternion, rpy, axis_angle (got {forms or 'none'})", value)
+    form = forms[0]
+    out: dict[str, Any] = {"project": False}
+    if "project" in value:
+        if not isinstance(value["project"], bool):
+            raise _fail(f"{path}.project", f"expected true or false, got {value['project']!r}", value["project"])
+        out["project"] = value["project"]
+    raw = value[form]
+    if form == "matrix":
+        out["matrix"] = _as_matrix(raw, f"{path}.matrix")
+    elif form == "quaternion":
+        q = _as_vector(raw, 4, f"{path}.quaternion")
+        if math.sqrt(sum(c * c for c in q)) < 1e-9:
+            raise _fail(f"{path}.quaternion", f"{list(q)} has zero norm", raw)
+        out["quaternion"] = q
+    elif form == "rpy":
+        out["rpy"] = _as_vector(raw, 3, f"{path}.rpy")
+    else:
+        if not isinstance(raw, Mapping) or set(raw) != {"axis", "angle"}:
+            raise _fail(f"{path}.axis_angle", f"expected {{axis: [x, y, z], angle: rad}}, got {raw!r}", raw)
+        axis = _as_vector(raw["axis"], 3, f"{path}.axis_angle.axis")
+        if math.sqrt(sum(c * c for c in axis)) < 1e-12:
+            raise _fail(f"{path}.axis_angle.axis", f"{list(axis)} has no direction", raw["axis"])
+        out["axis_angle"] = (axis, _as_float(raw["angle"], f"{path}.axis_angle.angle"))
+    return out
+
+
+def _parse_value(f: Field, value: Any, path: str) -> Any:
+    kind = f.kind
+    if kind == "float":
+        return _as_float(value, path, f.sign)
+    if kind == "optional_float":
+        return None if value is None else _as_float(value, path, f.sign)
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _fail(path, f"expected an integer, got {_type_name(value)} {value!r}", value)
+        if f.sign == "positive" and value <= 0:
+            raise _fail(path, f"{value!r} must be > 0", value)
+        return value
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise _fail(path, f"expected true or false, got {value!r}", value)
+        return value
+    if kind == "str":
+        if not isinstance(value, str):
+            raise _fail(path, f"expected a string, got {_type_name(value)} {value!r}", value)
+        return value
+    if kind == "enum":
+        if value not in f.choices:
+            raise _fail(path, f"{value!r} is not one of {', '.join(f.choices)}", value)
+        return value
+    if kind == "agent_id":
+        if isinstance(value, bool) or not isinstance(value, (int, str)):
+            raise _fail(path, f"expected an agent id (integer or name), got {value!r}", value)
+        text = str(value)
+        if not AGENT_ID_PATTERN.match(text):
+            raise _fail(path, f"{value!r} is not a valid agent id (letters, digits, underscore)", value)
+        return text
+    if kind == "vec3":
+        return _as_vector(value, 3, path, f.sign)
+    if kind == "float_or_vec6":
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return (_as_float(value, path, f.sign),) * 6
+        return _as_vector(value, 6, path, f.sign)
+    if kind == "auto_or_vec6":
+        if value == "auto":
+            return "auto"
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return (_as_float(value, path, "positive"),) * 6
+        if isinstance(value, str):
+            raise _fail(path, f"{value!r} is neither 'auto' nor a number or list of 6", value)
+        return _as_vector(value, 6, path, "positive")
+    if kind == "inertia":
+        if (
+            isinstance(value, Sequence)
+            and not isinstance(value, str)
+            and len(value) == 3
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+        ):
+            d = _as_vector(value, 3, path)
+            return tuple(tuple(d[i] if i == j else 0.0 for j in range(3)) for i in range(3))
+        return _as_matrix(value, path)
+    if kind == "rotation":
+        return _parse_rotation(value, path)
+    if kind == "map":
+        return parse_mapping(value, f.children, path)
+    if kind == "variant":
+        if not isinstance(value, Mapping) or "model" not in value:
+            raise _fail(path, f"expected a mapping with a 'model' key, got {value!r}", value)
+        model = value["model"]
+        if model not in f.variants:
+            raise _fail(f"{path}.model", f"{model!r} is not one of {', '.join(f.variants)}", model)
+        rest = {k: v for k, v in value.items() if k != "model"}
+        out = parse_mapping(rest, f.variants[model], path)
+        out["model"] = model
+        return out
+    raise AssertionError(f"schema kind {kind!r} has no parser")  # pragma: no cover
+
+
+def parse_mapping(node: Any, fields: tuple[Field, ...], path: str) -> dict[str, Any]:
+    """Validate ``node`` against ``fields``; returns a dict with every field set."""
+    if node is None:
+        node = {}
+    if not isinstance(node, Mapping):
+        raise _fail(path, f"expected a mapping, got {_type_name(node)} {node!r}", node)
+    known = {f.name for f in fields}
+    for key in node:
+        if key not in known:
+            where = f"{path}.{key}" if path else str(key)
+            raise _fail(where, f"unknown key (expected one of: {', '.join(sorted(known)) or 'none'})", key)
+    out: dict[str, Any] = {}
+    for f in fields:
+        where = f"{path}.{f.name}" if path else f.name
+        if f.name in node:
+            out[f.name] = _parse_value(f, node[f.name], where)
+        elif f.default is REQUIRED:
+            raise _fail(where, "is required")
+        elif f.kind in ("map", "variant", "rotation"):
+            out[f.name] = _parse_value(f, f.default, where)
+        else:
+            out[f.name] = f.default
+    return out
+
+
+# --- documentation ----------------------------------------------------------------------------
+
+
+def _rows(fields: tuple[Field, ...], prefix: str) -> list[str]:
+    rows: list[str] = []
+    for f in fields:
+        name = f"{prefix}{f.name}"
+        if f.kind in ("map", "agents", "edges") and f.children:
+            default = "required" if f.default is REQUIRED else ""
+            rows.append(f"| `{name}` | {f.kind} | {default} | {f.unit} | {f.doc} |")
+            child_prefix = f"{name}[]." if f.kind in ("agents", "edges") else f"{name}."
+            rows.extend(_rows(f.children, child_prefix))
+            continue
+        if f.kind == "variant":
+            default = f"model: {f.default['model']}"
+            rows.append(f"| `{name}` | variant | {default} | {f.unit} | {f.doc} |")
+            for model, params in f.variants.items():
+                for p in params:
+                    d = "required" if p.default is REQUIRED else f"`{p.default}`"
+                    rows.append(f"| `{name}.{p.name}` ({model}) | {p.kind} | {d} | {p.unit} | {p.doc} |")
+            continue
+        default = "required" if f.default is REQUIRED else f"`{_fmt_default(f.default)}`"
+        kind = f.kind if not f.choices else " \\| ".join(f.choices)
+        rows.append(f"| `{name}` | {kind} | {default} | {f.unit} | {f.doc} |")
+    return rows
+
+
+def _fmt_default(value: Any) -> str:
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_fmt_default(v) for v in value) + "]"
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, dict) and not value:
+        return "{}"
+    return str(value)
+
+
+def schema_markdown() -> str:
+    """The reference table of every field of a formation file, in Markdown."""
+    header = [
+        "| field | kind | default | unit | meaning |",
+        "|---|---|---|---|---|",
+    ]
+    return "\n".join(header + _rows(TOP_FIELDS, "")) + "\n"

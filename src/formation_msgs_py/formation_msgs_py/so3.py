@@ -1,0 +1,160 @@
+"""SO(3) helpers for the controller, the plant and the formation files.
+
+Conventions: ``hat(w) @ x == cross(w, x)``; ``vee`` is its inverse on skew matrices;
+rotation vectors are axis * angle in radians; quaternions are (x, y, z, w), scalar last,
+the order of geometry_msgs and of scipy's default. The hot-path functions (``hat``, ``vee``,
+``exp_so3``, ``dexpinv_so3``) are written with plain numpy so they cost a few microseconds;
+parsing and conversions use scipy's ``Rotation``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from formation_msgs_py.errors import RotationError
+
+FloatArray = NDArray[np.float64]
+
+#: Tolerance of ``is_rotation`` on ||RᵀR − I||_F and |det R − 1|.
+ROTATION_TOLERANCE = 1e-6
+
+
+def hat(w: ArrayLike) -> FloatArray:
+    """Skew matrix S(w) of a 3-vector (or a stack (..., 3) -> (..., 3, 3))."""
+    w = np.asarray(w, dtype=np.float64)
+    S = np.zeros((*w.shape[:-1], 3, 3))
+    S[..., 0, 1] = -w[..., 2]
+    S[..., 0, 2] = w[..., 1]
+    S[..., 1, 0] = w[..., 2]
+    S[..., 1, 2] = -w[..., 0]
+    S[..., 2, 0] = -w[..., 1]
+    S[..., 2, 1] = w[..., 0]
+    return S
+
+
+def vee(S: ArrayLike) -> FloatArray:
+    """S⁻¹: the 3-vector of a skew matrix (or a stack)."""
+    S = np.asarray(S, dtype=np.float64)
+    return np.stack([S[..., 2, 1], S[..., 0, 2], S[..., 1, 0]], axis=-1)
+
+
+def vee_antisym(A: FloatArray) -> FloatArray:
+    """S⁻¹(A − Aᵀ) for a 3×3 matrix A (not necessarily skew)."""
+    return np.array([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]])
+
+
+#: Levi-Civita tensor: cross(a, b)_i = EPS[i, j, k] a_j b_k, and hat(w)_ij = −EPS[i, j, k] w_k.
+EPS = np.zeros((3, 3, 3))
+EPS[0, 1, 2] = EPS[1, 2, 0] = EPS[2, 0, 1] = 1.0
+EPS[0, 2, 1] = EPS[2, 1, 0] = EPS[1, 0, 2] = -1.0
+_HAT = -np.transpose(EPS, (2, 0, 1)).copy()  # hat(w) = einsum("kij,...k->...ij", _HAT, w)
+
+
+def cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise cross product of stacks (..., 3); one einsum, far cheaper than np.cross."""
+    return np.einsum("ijk,...j,...k->...i", EPS, a, b)
+
+
+def exp_so3(theta: ArrayLike) -> FloatArray:
+    """exp(S(θ)) by Rodrigues' formula, for θ of shape (..., 3); exact to rounding near 0.
+
+    R = cos θ·I + (sin θ/θ)·S(θ) + ((1 − cos θ)/θ²)·θθᵀ.
+    """
+    theta = np.asarray(theta, dtype=np.float64)
+    angle2 = np.einsum("...i,...i->...", theta, theta)
+    if np.min(angle2, initial=1.0) < 1e-8:
+        # Taylor series near 0, where the closed forms lose digits.
+        small = angle2 < 1e-8
+        safe2 = np.where(small, 1.0, angle2)
+        safe = np.sqrt(safe2)
+        a = np.where(small, 1.0 - angle2 / 6.0 + angle2 * angle2 / 120.0, np.sin(safe) / safe)
+        b = np.where(small, 0.5 - angle2 / 24.0 + angle2 * angle2 / 720.0, (1.0 - np.cos(safe)) / safe2)
+        c = np.where(small, 1.0 - angle2 / 2.0 + angle2 * angle2 / 24.0, np.cos(safe))
+    else:
+        angle = np.sqrt(angle2)
+        a = np.sin(angle) / angle
+        c = np.cos(angle)
+        b = (1.0 - c) / angle2
+    R = np.einsum("...,...i,...j->...ij", b, theta, theta)
+    R += np.einsum("kij,...k->...ij", _HAT, a[..., None] * theta)
+    R[..., 0, 0] += c
+    R[..., 1, 1] += c
+    R[..., 2, 2] += c
+    return R
+
+
+def log_so3(R: ArrayLike) -> FloatArray:
+    """Rotation vector of R (angle in [0, π]); robust near 0 and π (uses scipy)."""
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+
+
+def dexpinv_so3(theta: FloatArray, omega: FloatArray) -> FloatArray:
+    """Θ̇ such that R0·exp(S(Θ)) moves with body rate ω: Θ̇ = dexp⁻¹_{−Θ}(ω).
+
+    Exact closed form, vectorised over a leading axis; used by the RKMK integrator.
+    """
+    angle2 = np.einsum("...i,...i->...", theta, theta)
+    if np.min(angle2, initial=1.0) < 1e-6:
+        small = angle2 < 1e-6
+        safe2 = np.where(small, 1.0, angle2)
+        half = 0.5 * np.sqrt(safe2)
+        # c = (1 − (θ/2) cot(θ/2)) / θ², series 1/12 + θ²/720 near 0
+        c = np.where(small, 1.0 / 12.0 + angle2 / 720.0, (1.0 - half / np.tan(half)) / safe2)
+    else:
+        half = 0.5 * np.sqrt(angle2)
+        c = (1.0 - half / np.tan(half)) / angle2
+    txw = cross(theta, omega)
+    return omega + 0.5 * txw + c[..., None] * cross(theta, txw)
+
+
+def is_rotation(R: ArrayLike, tol: float = ROTATION_TOLERANCE) -> bool:
+    """True if R is 3×3, orthogonal and right-handed to ``tol``."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        return False
+    return bool(np.linalg.norm(R.T @ R - np.eye(3)) <= tol and abs(np.linalg.det(R) - 1.0) <= tol)
+
+
+def project_to_so3(M: ArrayLike) -> FloatArray:
+    """Nearest rotation (Frobenius norm) to a 3×3 matrix, by SVD."""
+    M = np.asarray(M, dtype=np.float64)
+    if M.shape != (3, 3):
+        raise RotationError(f"expected a 3x3 matrix, got shape {M.shape}")
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def orthonormality_error(R: ArrayLike) -> float:
+    """max over a stack of ||RᵀR − I||_F (0 for exact rotations)."""
+    R = np.asarray(R, dtype=np.float64)
+    eye = np.eye(3)
+    err = np.linalg.norm(np.swapaxes(R, -1, -2) @ R - eye, axis=(-2, -1))
+    return float(np.max(err))
+
+
+def matrix_from_quaternion_xyzw(q: ArrayLike) -> FloatArray:
+    """Rotation matrix of a quaternion (x, y, z, w); normalises q."""
+    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
+
+
+def quaternion_xyzw_from_matrix(R: ArrayLike) -> FloatArray:
+    """Quaternion (x, y, z, w) with w ≥ 0 of a rotation matrix."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    return q if q[-1] >= 0 else -q
+
+
+def matrix_from_rpy(rpy: ArrayLike) -> FloatArray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll) (REP 103 fixed-axis roll, pitch, yaw), radians."""
+    return Rotation.from_euler("xyz", np.asarray(rpy, dtype=np.float64)).as_matrix()
+
+
+def matrix_from_axis_angle(axis: ArrayLike, angle: float) -> FloatArray:
+    """Rotation of ``angle`` radians about ``axis`` (normalised; must be non-zero)."""
+    axis = np.asarray(axis, dtype=np.float64)
+    n = np.linalg.norm(axis)
+    if not np.isfinite(n) or n < 1e-12:
+        raise RotationError(f"axis {axis.tolist()} has no direction")
+    return Rotation.from_rotvec(axis / n * float(angle)).as_matrix()

@@ -1,0 +1,569 @@
+"""Formation files: load, validate, and split into the agent's and the simulator's views.
+
+``load_formation(path)`` returns an immutable :class:`FormationSpec` or raises
+:class:`FormationSpecError` naming the field, e.g.
+``edges[2].distance: 4.5 is not inside (d_col=2.0, d_con=4.0)``.
+
+An agent process uses :func:`agent_view` only: its own gains and velocity funnel and the
+specification of its incident edges (what the paper lets an agent know). The simulator uses
+:func:`simulator_view`: the true plant, disturbances and noise.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from formation_msgs_py import funnels
+from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.schema import TOP_FIELDS, parse_mapping
+from formation_msgs_py.so3 import (
+    is_rotation,
+    matrix_from_axis_angle,
+    matrix_from_quaternion_xyzw,
+    matrix_from_rpy,
+    project_to_so3,
+)
+
+# --- result objects ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class VelocityFunnel:
+    """ρ_v per channel [vx, vy, vz, wx, wy, wz]; ``rho_0 is None`` means auto."""
+
+    rho_0: tuple[float, ...] | None
+    auto_scale: float
+    auto_offset: float
+    rho_inf: tuple[float, ...]
+    decay: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class ControllerGains:
+    """What agent i knows of itself (paper: δ_i, γ_i, ρ_v,i)."""
+
+    delta: float
+    gamma: float
+    velocity_funnel: VelocityFunnel
+    saturation_margin: float
+    max_force: float | None
+    max_torque: float | None
+    measurement_timeout: float
+
+
+@dataclass(frozen=True)
+class SignalModel:
+    """A disturbance or noise model: ``model`` and its parameters."""
+
+    model: str
+    params: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    """True plant of one agent (simulator only). Inertia in the body frame, kg·m²."""
+
+    mass: float
+    inertia: np.ndarray
+    disturbance: SignalModel
+    velocity_noise: SignalModel
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """One agent: geometry, initial state (world pose, body twist), controller, plant."""
+
+    index: int
+    id: str
+    radius: float
+    sensing_radius: float
+    position: np.ndarray
+    R_world_body: np.ndarray
+    twist: np.ndarray
+    controller: ControllerGains
+    dynamics: Dynamics
+    position_noise_std: float
+    rotation_noise_std: float
+
+    @property
+    def frame(self) -> str:
+        """Frame and namespace name of the agent: ``agent_<id>``."""
+        return f"agent_{self.id}"
+
+
+@dataclass(frozen=True)
+class EdgeSpec:
+    """Edge k = (tail k1, head k2) with its desired offsets, bounds and funnels."""
+
+    index: int
+    tail: str
+    head: str
+    d_des: float
+    R_des: np.ndarray
+    d_col: float
+    d_con: float
+    rho_e_inf: float
+    decay_e: float
+    rho_psi_0: float
+    rho_psi_inf: float
+    decay_psi: float
+
+    @property
+    def c_col(self) -> float:
+        """C_col = d_des² − d_col² (m²)."""
+        return self.d_des**2 - self.d_col**2
+
+    @property
+    def c_con(self) -> float:
+        """C_con = d_con² − d_des² (m²)."""
+        return self.d_con**2 - self.d_des**2
+
+    @property
+    def name(self) -> str:
+        return f"{self.tail}-{self.head}"
+
+    def rho_e(self, t):
+        """Normalised distance performance function ρ_e(t)."""
+        return funnels.rho_e(t, self.c_col, self.c_con, self.rho_e_inf, self.decay_e)
+
+    def rho_psi(self, t):
+        """Orientation performance function ρ_ψ(t)."""
+        return funnels.exp_decay(self.rho_psi_0, self.rho_psi_inf, self.decay_psi, t)
+
+    def e_bounds(self, t):
+        """(lower, upper) bounds of e_k(t) in m²."""
+        r = self.rho_e(t)
+        return -self.c_col * r, self.c_con * r
+
+
+@dataclass(frozen=True)
+class SimulationSpec:
+    mode: str
+    duration: float
+    physics_rate: float
+    control_rate: float
+    controller: str
+    record_rate: float
+    seed: int
+    gravity: np.ndarray
+    spanning_tree: bool
+    rate_check: str
+    step_timeout: float
+    command_timeout: float
+
+    @property
+    def substeps(self) -> int:
+        """Integrator steps per control period."""
+        return round(self.physics_rate / self.control_rate)
+
+
+@dataclass(frozen=True)
+class FormationSpec:
+    """A validated formation file."""
+
+    name: str
+    description: str
+    source: str
+    simulation: SimulationSpec
+    agents: tuple[AgentSpec, ...]
+    edges: tuple[EdgeSpec, ...]
+    dropped_edges: tuple[tuple[str, str], ...]
+
+    def agent(self, agent_id: str | int) -> AgentSpec:
+        key = str(agent_id)
+        for a in self.agents:
+            if a.id == key:
+                return a
+        raise FormationSpecError("agents", f"no agent with id {key!r} (have {', '.join(self.agent_ids)})", key)
+
+    @property
+    def agent_ids(self) -> tuple[str, ...]:
+        return tuple(a.id for a in self.agents)
+
+    def with_simulation(self, **changes: Any) -> FormationSpec:
+        """A copy with simulation settings replaced (re-checked: rates stay multiples)."""
+        sim = {**self.simulation.__dict__, **changes}
+        _check_rates(sim["physics_rate"], sim["control_rate"])
+        return FormationSpec(
+            self.name, self.description, self.source, SimulationSpec(**sim), self.agents, self.edges, self.dropped_edges
+        )
+
+
+@dataclass(frozen=True)
+class IncidentEdge:
+    """An edge as seen by one of its agents: role ``tail`` or ``head`` and the neighbour."""
+
+    edge: EdgeSpec
+    role: str
+    neighbour: str
+
+
+@dataclass(frozen=True)
+class AgentView:
+    """All an agent process may know: its gains and funnel, its incident edges."""
+
+    agent_id: str
+    controller: ControllerGains
+    edges: tuple[IncidentEdge, ...]
+
+    @property
+    def neighbours(self) -> tuple[str, ...]:
+        return tuple(e.neighbour for e in self.edges)
+
+
+@dataclass(frozen=True)
+class SimulatorView:
+    """What the simulator knows: the whole true plant and the sensing geometry."""
+
+    name: str
+    simulation: SimulationSpec
+    agents: tuple[AgentSpec, ...]
+    edges: tuple[EdgeSpec, ...]
+
+
+def agent_view(spec: FormationSpec, agent_id: str | int) -> AgentView:
+    """The agent's view of a formation: nothing of the plant or of other agents' gains."""
+    me = spec.agent(agent_id)
+    incident = []
+    for e in spec.edges:
+        if e.tail == me.id:
+            incident.append(IncidentEdge(e, "tail", e.head))
+        elif e.head == me.id:
+            incident.append(IncidentEdge(e, "head", e.tail))
+    return AgentView(me.id, me.controller, tuple(incident))
+
+
+def simulator_view(spec: FormationSpec) -> SimulatorView:
+    return SimulatorView(spec.name, spec.simulation, spec.agents, spec.edges)
+
+
+# --- loading ----------------------------------------------------------------------------------
+
+
+def load_formation(path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> FormationSpec:
+    """Read, validate and return a formation file; ``overrides`` replace ``simulation`` keys."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise FormationSpecError("", f"formation file {str(path)!r} does not exist", str(path)) from None
+    except OSError as exc:
+        raise FormationSpecError("", f"cannot read {str(path)!r}: {exc.strerror}", str(path)) from None
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise FormationSpecError("", f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    if overrides:
+        document = copy.deepcopy(document) if isinstance(document, dict) else document
+        if isinstance(document, dict):
+            document.setdefault("simulation", {})
+            if isinstance(document["simulation"], dict):
+                document["simulation"].update(overrides)
+    return formation_from_dict(document, source=str(path), default_name=path.stem)
+
+
+def _deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in top.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) and "model" not in v:
+            out[k] = _deep_merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def _rotation_from(parsed: Mapping[str, Any], path: str) -> np.ndarray:
+    if "matrix" in parsed:
+        R = np.array(parsed["matrix"], dtype=np.float64)
+        if not is_rotation(R):
+            if parsed["project"]:
+                return project_to_so3(R)
+            err = float(np.linalg.norm(R.T @ R - np.eye(3)))
+            raise FormationSpecError(
+                f"{path}.matrix",
+                f"is not a rotation (‖RᵀR − I‖_F = {err:.3g}, det = {np.linalg.det(R):.4f}); "
+                "add 'project: true' to use its nearest rotation",
+                parsed["matrix"],
+            )
+        # Rotations given to 1e-6 are snapped so that the plant starts exactly in SO(3).
+        return project_to_so3(R)
+    if "quaternion" in parsed:
+        return matrix_from_quaternion_xyzw(parsed["quaternion"])
+    if "rpy" in parsed:
+        return matrix_from_rpy(parsed["rpy"])
+    axis, angle = parsed["axis_angle"]
+    return matrix_from_axis_angle(axis, angle)
+
+
+def _check_rates(physics_rate: float, control_rate: float) -> None:
+    ratio = physics_rate / control_rate
+    if ratio < 1 - 1e-9 or abs(ratio - round(ratio)) > 1e-9:
+        raise FormationSpecError(
+            "simulation.physics_rate",
+            f"{physics_rate:g} Hz is not an integer multiple of control_rate {control_rate:g} Hz",
+            physics_rate,
+        )
+
+
+def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: str = "formation") -> FormationSpec:
+    """Validate a parsed YAML document (see :func:`load_formation`)."""
+    if not isinstance(document, Mapping):
+        raise FormationSpecError("", f"a formation file is a mapping at the top level, got {type(document).__name__}")
+    top_plain = {k: v for k, v in document.items() if k not in ("agents", "edges", "defaults")}
+    top_fields = tuple(f for f in TOP_FIELDS if f.name not in ("agents", "edges", "defaults"))
+    known = {f.name for f in TOP_FIELDS}
+    for key in document:
+        if key not in known:
+            raise FormationSpecError(str(key), f"unknown key (expected one of: {', '.join(sorted(known))})", key)
+    top = parse_mapping(top_plain, top_fields, "")
+    sim = top["simulation"]
+    _check_rates(sim["physics_rate"], sim["control_rate"])
+
+    defaults = document.get("defaults") or {}
+    if not isinstance(defaults, Mapping) or set(defaults) - {"agent", "edge"}:
+        raise FormationSpecError("defaults", "expected a mapping with optional keys 'agent' and 'edge'", defaults)
+    agent_fields = next(f for f in TOP_FIELDS if f.name == "agents").children
+    edge_fields = next(f for f in TOP_FIELDS if f.name == "edges").children
+    for key, fields in (("agent", agent_fields), ("edge", edge_fields)):
+        block = defaults.get(key) or {}
+        if not isinstance(block, Mapping):
+            raise FormationSpecError(f"defaults.{key}", f"expected a mapping, got {block!r}", block)
+        names = {f.name for f in fields}
+        for k in block:
+            if k not in names:
+                raise FormationSpecError(
+                    f"defaults.{key}.{k}", f"unknown key (expected one of: {', '.join(sorted(names))})", k
+                )
+
+    raw_agents = document.get("agents")
+    if not isinstance(raw_agents, list) or len(raw_agents) < 2:
+        raise FormationSpecError("agents", f"expected a list of at least 2 agents, got {raw_agents!r:.80}", raw_agents)
+    raw_edges = document.get("edges")
+    if not isinstance(raw_edges, list) or not raw_edges:
+        raise FormationSpecError("edges", f"expected a non-empty list of edges, got {raw_edges!r:.80}", raw_edges)
+
+    agents = []
+    ids: dict[str, int] = {}
+    for i, raw in enumerate(raw_agents):
+        path = f"agents[{i}]"
+        if not isinstance(raw, Mapping):
+            raise FormationSpecError(path, f"expected a mapping, got {raw!r}", raw)
+        a = parse_mapping(_deep_merge(defaults.get("agent") or {}, raw), agent_fields, path)
+        if a["id"] in ids:
+            raise FormationSpecError(f"{path}.id", f"{a['id']!r} is used by agents[{ids[a['id']]}] too", a["id"])
+        ids[a["id"]] = i
+        agents.append(_make_agent(i, a, path))
+
+    edges_parsed = []
+    seen: dict[frozenset[str], int] = {}
+    for k, raw in enumerate(raw_edges):
+        path = f"edges[{k}]"
+        if not isinstance(raw, Mapping):
+            raise FormationSpecError(path, f"expected a mapping, got {raw!r}", raw)
+        e = parse_mapping(_deep_merge(defaults.get("edge") or {}, raw), edge_fields, path)
+        for end in ("tail", "head"):
+            if e[end] not in ids:
+                raise FormationSpecError(
+                    f"{path}.{end}", f"unknown agent {e[end]!r} (agents: {', '.join(ids)})", e[end]
+                )
+        if e["tail"] == e["head"]:
+            raise FormationSpecError(path, f"tail and head are the same agent {e['tail']!r}", e["tail"])
+        pair = frozenset((e["tail"], e["head"]))
+        if pair in seen:
+            raise FormationSpecError(path, f"duplicates edges[{seen[pair]}] ({e['tail']}, {e['head']})", raw)
+        seen[pair] = k
+        edges_parsed.append((k, e, path))
+
+    kept, dropped = _tree(list(ids), [(e["tail"], e["head"]) for _, e, _ in edges_parsed], sim["spanning_tree"])
+    by_id = {a.id: a for a in agents}
+    edges = []
+    for k, e, path in edges_parsed:
+        if k not in kept:
+            continue
+        edges.append(_make_edge(len(edges), e, path, by_id[e["tail"]], by_id[e["head"]]))
+
+    simulation = SimulationSpec(**{**sim, "gravity": np.array(sim["gravity"])})
+    return FormationSpec(
+        name=top["name"] or default_name,
+        description=top["description"],
+        source=source,
+        simulation=simulation,
+        agents=tuple(agents),
+        edges=tuple(edges),
+        dropped_edges=tuple((edges_parsed[k][1]["tail"], edges_parsed[k][1]["head"]) for k in dropped),
+    )
+
+
+def _tree(nodes: list[str], pairs: list[tuple[str, str]], reduce: bool) -> tuple[set[int], list[int]]:
+    """Indices of the edges kept (all, for a tree) and dropped (spanning-tree reduction)."""
+    parent = {n: n for n in nodes}
+
+    def find(x: str) -> str:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    kept: set[int] = set()
+    dropped: list[int] = []
+    for k, (a, b) in enumerate(pairs):
+        ra, rb = find(a), find(b)
+        if ra == rb:
+            if not reduce:
+                raise FormationSpecError(
+                    f"edges[{k}]",
+                    f"({a}, {b}) closes a cycle: the sensing graph must be a tree "
+                    "(set simulation.spanning_tree: true to drop such edges)",
+                    (a, b),
+                )
+            dropped.append(k)
+            continue
+        parent[ra] = rb
+        kept.add(k)
+    components: dict[str, list[str]] = {}
+    for n in nodes:
+        components.setdefault(find(n), []).append(n)
+    if len(components) > 1:
+        parts = sorted((sorted(c) for c in components.values()), key=len)
+        raise FormationSpecError(
+            "edges",
+            "the sensing graph is disconnected: components " + "; ".join("{" + ", ".join(c) + "}" for c in parts),
+            parts,
+        )
+    return kept, dropped
+
+
+def _make_agent(index: int, a: Mapping[str, Any], path: str) -> AgentSpec:
+    c = a["controller"]
+    vf = c["velocity_funnel"]
+    rho_0 = None if vf["rho_0"] == "auto" else tuple(vf["rho_0"])
+    if rho_0 is not None:
+        for ch, (r0, rinf) in enumerate(zip(rho_0, vf["rho_inf"])):
+            if rinf >= r0:
+                raise FormationSpecError(
+                    f"{path}.controller.velocity_funnel.rho_inf",
+                    f"channel {ch}: rho_inf {rinf:g} must be below rho_0 {r0:g}",
+                    rinf,
+                )
+    if not c["saturation_margin"] < 0.5:
+        raise FormationSpecError(
+            f"{path}.controller.saturation_margin",
+            f"{c['saturation_margin']!r} must be below 0.5",
+            c["saturation_margin"],
+        )
+    gains = ControllerGains(
+        delta=c["delta"],
+        gamma=c["gamma"],
+        velocity_funnel=VelocityFunnel(
+            rho_0, vf["auto_scale"], vf["auto_offset"], tuple(vf["rho_inf"]), tuple(vf["decay"])
+        ),
+        saturation_margin=c["saturation_margin"],
+        max_force=c["max_force"],
+        max_torque=c["max_torque"],
+        measurement_timeout=c["measurement_timeout"],
+    )
+    d = a["dynamics"]
+    J = np.array(d["inertia"], dtype=np.float64)
+    if not np.allclose(J, J.T, atol=1e-12):
+        raise FormationSpecError(f"{path}.dynamics.inertia", f"{J.tolist()} is not symmetric", d["inertia"])
+    eig = np.linalg.eigvalsh(J)
+    if eig.min() <= 0:
+        raise FormationSpecError(
+            f"{path}.dynamics.inertia",
+            f"{J.tolist()} is not positive definite (eigenvalues {eig.round(6).tolist()})",
+            d["inertia"],
+        )
+    dyn = Dynamics(
+        mass=d["mass"],
+        inertia=J,
+        disturbance=SignalModel(d["disturbance"]["model"], {k: v for k, v in d["disturbance"].items() if k != "model"}),
+        velocity_noise=SignalModel(
+            d["velocity_noise"]["model"], {k: v for k, v in d["velocity_noise"].items() if k != "model"}
+        ),
+    )
+    return AgentSpec(
+        index=index,
+        id=a["id"],
+        radius=a["radius"],
+        sensing_radius=a["sensing_radius"],
+        position=np.array(a["position"]),
+        R_world_body=_rotation_from(a["orientation"], f"{path}.orientation"),
+        twist=np.array(a["linear_velocity"] + a["angular_velocity"]),
+        controller=gains,
+        dynamics=dyn,
+        position_noise_std=a["measurement_noise"]["position_std"],
+        rotation_noise_std=a["measurement_noise"]["rotation_std"],
+    )
+
+
+def _make_edge(index: int, e: Mapping[str, Any], path: str, tail: AgentSpec, head: AgentSpec) -> EdgeSpec:
+    d_col = e["d_col"] if e["d_col"] is not None else tail.radius + head.radius
+    d_con = e["d_con"] if e["d_con"] is not None else min(tail.sensing_radius, head.sensing_radius)
+    d_des = e["distance"]
+    if not d_col < d_des < d_con:
+        raise FormationSpecError(
+            f"{path}.distance", f"{d_des:g} is not inside (d_col={d_col:g}, d_con={d_con:g})", d_des
+        )
+    s_min = min(tail.sensing_radius, head.sensing_radius)
+    if d_con > s_min + 1e-12:
+        raise FormationSpecError(
+            f"{path}.d_con",
+            f"{d_con:g} exceeds the sensing radius {s_min:g} of its agents: the edge would be lost inside its funnel",
+            d_con,
+        )
+    d0 = float(np.linalg.norm(head.position - tail.position))
+    if not d_col < d0 < d_con:
+        raise FormationSpecError(
+            path,
+            f"initial distance {d0:.4g} between {tail.id} and {head.id} is not inside "
+            f"(d_col={d_col:g}, d_con={d_con:g})",
+            d0,
+        )
+    R_des = _rotation_from(e["orientation"], f"{path}.orientation")
+    psi0 = 0.5 * float(np.trace(np.eye(3) - R_des.T @ head.R_world_body.T @ tail.R_world_body))
+    of = e["orientation_funnel"]
+    if of["rho_0"] >= 2.0:
+        raise FormationSpecError(f"{path}.orientation_funnel.rho_0", f"{of['rho_0']:g} must be below 2", of["rho_0"])
+    if psi0 >= of["rho_0"]:
+        raise FormationSpecError(
+            f"{path}.orientation_funnel.rho_0",
+            f"{of['rho_0']:g} must exceed the initial orientation error psi(0)={psi0:.4f}",
+            of["rho_0"],
+        )
+    if of["rho_inf"] >= of["rho_0"]:
+        raise FormationSpecError(
+            f"{path}.orientation_funnel.rho_inf",
+            f"{of['rho_inf']:g} must be below rho_0={of['rho_0']:g}",
+            of["rho_inf"],
+        )
+    c_max = max(d_des**2 - d_col**2, d_con**2 - d_des**2)
+    df = e["distance_funnel"]
+    if df["rho_inf"] >= c_max:
+        raise FormationSpecError(
+            f"{path}.distance_funnel.rho_inf",
+            f"{df['rho_inf']:g} must be below max(C_col, C_con)={c_max:g}",
+            df["rho_inf"],
+        )
+    return EdgeSpec(
+        index=index,
+        tail=tail.id,
+        head=head.id,
+        d_des=d_des,
+        R_des=R_des,
+        d_col=d_col,
+        d_con=d_con,
+        rho_e_inf=df["rho_inf"],
+        decay_e=df["decay"],
+        rho_psi_0=of["rho_0"],
+        rho_psi_inf=of["rho_inf"],
+        decay_psi=of["decay"],
+    )

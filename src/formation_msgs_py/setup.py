@@ -1,0 +1,19 @@
+from setuptools import find_packages, setup
+
+package_name = "formation_msgs_py"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["setuptools", "numpy", "scipy", "PyYAML"],
+    zip_safe=True,
+    maintainer="formation developers",
+    maintainer_email="formation@example.com",
+    description="Formation files, SO(3) helpers, funnels, topics, QoS and message conversions.",
+    license="Apache-2.0",
+)

@@ -1,0 +1,140 @@
+"""``formation-check FILE``: validate a formation file and say whether it is safe to run.
+
+Exit status: 0 valid, 1 valid but unsafe (a control rate below what the velocity loop needs,
+an initial error within a few percent of its funnel bound), 2 invalid (the message names the
+field). ``--schema`` prints the reference of every field of a formation file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.schema import schema_markdown
+from formation_msgs_py.spec import FormationSpec, load_formation
+from formation_sim.rates import rate_needs
+
+#: An initial normalised error closer than this fraction to its bound is "unsafe".
+INITIAL_MARGIN_WARN = 0.05
+
+
+def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
+    """(lines of the readable summary, list of reasons the file is unsafe)."""
+    sim = spec.simulation
+    lines = [
+        f"formation {spec.name} ({spec.source}): {len(spec.agents)} agents, {len(spec.edges)} edges, tree",
+        f"  simulation: mode {sim.mode}, {sim.duration:g} s, control {sim.control_rate:g} Hz, "
+        f"physics {sim.physics_rate:g} Hz, controller {sim.controller}, seed {sim.seed}, "
+        f"gravity {np.asarray(sim.gravity).tolist()}",
+    ]
+    if spec.dropped_edges:
+        lines.append("  spanning tree: dropped edges " + ", ".join(f"({a}, {b})" for a, b in spec.dropped_edges))
+    unsafe: list[str] = []
+    neighbours: dict[str, list[str]] = {a.id: [] for a in spec.agents}
+    for e in spec.edges:
+        neighbours[e.tail].append(e.head)
+        neighbours[e.head].append(e.tail)
+    lines.append("agents:")
+    lines.append("  id        mass [kg]   delta   gamma   neighbours")
+    for a in spec.agents:
+        lines.append(
+            f"  {a.id:<8} {a.dynamics.mass:>9.4g}   {a.controller.delta:>5.3g}   {a.controller.gamma:>5.3g}   "
+            + ", ".join(neighbours[a.id])
+        )
+    lines.append("edges (tail-head):")
+    lines.append("  edge      d_col  d_des  d_con   d(0)     e(0)   margin_e  psi(0)  rho_psi0  margin_psi")
+    by_id = {a.id: a for a in spec.agents}
+    for e in spec.edges:
+        d0 = float(np.linalg.norm(by_id[e.head].position - by_id[e.tail].position))
+        e0 = d0**2 - e.d_des**2
+        m_e = min(1 + e0 / e.c_col, 1 - e0 / e.c_con)
+        psi0 = 0.5 * float(np.trace(np.eye(3) - e.R_des.T @ by_id[e.head].R_world_body.T @ by_id[e.tail].R_world_body))
+        m_psi = 1 - psi0 / e.rho_psi_0
+        lines.append(
+            f"  {e.name:<8} {e.d_col:>6.3g} {e.d_des:>6.3g} {e.d_con:>6.3g} {d0:>6.3f} {e0:>8.3f} {m_e:>10.3f} "
+            f"{psi0:>7.4f} {e.rho_psi_0:>9.3g} {m_psi:>11.3f}"
+        )
+        if m_e < INITIAL_MARGIN_WARN:
+            unsafe.append(f"edge {e.name}: initial distance error within {m_e:.1%} of its bound")
+        if m_psi < INITIAL_MARGIN_WARN:
+            unsafe.append(f"edge {e.name}: initial orientation error within {m_psi:.1%} of rho_psi0")
+    lines.append(f"control rate needed by the velocity loop (zero-order hold at {sim.control_rate:g} Hz):")
+    lines.append("  agent     at t=0 [Hz]   at t=T [Hz]   verdict")
+    for n in rate_needs(spec):
+        if n.insufficient_from is None:
+            verdict = "ok"
+        else:
+            verdict = f"TOO LOW from t={n.insufficient_from:.2f} s"
+            unsafe.append(
+                f"agent {n.agent_id}: control rate {sim.control_rate:g} Hz is below the {n.at_end:.0f} Hz "
+                f"its velocity loop needs by t={sim.duration:g} s (from t={n.insufficient_from:.2f} s)"
+            )
+        lines.append(f"  {n.agent_id:<8} {n.at_start:>11.0f}   {n.at_end:>11.0f}   {verdict}")
+    return lines, unsafe
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-check",
+        description="Validate a formation file and print a summary: agents, tree, edges, initial errors and "
+        "margins, and the control rate each agent needs over the run. "
+        "Exit status: 0 valid, 1 valid but unsafe, 2 invalid.",
+    )
+    p.add_argument("file", type=Path, nargs="?", help="formation file (YAML)")
+    p.add_argument("--control-rate", type=float, help="check against this control rate [Hz] instead of the file's")
+    p.add_argument("--duration", type=float, help="check over this duration [s] instead of the file's")
+    p.add_argument(
+        "--spanning-tree",
+        action="store_true",
+        help="reduce a cyclic sensing graph to a spanning tree (prints the dropped edges)",
+    )
+    p.add_argument(
+        "--schema", action="store_true", help="print the reference of every formation-file field (Markdown) and exit"
+    )
+    p.add_argument("--quiet", action="store_true", help="print only problems")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.schema:
+        sys.stdout.write(schema_markdown())
+        return 0
+    if args.file is None:
+        parser.error("a formation file is required (or --schema)")
+    overrides = {}
+    if args.spanning_tree:
+        overrides["spanning_tree"] = True
+    if args.duration is not None:
+        overrides["duration"] = args.duration
+    try:
+        spec = load_formation(args.file, overrides=overrides or None)
+        if args.control_rate is not None:
+            ratio = spec.simulation.physics_rate / args.control_rate
+            physics = (
+                spec.simulation.physics_rate if ratio >= 1 and abs(ratio - round(ratio)) < 1e-9 else args.control_rate
+            )
+            spec = spec.with_simulation(control_rate=args.control_rate, physics_rate=physics)
+    except FormationSpecError as exc:
+        print(f"formation-check: INVALID: {exc}", file=sys.stderr)
+        return 2
+    lines, unsafe = report(spec)
+    if not args.quiet:
+        print("\n".join(lines))
+    if unsafe:
+        print("UNSAFE:", file=sys.stderr)
+        for reason in unsafe:
+            print(f"  - {reason}", file=sys.stderr)
+        return 1
+    if not args.quiet:
+        print("VALID: safe to run at these settings")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

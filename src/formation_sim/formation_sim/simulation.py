@@ -1,0 +1,73 @@
+"""The simulated world stepped at the control rate: shared by the headless runner and the
+simulator node, so both produce the same trajectory from the same file and seed.
+
+One control period: :meth:`Simulation.sense` gives every agent's measurements at t_k, the
+agents answer with wrenches, :meth:`Simulation.advance` integrates ``substeps`` physics steps
+with the wrenches held (zero-order hold) and moves to t_{k+1}.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from formation_msgs_py.spec import SimulatorView
+from formation_sim.measurement import MeasurementModel, RelativePoses
+from formation_sim.plant import Plant, PlantState, WrenchFunction
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """Everything the agents receive at one step: relative poses and noisy twists (N,6)."""
+
+    t: float
+    step: int
+    relative_poses: RelativePoses
+    velocities: np.ndarray
+
+
+class Simulation:
+    """Plant + measurement model + clock, advanced one control period at a time."""
+
+    def __init__(
+        self, view: SimulatorView, *, physics_rate: float | None = None, control_rate: float | None = None
+    ) -> None:
+        sim = view.simulation
+        self.view = view
+        self.control_rate = float(control_rate or sim.control_rate)
+        self.physics_rate = float(physics_rate or sim.physics_rate)
+        ratio = self.physics_rate / self.control_rate
+        if ratio < 1 - 1e-9 or abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                f"physics_rate {self.physics_rate:g} Hz is not an integer multiple "
+                f"of control_rate {self.control_rate:g} Hz"
+            )
+        self.substeps = round(ratio)
+        self.h = 1.0 / self.physics_rate
+        rng = np.random.default_rng(sim.seed)
+        # Separate streams: adding measurement noise must not change the plant's draws.
+        plant_rng, meas_rng = (np.random.default_rng(s) for s in rng.bit_generator.seed_seq.spawn(2))
+        self.plant = Plant(view, plant_rng)
+        self.sensors = MeasurementModel(view, meas_rng)
+        self.state: PlantState = self.plant.initial_state(view)
+        self.step_index = 0
+        self.agent_ids = tuple(a.id for a in view.agents)
+
+    @property
+    def t(self) -> float:
+        """Simulation time of the current step (s); exact multiple of the control period."""
+        return self.step_index / self.control_rate
+
+    def sense(self) -> Measurements:
+        s = self.state
+        return Measurements(
+            self.t, self.step_index, self.sensors.measure(s.p, s.R), self.plant.measured_velocity(self.t, s)
+        )
+
+    def advance(self, wrench: np.ndarray | WrenchFunction) -> None:
+        """Integrate one control period with ``wrench`` (N,6) held, or evaluated per stage."""
+        t0 = self.t
+        for i in range(self.substeps):
+            self.state = self.plant.step(t0 + i * self.h, self.state, wrench, self.h)
+        self.step_index += 1

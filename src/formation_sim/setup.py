@@ -1,0 +1,27 @@
+from setuptools import find_packages, setup
+
+package_name = "formation_sim"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["setuptools", "formation_msgs_py", "formation_agent", "numpy", "matplotlib"],
+    zip_safe=True,
+    maintainer="formation developers",
+    maintainer_email="formation@example.com",
+    description="Plant, measurements, headless runner, reports and the simulator node.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "formation-check = formation_sim.check:main",
+            "formation-headless = formation_sim.headless:main",
+            "formation-sim = formation_sim.sim_node:main",
+            "formation-generate = formation_sim.generate:main",
+        ],
+    },
+)

@@ -2,12 +2,15 @@
 
 Conventions: ``hat(w) @ x == cross(w, x)``; ``vee`` is its inverse on skew matrices;
 rotation vectors are axis * angle in radians; quaternions are (x, y, z, w), scalar last,
-the order of geometry_msgs and of scipy's default. The hot-path functions (``hat``, ``vee``,
-``exp_so3``, ``dexpinv_so3``) are written with plain numpy so they cost a few microseconds;
-parsing and conversions use scipy's ``Rotation``.
+the order of geometry_msgs and of scipy's default; :func:`quaternion_from_matrix` and
+:func:`matrix_from_quaternion` are the only quaternion conversions of the project (pure
+Python: they run per message). The plant's functions (``exp_so3``, ``dexpinv_so3``, ``cross``)
+are vectorised numpy; parsing uses scipy's ``Rotation``.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -135,15 +138,36 @@ def orthonormality_error(R: ArrayLike) -> float:
     return float(np.max(err))
 
 
-def matrix_from_quaternion_xyzw(q: ArrayLike) -> FloatArray:
-    """Rotation matrix of a quaternion (x, y, z, w); normalises q."""
-    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
+def quaternion_from_matrix(R: ArrayLike) -> tuple[float, float, float, float]:
+    """(x, y, z, w), w ≥ 0, of a rotation matrix (Shepperd's method, pure Python)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist() if isinstance(R, np.ndarray) else R
+    tr = r00 + r11 + r22
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
+    elif r00 > r11 and r00 > r22:
+        s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
+        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
+    elif r11 > r22:
+        s = 2.0 * math.sqrt(1.0 + r11 - r00 - r22)
+        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
+        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
+    if w < 0:
+        x, y, z, w = -x, -y, -z, -w
+    return x, y, z, w
 
 
-def quaternion_xyzw_from_matrix(R: ArrayLike) -> FloatArray:
-    """Quaternion (x, y, z, w) with w ≥ 0 of a rotation matrix."""
-    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
-    return q if q[-1] >= 0 else -q
+def matrix_from_quaternion(x: float, y: float, z: float, w: float) -> list[list[float]]:
+    """Rotation matrix (nested lists) of a quaternion; normalises it."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
 
 
 def matrix_from_rpy(rpy: ArrayLike) -> FloatArray:

@@ -26,7 +26,7 @@ from formation_msgs_py.schema import TOP_FIELDS, parse_mapping
 from formation_msgs_py.so3 import (
     is_rotation,
     matrix_from_axis_angle,
-    matrix_from_quaternion_xyzw,
+    matrix_from_quaternion,
     matrix_from_rpy,
     project_to_so3,
 )
@@ -297,7 +297,7 @@ def _rotation_from(parsed: Mapping[str, Any], path: str) -> np.ndarray:
         # Rotations given to 1e-6 are snapped so that the plant starts exactly in SO(3).
         return project_to_so3(R)
     if "quaternion" in parsed:
-        return matrix_from_quaternion_xyzw(parsed["quaternion"])
+        return np.array(matrix_from_quaternion(*parsed["quaternion"]))
     if "rpy" in parsed:
         return matrix_from_rpy(parsed["rpy"])
     axis, angle = parsed["axis_angle"]

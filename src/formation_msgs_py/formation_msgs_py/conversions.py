@@ -1,0 +1,114 @@
+"""numpy ⇄ ROS message conversions, one function per message type and direction.
+
+geometry_msgs quaternions are fields (x, y, z, w); our rotations are 3×3 row-major matrices,
+converted by :func:`formation_msgs_py.so3.quaternion_from_matrix` and its inverse only. Time
+stamps are float seconds on our side and (sec, nanosec) on the wire; simulation times are
+multiples of the control period, so :func:`stamp_from_seconds` rounds to the nanosecond
+and :func:`seconds_from_stamp` maps it back to the same float.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Pose, PoseArray, TransformStamped, TwistStamped, WrenchStamped
+from rosgraph_msgs.msg import Clock
+
+from formation_msgs_py import topics
+from formation_msgs_py.so3 import matrix_from_quaternion, quaternion_from_matrix
+
+NS_PER_S = 1_000_000_000
+
+
+def stamp_from_seconds(t: float) -> Time:
+    ns = round(t * NS_PER_S)
+    return Time(sec=ns // NS_PER_S, nanosec=ns % NS_PER_S)
+
+
+def seconds_from_stamp(stamp: Time) -> float:
+    return stamp.sec + stamp.nanosec / NS_PER_S
+
+
+def stamp_ns(stamp: Time) -> int:
+    """A stamp as integer nanoseconds (exact: use it to match steps)."""
+    return stamp.sec * NS_PER_S + stamp.nanosec
+
+
+def relative_pose_to_msg(
+    t: float, observer: str, target: str, p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]
+) -> TransformStamped:
+    msg = TransformStamped()
+    msg.header.stamp = stamp_from_seconds(t)
+    msg.header.frame_id = topics.agent_frame(observer)
+    msg.child_frame_id = topics.agent_frame(target)
+    tr = msg.transform.translation
+    tr.x, tr.y, tr.z = (float(c) for c in p_i_j_in_i)
+    q = msg.transform.rotation
+    q.x, q.y, q.z, q.w = quaternion_from_matrix(R_i_j)
+    return msg
+
+
+def relative_pose_from_msg(msg: TransformStamped) -> tuple[list[float], list[list[float]]]:
+    """(p_i_j_in_i, R_i_j) as Python lists, the form the controller reads fastest."""
+    tr = msg.transform.translation
+    q = msg.transform.rotation
+    return [tr.x, tr.y, tr.z], matrix_from_quaternion(q.x, q.y, q.z, q.w)
+
+
+def twist_to_msg(t: float, agent_id: str, v: Sequence[float]) -> TwistStamped:
+    msg = TwistStamped()
+    msg.header.stamp = stamp_from_seconds(t)
+    msg.header.frame_id = topics.agent_frame(agent_id)
+    lin, ang = msg.twist.linear, msg.twist.angular
+    lin.x, lin.y, lin.z, ang.x, ang.y, ang.z = (float(c) for c in v)
+    return msg
+
+
+def twist_from_msg(msg: TwistStamped) -> list[float]:
+    lin, ang = msg.twist.linear, msg.twist.angular
+    return [lin.x, lin.y, lin.z, ang.x, ang.y, ang.z]
+
+
+def wrench_to_msg(stamp: Time, agent_id: str, u: Sequence[float]) -> WrenchStamped:
+    msg = WrenchStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = topics.agent_frame(agent_id)
+    f, tq = msg.wrench.force, msg.wrench.torque
+    f.x, f.y, f.z, tq.x, tq.y, tq.z = (float(c) for c in u)
+    return msg
+
+
+def wrench_from_msg(msg: WrenchStamped) -> list[float]:
+    f, tq = msg.wrench.force, msg.wrench.torque
+    return [f.x, f.y, f.z, tq.x, tq.y, tq.z]
+
+
+def poses_to_msg(t: float, p, R) -> PoseArray:
+    """Ground truth: world poses of every agent, in formation-file order."""
+    msg = PoseArray()
+    msg.header.stamp = stamp_from_seconds(t)
+    msg.header.frame_id = topics.WORLD_FRAME
+    poses = []
+    for pi, Ri in zip(p.tolist(), R.tolist()):
+        pose = Pose()
+        pose.position.x, pose.position.y, pose.position.z = pi
+        o = pose.orientation
+        o.x, o.y, o.z, o.w = quaternion_from_matrix(Ri)
+        poses.append(pose)
+    msg.poses = poses
+    return msg
+
+
+def poses_from_msg(msg: PoseArray) -> tuple[list[list[float]], list[list[list[float]]]]:
+    """(p (N,3), R (N,3,3)) as nested lists from a ground-truth PoseArray."""
+    p = [[ps.position.x, ps.position.y, ps.position.z] for ps in msg.poses]
+    R = [
+        matrix_from_quaternion(ps.orientation.x, ps.orientation.y, ps.orientation.z, ps.orientation.w)
+        for ps in msg.poses
+    ]
+    return p, R
+
+
+def clock_msg(t: float) -> Clock:
+    return Clock(clock=stamp_from_seconds(t))

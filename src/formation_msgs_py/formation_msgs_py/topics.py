@@ -1,0 +1,39 @@
+"""Topic and frame names of DESIGN.md §3, defined once (no ROS import).
+
+Names are relative (no leading slash) so that a run's namespace applies; with the default
+empty namespace they resolve to the absolute names of DESIGN.md.
+"""
+
+from __future__ import annotations
+
+CLOCK = "/clock"  # ROS fixes /clock at the root, whatever the namespace
+GROUND_TRUTH = "formation/ground_truth"
+DIAGNOSTICS = "/diagnostics"  # the ROS convention: one global diagnostics topic
+WORLD_FRAME = "world"
+
+
+def agent_frame(agent_id: str) -> str:
+    """Body frame (and namespace) of an agent: ``agent_<id>``."""
+    return f"agent_{agent_id}"
+
+
+def relative_pose(observer: str, target: str) -> str:
+    """Relative pose of ``target`` measured by ``observer`` (TransformStamped)."""
+    return f"agent_{observer}/relative_pose/agent_{target}"
+
+
+def velocity(agent_id: str) -> str:
+    """Noisy body twist of an agent (TwistStamped)."""
+    return f"agent_{agent_id}/velocity"
+
+
+def wrench(agent_id: str) -> str:
+    """Body wrench an agent commands (WrenchStamped)."""
+    return f"agent_{agent_id}/wrench"
+
+
+def agent_node_name(agent_id: str) -> str:
+    return f"formation_agent_{agent_id}"
+
+
+SIM_NODE_NAME = "formation_sim"

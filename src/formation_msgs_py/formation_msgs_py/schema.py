@@ -440,10 +440,9 @@ def parse_mapping(node: Any, fields: tuple[Field, ...], path: str) -> dict[str, 
             out[f.name] = _parse_value(f, node[f.name], where)
         elif f.default is REQUIRED:
             raise _fail(where, "is required")
-        elif f.kind in ("map", "variant", "rotation"):
-            out[f.name] = _parse_value(f, f.default, where)
         else:
-            out[f.name] = f.default
+            # defaults go through the same parser, so they are normalised like given values
+            out[f.name] = _parse_value(f, f.default, where)
     return out
 
 

@@ -1,0 +1,225 @@
+"""The per-agent controller against the paper's equations, from local measurements only."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from formation_agent.controller import ERROR, OK, AgentController, MissingMeasurementError
+from formation_msgs_py.so3 import exp_so3, vee
+from formation_msgs_py.spec import FormationSpec, agent_view, load_formation
+
+RNG = np.random.default_rng(5)
+
+
+@pytest.fixture
+def spec(paper_path: Path) -> FormationSpec:
+    return load_formation(paper_path)
+
+
+def world(spec: FormationSpec) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([a.position for a in spec.agents]), np.array([a.R_world_body for a in spec.agents])
+
+
+def measurements(spec: FormationSpec, p: np.ndarray, R: np.ndarray, agent: str) -> dict:
+    """Noise-free relative poses agent ``agent`` receives: (R_iᵀ(p_j − p_i), R_iᵀR_j)."""
+    idx = {a.id: a.index for a in spec.agents}
+    i = idx[agent]
+    return {
+        ie.neighbour: (R[i].T @ (p[idx[ie.neighbour]] - p[i]), R[i].T @ R[idx[ie.neighbour]])
+        for ie in agent_view(spec, agent).edges
+    }
+
+
+def edge_errors(spec, p, R):
+    idx = {a.id: a.index for a in spec.agents}
+    out = []
+    for e in spec.edges:
+        t, h = idx[e.tail], idx[e.head]
+        d = p[h] - p[t]
+        A = R[t].T @ R[h] @ e.R_des
+        out.append((d @ d - e.d_des**2, 0.5 * np.trace(np.eye(3) - e.R_des.T @ R[h].T @ R[t]), vee(A - A.T)))
+    return out
+
+
+def test_tail_and_head_agree_on_every_edge(spec) -> None:
+    """The sign convention: both ends of an edge compute the same e_k and ψ_k from their own view."""
+    p, R = world(spec)
+    outs = {
+        a.id: AgentController(agent_view(spec, a.id)).compute(0.3, measurements(spec, p, R, a.id), np.zeros(6))
+        for a in spec.agents
+    }
+    truth = edge_errors(spec, p, R)
+    for k, e in enumerate(spec.edges):
+        for agent in (e.tail, e.head):
+            slot = [ie.edge.index for ie in agent_view(spec, agent).edges].index(k)
+            assert outs[agent].e[slot] == pytest.approx(truth[k][0], abs=1e-12)
+            assert outs[agent].psi[slot] == pytest.approx(truth[k][1], abs=1e-12)
+
+
+def test_norm_of_e_R_is_4psi_2_minus_psi() -> None:
+    """‖e_R‖² = 4ψ(2 − ψ) (the paper prints 2ψ(2 − ψ): NOTES.md)."""
+    Q = Rotation.random(500, random_state=3).as_matrix()
+    R_des = Rotation.random(500, random_state=4).as_matrix()
+    A = Q @ R_des
+    e_R = vee(A - np.swapaxes(A, 1, 2))
+    psi = 0.5 * (3 - np.trace(A, axis1=1, axis2=2))
+    np.testing.assert_allclose(np.sum(e_R**2, axis=1), 4 * psi * (2 - psi), atol=1e-12)
+
+
+def test_error_rates_match_finite_differences(spec) -> None:
+    """ė_k = 2 qᵀ(R_k1ᵀR_k2 v_k2 − v_k1) and ψ̇_k = ½ e_Rᵀ(R_k1ᵀR_k2 ω_k2 − ω_k1) (eq. errors derivative)."""
+    p, R = world(spec)
+    idx = {a.id: a.index for a in spec.agents}
+    v = RNG.normal(size=(len(p), 6))
+    h = 1e-6
+
+    def moved(s: float):
+        return p + s * np.einsum("nij,nj->ni", R, v[:, :3]), R @ exp_so3(s * v[:, 3:])
+
+    plus, minus = edge_errors(spec, *moved(h)), edge_errors(spec, *moved(-h))
+    for k, e in enumerate(spec.edges):
+        t, hd = idx[e.tail], idx[e.head]
+        q = R[t].T @ (p[hd] - p[t])
+        Q = R[t].T @ R[hd]
+        e_dot = 2 * q @ (Q @ v[hd, :3] - v[t, :3])
+        e_R = edge_errors(spec, p, R)[k][2]
+        psi_dot = 0.5 * e_R @ (Q @ v[hd, 3:] - v[t, 3:])
+        # central differences: O(h²) truncation, 1e-10/h rounding → tolerance 1e-6
+        assert (plus[k][0] - minus[k][0]) / (2 * h) == pytest.approx(e_dot, abs=1e-6)
+        assert (plus[k][1] - minus[k][1]) / (2 * h) == pytest.approx(psi_dot, abs=1e-6)
+
+
+def vector_form_v_des(spec: FormationSpec, p: np.ndarray, R: np.ndarray, t: float) -> np.ndarray:
+    """v_des of every agent from the paper's vector form (eq. control design vectors) with D_R."""
+    N, K = len(spec.agents), len(spec.edges)
+    idx = {a.id: a.index for a in spec.agents}
+    D = np.zeros((N, K))
+    for k, e in enumerate(spec.edges):
+        D[idx[e.head], k], D[idx[e.tail], k] = 1.0, -1.0
+    R_bar = np.zeros((3 * N, 3 * N))
+    for i in range(N):
+        R_bar[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = R[i]
+    R_hat = np.zeros((3 * K, 3 * K))
+    F_p = np.zeros((3 * K, K))
+    sig_e = np.zeros(K)
+    sig_psi = np.zeros(K)
+    e_R = np.zeros(3 * K)
+    for k, (e, (ek, psik, eRk)) in enumerate(zip(spec.edges, edge_errors(spec, p, R))):
+        t_i, h_i = idx[e.tail], idx[e.head]
+        R_hat[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = R[t_i]
+        F_p[3 * k : 3 * k + 3, k] = 2 * (p[h_i] - p[t_i])
+        rho_e, rho_psi = e.rho_e(t), e.rho_psi(t)
+        xi = ek / rho_e
+        eps = math.log((1 + xi / e.c_col) / (1 - xi / e.c_con))
+        sig_e[k] = (1 / (e.c_col + xi) + 1 / (e.c_con - xi)) / rho_e * eps
+        sig_psi[k] = 1 / (1 - psik / rho_psi) / rho_psi
+        e_R[3 * k : 3 * k + 3] = eRk
+    D_R = R_bar.T @ np.kron(D, np.eye(3)) @ R_hat
+    Delta = np.kron(np.diag([a.controller.delta for a in spec.agents]), np.eye(3))
+    v_L = -Delta @ D_R @ R_hat.T @ F_p @ sig_e
+    omega = -Delta @ D_R @ np.kron(np.diag(sig_psi), np.eye(3)) @ e_R
+    return np.hstack([v_L.reshape(N, 3), omega.reshape(N, 3)])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_per_agent_law_equals_vector_form(spec, seed) -> None:
+    """eq. vel_i_des per agent = eq. control design vectors with D_R = R̄ᵀ(D⊗I)R̂."""
+    rng = np.random.default_rng(seed)
+    p, R = world(spec)
+    # stay inside the funnels: edge 3-4 starts 8 % from its bound
+    p = p + rng.normal(scale=0.02, size=p.shape)
+    R = R @ exp_so3(rng.normal(scale=0.05, size=(len(p), 3)))
+    t = rng.uniform(0, 0.05)
+    expected = vector_form_v_des(spec, p, R, t)
+    for a in spec.agents:
+        out = AgentController(agent_view(spec, a.id)).compute(t, measurements(spec, p, R, a.id), np.zeros(6))
+        np.testing.assert_allclose(out.v_des, expected[a.index], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_wrench_is_invariant_under_rigid_motion_of_the_formation(spec, seed) -> None:
+    """Relative information only: moving and turning the whole formation changes no wrench."""
+    rng = np.random.default_rng(100 + seed)
+    p, R = world(spec)
+    v = rng.normal(scale=0.3, size=(len(p), 6))
+    G = Rotation.random(random_state=seed).as_matrix()
+    offset = rng.uniform(-100, 100, size=3)
+    p2, R2 = p @ G.T + offset, G @ R
+    t = rng.uniform(0, 2)
+    for a in spec.agents:
+        u1 = AgentController(agent_view(spec, a.id)).compute(t, measurements(spec, p, R, a.id), v[a.index]).wrench
+        u2 = AgentController(agent_view(spec, a.id)).compute(t, measurements(spec, p2, R2, a.id), v[a.index]).wrench
+        # rounding of p up to 1e2 m propagates to ~1e-13 relative
+        np.testing.assert_allclose(u2, u1, rtol=1e-9, atol=1e-9)
+
+
+def test_following_v_des_decreases_the_transformed_errors(spec) -> None:
+    """With v = v_des (kinematics only) V = ½Σε_e² + Σε_ψ decreases at every step (paper's proof, step I)."""
+    p, R = world(spec)
+    ctrls = {a.id: AgentController(agent_view(spec, a.id)) for a in spec.agents}
+    dt, t = 1e-3, 0.0
+
+    def lyapunov(p, R, t):
+        V = 0.0
+        for e, (ek, psik, _) in zip(spec.edges, edge_errors(spec, p, R)):
+            xi = ek / e.rho_e(t)
+            V += 0.5 * math.log((1 + xi / e.c_col) / (1 - xi / e.c_con)) ** 2 - math.log(1 - psik / e.rho_psi(t))
+        return V
+
+    V0 = V_prev = lyapunov(p, R, t)
+    e0 = np.array([x[0] for x in edge_errors(spec, p, R)])
+    for _ in range(300):
+        v = np.array([ctrls[a.id].compute(t, measurements(spec, p, R, a.id), np.zeros(6)).v_des for a in spec.agents])
+        p = p + dt * np.einsum("nij,nj->ni", R, v[:, :3])
+        R = R @ exp_so3(dt * v[:, 3:])
+        # frozen funnels (t fixed): the flow alone must make V decrease
+        V = lyapunov(p, R, t)
+        assert V < V_prev
+        V_prev = V
+    e1 = np.array([x[0] for x in edge_errors(spec, p, R)])
+    assert V < 0.9 * V0
+    assert np.abs(e1).sum() < np.abs(e0).sum()
+
+
+def test_outside_a_funnel_the_wrench_is_finite_and_the_level_error(spec) -> None:
+    """Past every bound (ξ_e beyond C_con, ψ beyond ρ_ψ, |ξ_v| > 1): finite, saturated wrench."""
+    view = agent_view(spec, 1)
+    ctrl = AgentController(view)
+    p, R = world(spec)
+    meas = measurements(spec, p, R, "1")
+    first = ctrl.compute(0.0, meas, np.zeros(6))
+    assert first.level in (OK, 1)
+    far = {j: (np.array(pj) * 3.0, Rj) for j, (pj, Rj) in meas.items()}
+    out = ctrl.compute(4.0, far, np.full(6, 50.0))
+    assert out.level == ERROR
+    assert all(math.isfinite(x) for x in out.wrench)
+    assert min(out.margin_e) < 0 and min(out.margin_v) < 0
+    nan = {j: (np.array([np.nan, 0, 0]), Rj) for j, (_, Rj) in meas.items()}
+    bad = ctrl.compute(4.0, nan, np.zeros(6))
+    assert bad.level == ERROR and bad.wrench == (0.0,) * 6
+
+
+def test_missing_neighbour_is_named(spec) -> None:
+    ctrl = AgentController(agent_view(spec, 3))
+    p, R = world(spec)
+    meas = measurements(spec, p, R, "3")
+    del meas["4"]
+    with pytest.raises(MissingMeasurementError, match="neighbour\\(s\\) 4"):
+        ctrl.compute(0.0, meas, np.zeros(6))
+    fault = ctrl.fault_output(0.0, "stale")
+    assert fault.level == ERROR and fault.wrench == (0.0,) * 6
+
+
+def test_rho_v0_is_set_at_the_first_step(spec) -> None:
+    """ρ_v,0 = 2|e_v(0)| + 1 per channel (NOTES.md), then held."""
+    ctrl = AgentController(agent_view(spec, 2))
+    p, R = world(spec)
+    v = np.array([0.1, -0.2, 0.3, 0.0, 0.05, -0.05])
+    out = ctrl.compute(0.0, measurements(spec, p, R, "2"), v)
+    np.testing.assert_allclose(ctrl.rho_v0, 2 * np.abs(v - np.array(out.v_des)) + 1, rtol=1e-15)
+    np.testing.assert_allclose(out.xi_v, (v - np.array(out.v_des)) / np.array(ctrl.rho_v0), rtol=1e-12)

@@ -1,0 +1,62 @@
+"""formation-check: exit 0 valid, 1 valid but unsafe, 2 invalid with the field named."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import yaml
+
+from formation_sim import check
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_paper_preset_is_valid_at_10khz(paper_path, capsys) -> None:
+    assert check.main([str(paper_path)]) == 0
+    out = capsys.readouterr().out
+    assert "5 agents, 4 edges" in out and "VALID" in out
+    assert "2988" in out  # agent 1 needs ~3 kHz by t = 5 s (NOTES.md)
+
+
+def test_paper_preset_at_1khz_is_unsafe(paper_path, capsys) -> None:
+    assert check.main([str(paper_path), "--control-rate", "1000"]) == 1
+    err = capsys.readouterr().err
+    assert "agent 1: control rate 1000 Hz is below" in err
+
+
+def test_initial_error_near_its_bound_is_unsafe(paper_doc, tmp_path, capsys) -> None:
+    """Edge 1-2 at 3.98 m with d_con = 4: within 1 % of the connectivity bound."""
+    paper_doc["agents"][1]["position"] = [0.0, 0.0, 3.98]
+    path = tmp_path / "near.yaml"
+    path.write_text(yaml.safe_dump(paper_doc))
+    assert check.main([str(path), "--quiet"]) == 1
+    assert "edge 1-2: initial distance error within" in capsys.readouterr().err
+
+
+def test_invalid_file_exits_2_naming_the_field(paper_doc, tmp_path, capsys) -> None:
+    paper_doc["edges"][2]["distance"] = 4.5
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(paper_doc))
+    assert check.main([str(path)]) == 2
+    assert "edges[2].distance: 4.5 is not inside (d_col=2.0, d_con=4.0)" in capsys.readouterr().err
+
+
+def test_spanning_tree_option_prints_dropped_edges(paper_doc, tmp_path, capsys) -> None:
+    paper_doc["edges"].append({"tail": 2, "head": 3})
+    path = tmp_path / "cyclic.yaml"
+    path.write_text(yaml.safe_dump(paper_doc))
+    assert check.main([str(path), "--quiet"]) == 2
+    assert check.main([str(path), "--spanning-tree"]) == 0
+    assert "dropped edges (2, 3)" in capsys.readouterr().out
+
+
+def test_console_script_and_schema(paper_path) -> None:
+    """The installed console script runs; --schema prints the reference table."""
+    exe = REPO / ".venv" / "bin" / "formation-check"
+    res = subprocess.run([str(exe), "--schema"], capture_output=True, text=True, check=True)
+    assert "| `agents[].dynamics.mass` | float | required | kg |" in res.stdout
+    res = subprocess.run(
+        [str(exe), str(paper_path), "--control-rate", "1000", "--quiet"], capture_output=True, text=True
+    )
+    assert res.returncode == 1

@@ -1,0 +1,135 @@
+"""The Newton-Euler plant, its RKMK4 integrator, the signal models and the measurements."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formation_msgs_py.so3 import orthonormality_error
+from formation_msgs_py.spec import SignalModel, formation_from_dict, load_formation, simulator_view
+from formation_sim.measurement import MeasurementModel
+from formation_sim.plant import Plant, PlantState
+from formation_sim.signals import SignalBank
+
+
+def tumbling_body(gravity=(0.0, 0.0, 0.0)):
+    """Two agents (the plant needs a formation); agent a has an asymmetric inertia."""
+    agent = {"radius": 0.5, "sensing_radius": 5.0}
+    doc = {
+        "simulation": {"gravity": list(gravity)},
+        "agents": [
+            {
+                "id": "a",
+                "position": [0, 0, 0],
+                "angular_velocity": [3.0, 0.2, -1.0],
+                "linear_velocity": [1, 0, 0],
+                "dynamics": {"mass": 2.0, "inertia": [0.1, 0.2, 0.3]},
+                **agent,
+            },
+            {"id": "b", "position": [2, 0, 0], "dynamics": {"mass": 1.0, "inertia": [0.1, 0.1, 0.1]}, **agent},
+        ],
+        "edges": [{"tail": "a", "head": "b", "distance": 1.5}],
+    }
+    view = simulator_view(formation_from_dict(doc))
+    plant = Plant(view)
+    return plant, plant.initial_state(view)
+
+
+def integrate(plant: Plant, s: PlantState, u: np.ndarray, h: float, T: float) -> PlantState:
+    for k in range(round(T / h)):
+        s = plant.step(k * h, s, u, h)
+    return s
+
+
+def test_rotation_stays_in_so3() -> None:
+    """Fast tumbling for 5 000 steps: ‖RᵀR − I‖_F stays below 1e-12."""
+    plant, s = tumbling_body()
+    s = integrate(plant, s, np.zeros((2, 6)), 1e-3, 5.0)
+    assert orthonormality_error(s.R) < 1e-12
+
+
+def test_torque_free_body_conserves_energy_and_momentum() -> None:
+    """No input: kinetic energy and world angular momentum R J ω are conserved (to 1e-9)."""
+    plant, s0 = tumbling_body()
+    s = integrate(plant, s0, np.zeros((2, 6)), 1e-3, 2.0)
+    J = plant.inertia[0]
+
+    def energy(st):
+        w = st.v[0, 3:]
+        return 0.5 * w @ J @ w + 0.5 * plant.mass[0] * st.v[0, :3] @ st.v[0, :3]
+
+    assert energy(s) == pytest.approx(energy(s0), rel=1e-9)
+    np.testing.assert_allclose(s.R[0] @ J @ s.v[0, 3:], s0.R[0] @ J @ s0.v[0, 3:], atol=1e-9)
+    # free translation: the world velocity R v_L is constant
+    np.testing.assert_allclose(s.R[0] @ s.v[0, :3], s0.R[0] @ s0.v[0, :3], atol=1e-9)
+
+
+def test_integrator_converges_at_fourth_order() -> None:
+    """Halving the step divides the error by about 16 (RKMK4), with input and coupling."""
+    plant, s0 = tumbling_body()
+    u = np.array([[0.5, -0.2, 0.1, 0.05, -0.02, 0.03], [0, 0, 0, 0, 0, 0]])
+    ref = integrate(plant, s0, u, 5e-4, 1.0)
+    errs = []
+    for h in (2e-2, 1e-2, 5e-3):
+        s = integrate(plant, s0, u, h, 1.0)
+        errs.append(np.abs(s.R - ref.R).max() + np.abs(s.p - ref.p).max() + np.abs(s.v - ref.v).max())
+    ratios = [errs[0] / errs[1], errs[1] / errs[2]]
+    assert all(12 < r < 20 for r in ratios), ratios
+
+
+def test_gravity_free_fall() -> None:
+    """gravity [0, 0, −9.81]: p_z = −½ g t² for a body at rest (RK4 is exact for this)."""
+    plant, s = tumbling_body(gravity=(0, 0, -9.81))
+    s.v[:] = 0.0
+    s = integrate(plant, s, np.zeros((2, 6)), 1e-3, 1.0)
+    np.testing.assert_allclose(s.p[:, 2], -0.5 * 9.81, atol=1e-12)
+    np.testing.assert_allclose(s.p[1, :2], [2, 0], atol=1e-12)
+
+
+def test_paper_disturbance_is_the_printed_formula(paper_path: Path) -> None:
+    """w_i = A sin(‖p_1‖₁ tr(R_i) ω t + φ) v_i with the first agent's position (literal reading)."""
+    spec = load_formation(paper_path)
+    view = simulator_view(spec)
+    plant = Plant(view)
+    s = plant.initial_state(view)
+    s.p[0] = [0.5, -1.0, 2.0]
+    rng = np.random.default_rng(1)
+    s.v[:] = rng.normal(size=s.v.shape)
+    t = 1.7
+    w = plant.disturbance.evaluate(t, s.p, s.R, s.v)
+    for i, a in enumerate(spec.agents):
+        prm = a.dynamics.disturbance.params
+        gain = prm["amplitude"] * np.sin(3.5 * np.trace(s.R[i]) * prm["frequency"] * t + prm["phase"])
+        np.testing.assert_allclose(w[i], gain * s.v[i], rtol=1e-14)
+
+
+def test_random_signal_is_seeded_and_bounded() -> None:
+    models = [SignalModel("random", {"bound": (0.3,) * 6, "max_frequency": 2.0, "components": 4})] * 3
+    a = SignalBank(models, np.random.default_rng(9))
+    b = SignalBank(models, np.random.default_rng(9))
+    z = np.zeros((3, 3))
+    R = np.broadcast_to(np.eye(3), (3, 3, 3))
+    ts = np.linspace(0, 20, 2001)
+    va = np.array([a.evaluate(t, z, R, np.zeros((3, 6))) for t in ts])
+    vb = np.array([b.evaluate(t, z, R, np.zeros((3, 6))) for t in ts])
+    np.testing.assert_array_equal(va, vb)
+    assert np.abs(va).max() <= 0.3 + 1e-12
+    assert np.abs(va).max() > 0.1
+
+
+def test_measurements_respect_the_sensing_radius(paper_path: Path) -> None:
+    """A neighbour beyond agent i's sensing radius is not measured; the rest are R_iᵀ(p_j − p_i)."""
+    spec = load_formation(paper_path)
+    view = simulator_view(spec)
+    model = MeasurementModel(view, np.random.default_rng(0))
+    p = np.array([a.position for a in spec.agents])
+    R = np.array([a.R_world_body for a in spec.agents])
+    meas = model.measure(p, R)
+    assert set(meas["3"]) == {"1", "4", "5"}
+    np.testing.assert_allclose(meas["2"]["1"][0], R[1].T @ (p[0] - p[1]), atol=1e-15)
+    np.testing.assert_allclose(meas["2"]["1"][1], R[1].T @ R[0], atol=1e-15)
+    p[3] = p[2] + [4.5, 0, 0]  # agent 4 leaves the 4 m sensing radius of agent 3
+    meas = model.measure(p, R)
+    assert set(meas["3"]) == {"1", "5"} and "3" not in meas["4"]

@@ -1,0 +1,313 @@
+"""Offline analysis of a recorded run (no ROS): ``formation-analyze BAG --out DIR``.
+
+From ``/formation/ground_truth`` it recomputes every e_k and ψ_k and checks every funnel with
+the same :class:`formation_sim.report.RunRecorder` the headless runner and the simulator use,
+so the outputs have the format of DESIGN.md §8 (summary.json, trajectory.npz, errors.png,
+orientation_errors.png, inputs.png). Per ground-truth sample (stamp t_k) it uses:
+
+- u: the wrench each agent published with stamp t_k (else the latest earlier one: zero-order hold);
+- ṽ (trajectory ``v``): the recorded noisy twist (the bag has no true velocity);
+- the velocity-funnel margins and controller levels: from re-running each agent's controller on
+  its recorded measurements (:mod:`formation_bag.rerun`; exactly what the agent computed), with
+  the same fault order as the headless runner (missing measurement, funnels, controller ERROR).
+
+It also writes CSV exports (errors.csv, inputs.csv, positions.csv), and ``ages.json``/``ages.csv``:
+the age of every measurement and wrench per edge and agent, in simulation time (latest /clock at
+receipt − header stamp) and in wall time (receipt − receipt of the /clock that announced the
+stamp), and each agent's response time (wrench receipt − receipt of its velocity with that stamp).
+A bag truncated by a killed recorder is analysed as far as it goes (``bag.truncated`` in the summary).
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import csv
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formation_agent.controller import ERROR
+from formation_bag import messages as m
+from formation_bag.dataset import RunData, Series, load_run
+from formation_bag.errors import BagError
+from formation_bag.rerun import AgentRerun, rerun_all
+from formation_msgs_py.errors import FormationSpecError
+from formation_sim.report import RunRecorder, format_summary, write_outputs
+
+VELOCITY_MARGIN_MODES = ("rerun", "none")
+
+
+def _rate_from_stamps(stamps: list[int]) -> float | None:
+    if len(stamps) < 2:
+        return None
+    d = np.diff(np.array(stamps, dtype=np.int64))
+    d = d[d > 0]
+    if not d.size:
+        return None
+    return float(m.NS_PER_S / np.median(d))
+
+
+def analyze_run(
+    run: RunData,
+    *,
+    velocity_margins: str = "rerun",
+    reruns: dict[str, AgentRerun] | None = None,
+) -> tuple[RunRecorder, dict[str, Any], dict[str, AgentRerun]]:
+    """Check every funnel on a decoded run; returns (recorder, summary, re-runs)."""
+    if velocity_margins not in VELOCITY_MARGIN_MODES:
+        raise ValueError(f"velocity_margins {velocity_margins!r} is not one of {VELOCITY_MARGIN_MODES}")
+    started = time.perf_counter()
+    spec = run.spec
+    ids = list(spec.agent_ids)
+    gt = run.ground_truth
+    gt_rate = _rate_from_stamps(gt.stamps)
+    custom = run.custom_data
+    try:
+        control_rate = float(custom["control_rate"])
+    except (KeyError, ValueError):
+        control_rate = _rate_from_stamps(run.velocity[ids[0]].stamps) or gt_rate or spec.simulation.control_rate
+    mode = custom.get("mode") or spec.simulation.mode
+    record_every = max(1, round((gt_rate or control_rate) / spec.simulation.record_rate))
+    recorder = RunRecorder(spec, record_every=record_every, mode=mode, control_rate=control_rate)
+
+    if velocity_margins == "rerun" and reruns is None:
+        reruns = rerun_all(run)
+    reruns = reruns or {}
+    rerun_index = {a: {int(s): k for k, s in enumerate(r.stamps)} for a, r in reruns.items()}
+
+    def at(series: Series, stamp: int) -> Any:
+        k = series.latest_at(stamp)
+        return None if k is None else series.values[k]
+
+    wrench_exact = {a: dict(zip(run.wrench[a].stamps, run.wrench[a].values)) for a in ids}
+    zeros6 = [0.0] * 6
+    for stamp, (p_list, R_list) in zip(gt.stamps, gt.values):
+        t = m.seconds(stamp)
+        outs = []
+        if reruns:
+            for a in ids:
+                r = reruns.get(a)
+                k = None if r is None else rerun_index[a].get(stamp)
+                if k is None and r is not None:
+                    j = bisect.bisect_right(r.stamps, stamp) - 1
+                    k = j if j >= 0 else None
+                outs.append(None if k is None else (r.outputs[k], r.faults[k], int(r.stamps[k]) == stamp))
+            for a, o in zip(ids, outs):
+                if o is not None and o[2] and o[1] is not None:
+                    recorder.fault(t, "measurement", a, o[1])
+        u = np.array([wrench_exact[a].get(stamp) or at(run.wrench[a], stamp) or zeros6 for a in ids])
+        v = np.array([at(run.velocity[a], stamp) or zeros6 for a in ids])
+        margin_v = None
+        if reruns:
+            margin_v = np.array([o[0].margin_v if o is not None else (math.inf,) * 6 for o in outs])
+        recorder.add(t, np.array(p_list), np.array(R_list), v, u, margin_v)
+        if reruns and recorder.first_violation is None:
+            bad = next(((a, o[0]) for a, o in zip(ids, outs) if o is not None and o[2] and o[0].level == ERROR), None)
+            if bad is not None:
+                recorder.fault(t, "controller", bad[0], bad[1].message)
+    wall = (run.last_log - run.first_log) / m.NS_PER_S
+    expected = round(spec.simulation.duration * (gt_rate or control_rate)) + 1
+    gaps = 0
+    if gt_rate:
+        step = m.NS_PER_S / gt_rate
+        gaps = int(sum(max(0, round((b - a) / step) - 1) for a, b in zip(gt.stamps, gt.stamps[1:])))
+    truncated = bool(run.lost) or len(gt) < expected
+    bag_info = {
+        "path": str(run.path),
+        "recovered_without_metadata": run.recovered,
+        "lost": run.lost,
+        "truncated": truncated,
+        "ground_truth_samples": len(gt),
+        "ground_truth_expected": expected,
+        "ground_truth_gaps": gaps,
+        "ground_truth_rate": gt_rate,
+        "topics": run.topic_counts,
+        "velocity_margins": velocity_margins,
+        "rerun": {
+            a: {"equal": r.first_difference(1e-12) is None, "max_abs_diff": r.max_abs_diff, "compared": r.compared}
+            for a, r in reruns.items()
+        },
+        "analysis_time": time.perf_counter() - started,
+    }
+    summary = recorder.summary(wall_time=wall, extra={"source": "bag", "bag": bag_info})
+    return recorder, summary, reruns
+
+
+# -- ages -----------------------------------------------------------------------------------------
+
+
+def _stats(x: list[float]) -> dict[str, float | int | None]:
+    if not x:
+        return {"count": 0, "mean": None, "median": None, "p95": None, "max": None}
+    a = np.array(x)
+    return {
+        "count": int(a.size),
+        "mean": float(a.mean()),
+        "median": float(np.median(a)),
+        "p95": float(np.percentile(a, 95)),
+        "max": float(a.max()),
+    }
+
+
+def message_ages(run: RunData) -> dict[str, Any]:
+    """Age of measurements and wrenches per edge link and agent (sim time and wall time, seconds)."""
+    clock = run.clock
+    clock_logs = sorted(zip(clock.log_times, clock.stamps))
+    c_log = [c[0] for c in clock_logs]
+    c_val = [c[1] for c in clock_logs]
+    first_announce: dict[int, int] = {}
+    for lg, val in clock_logs:
+        first_announce.setdefault(val, lg)
+
+    def ages(series: Series) -> dict[str, Any]:
+        sim, wall = [], []
+        for stamp, lg in zip(series.stamps, series.log_times):
+            k = bisect.bisect_right(c_log, lg) - 1
+            if k >= 0:
+                sim.append((c_val[k] - stamp) / m.NS_PER_S)
+            a = first_announce.get(stamp)
+            if a is not None:
+                wall.append((lg - a) / m.NS_PER_S)
+        return {"sim_age": _stats(sim), "wall_latency": _stats(wall)}
+
+    out: dict[str, Any] = {
+        "clock_messages": len(clock),
+        "relative_pose": {f"{i}->{j}": ages(s) for (i, j), s in sorted(run.relative_pose.items())},
+        "velocity": {a: ages(s) for a, s in run.velocity.items()},
+        "wrench": {},
+        "ground_truth": ages(run.ground_truth),
+    }
+    for a, s in run.wrench.items():
+        entry = ages(s)
+        vlog = dict(zip(run.velocity[a].stamps, run.velocity[a].log_times))
+        entry["response_wall"] = _stats(
+            [(lg - vlog[st]) / m.NS_PER_S for st, lg in zip(s.stamps, s.log_times) if st in vlog]
+        )
+        out["wrench"][a] = entry
+    return out
+
+
+# -- outputs ------------------------------------------------------------------------------------
+
+
+def write_csv(out: Path, recorder: RunRecorder, ages: dict[str, Any]) -> list[Path]:
+    """errors.csv, inputs.csv, positions.csv (the decimated trajectory) and ages.csv."""
+    arr = recorder.arrays()
+    spec = recorder.spec
+    names = [e.name for e in spec.edges]
+    ids = list(spec.agent_ids)
+    t = arr["t"]
+    paths = []
+
+    def write(name: str, header: list[str], rows: Any) -> None:
+        path = out / name
+        with path.open("w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            w.writerows(rows)
+        paths.append(path)
+
+    if t.size:
+        K, N = len(names), len(ids)
+        write(
+            "errors.csv",
+            ["t"]
+            + [f"e_{n}" for n in names]
+            + [f"psi_{n}" for n in names]
+            + [f"rho_e_{n}" for n in names]
+            + [f"rho_psi_{n}" for n in names],
+            (
+                [repr(float(t[k]))] + [repr(float(x)) for x in np.concatenate(
+                    [arr["e"][k], arr["psi"][k], arr["rho_e"][k], arr["rho_psi"][k]]
+                )]
+                for k in range(t.size)
+            ),
+        )
+        comps = ("fx", "fy", "fz", "tx", "ty", "tz")
+        write(
+            "inputs.csv",
+            ["t"] + [f"{c}_{a}" for a in ids for c in comps],
+            ([repr(float(t[k]))] + [repr(float(x)) for x in arr["u"][k].reshape(N * 6)] for k in range(t.size)),
+        )
+        write(
+            "positions.csv",
+            ["t"] + [f"{c}_{a}" for a in ids for c in ("x", "y", "z")],
+            ([repr(float(t[k]))] + [repr(float(x)) for x in arr["p"][k].reshape(N * 3)] for k in range(t.size)),
+        )
+        del K
+    rows = []
+    for kind in ("relative_pose", "velocity", "wrench"):
+        for key, entry in ages[kind].items():
+            for measure in ("sim_age", "wall_latency", "response_wall"):
+                if measure in entry:
+                    s = entry[measure]
+                    rows.append([kind, key, measure, s["count"], s["mean"], s["median"], s["p95"], s["max"]])
+    write("ages.csv", ["topic_kind", "link_or_agent", "measure", "count", "mean_s", "median_s", "p95_s", "max_s"], rows)
+    return paths
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-analyze",
+        description="Analyse a recorded run without ROS: recompute e_k and ψ_k from /formation/ground_truth, check "
+        "every funnel, write OUT as DESIGN.md §8 (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
+        "inputs.png) plus errors.csv, inputs.csv, positions.csv, ages.json, ages.csv. Works on lockstep and "
+        "realtime bags and on bags left by a killed recorder. Exit status: 0 every funnel held, 1 a funnel was "
+        "violated, 2 bad input.",
+    )
+    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
+    p.add_argument("--out", type=Path, help="output directory (default: out/<bag name>-analysis)")
+    p.add_argument("--formation", type=Path, help="formation file (default: the copy the recorder stored in the bag)")
+    p.add_argument(
+        "--velocity-margins",
+        choices=VELOCITY_MARGIN_MODES,
+        default="rerun",
+        help="rerun: velocity-funnel margins and controller faults from re-running the agents' controllers on the "
+        "recorded measurements (default); none: check the distance and orientation funnels only",
+    )
+    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    started = time.perf_counter()
+    out = args.out or Path("out") / f"{args.bag.resolve().name}-analysis"
+    try:
+        if out.exists() and any(out.iterdir()) and not args.force:
+            raise FileExistsError(f"output directory {out} exists and is not empty (use --force to overwrite)")
+        run = load_run(args.bag, formation=args.formation, namespace=args.namespace)
+    except (BagError, FormationSpecError, FileExistsError, FileNotFoundError) as exc:
+        print(f"formation-analyze: {exc}", file=sys.stderr)
+        return 2
+    for lost in run.lost:
+        print(f"formation-analyze: warning: lost {lost}", file=sys.stderr)
+    if run.recovered:
+        print("formation-analyze: warning: no usable metadata.yaml; read the segment files directly", file=sys.stderr)
+    recorder, summary, _ = analyze_run(run, velocity_margins=args.velocity_margins)
+    ages = message_ages(run)
+    out.mkdir(parents=True, exist_ok=True)
+    write_outputs(out, recorder, summary, plots=not args.no_plots)
+    (out / "ages.json").write_text(json.dumps(ages, indent=2) + "\n", encoding="utf-8")
+    write_csv(out, recorder, ages)
+    print(format_summary(summary))
+    b = summary["bag"]
+    print(
+        f"bag: {b['ground_truth_samples']} ground-truth samples of {b['ground_truth_expected']} expected, "
+        f"{b['ground_truth_gaps']} gaps{', TRUNCATED' if b['truncated'] else ''}; "
+        f"analysed in {time.perf_counter() - started:.2f} s"
+    )
+    print(f"outputs in {out}/")
+    return 0 if summary["funnels_held"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

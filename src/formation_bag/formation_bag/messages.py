@@ -1,0 +1,222 @@
+"""The DESIGN.md §3 topics without ROS: names, types, and CDR <-> Python values via rosbags.
+
+Decoding mirrors :mod:`formation_msgs_py.conversions` (which needs the ROS message classes):
+the same field order and the same quaternion conversion (:func:`so3.matrix_from_quaternion`),
+so a relative pose decoded here gives the controller exactly the numbers the agent node saw.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
+
+from formation_msgs_py import topics
+from formation_msgs_py.so3 import matrix_from_quaternion, quaternion_from_matrix
+
+NS_PER_S = 1_000_000_000
+
+TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
+TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
+WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
+POSE_ARRAY = "geometry_msgs/msg/PoseArray"
+CLOCK = "rosgraph_msgs/msg/Clock"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+
+
+@cache
+def typestore() -> Typestore:
+    """The ROS 2 Jazzy typestore (shared, built once)."""
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+@dataclass(frozen=True)
+class TopicKind:
+    """What a topic name means: ``kind`` in relative_pose/velocity/wrench/ground_truth/clock/diagnostics."""
+
+    kind: str
+    msgtype: str
+    agent: str | None = None
+    target: str | None = None
+
+
+_RE_REL = re.compile(r"^(?P<ns>.*?)/?agent_(?P<i>[^/]+)/relative_pose/agent_(?P<j>[^/]+)$")
+_RE_VEL = re.compile(r"^(?P<ns>.*?)/?agent_(?P<i>[^/]+)/velocity$")
+_RE_WRENCH = re.compile(r"^(?P<ns>.*?)/?agent_(?P<i>[^/]+)/wrench$")
+
+
+def absolute(name: str, namespace: str = "") -> str:
+    """Resolve a DESIGN.md topic name (relative or absolute) in ``namespace``."""
+    if name.startswith("/"):
+        return name
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    return f"{ns}/{name}"
+
+
+def classify(topic: str, namespace: str = "") -> TopicKind | None:
+    """The meaning of a recorded topic name, or None if it is not a DESIGN.md §3 topic."""
+    if topic == topics.CLOCK:
+        return TopicKind("clock", CLOCK)
+    if topic == topics.DIAGNOSTICS:
+        return TopicKind("diagnostics", DIAGNOSTIC_ARRAY)
+    if topic == absolute(topics.GROUND_TRUTH, namespace):
+        return TopicKind("ground_truth", POSE_ARRAY)
+    prefix = absolute("", namespace).rstrip("/")
+    if prefix and not topic.startswith(prefix + "/"):
+        return None
+    rest = topic[len(prefix) :]
+    if m := _RE_REL.match(rest):
+        if m["ns"]:
+            return None
+        return TopicKind("relative_pose", TRANSFORM_STAMPED, m["i"], m["j"])
+    if (m := _RE_VEL.match(rest)) and not m["ns"]:
+        return TopicKind("velocity", TWIST_STAMPED, m["i"])
+    if (m := _RE_WRENCH.match(rest)) and not m["ns"]:
+        return TopicKind("wrench", WRENCH_STAMPED, m["i"])
+    return None
+
+
+def formation_topics(
+    agent_ids: Sequence[str], edges: Sequence[tuple[str, str]], namespace: str = ""
+) -> dict[str, str]:
+    """Every DESIGN.md §3 topic of a formation: {absolute name: type}."""
+    out = {
+        topics.CLOCK: CLOCK,
+        absolute(topics.GROUND_TRUTH, namespace): POSE_ARRAY,
+        topics.DIAGNOSTICS: DIAGNOSTIC_ARRAY,
+    }
+    for a in agent_ids:
+        out[absolute(topics.velocity(a), namespace)] = TWIST_STAMPED
+        out[absolute(topics.wrench(a), namespace)] = WRENCH_STAMPED
+    for tail, head in edges:
+        out[absolute(topics.relative_pose(tail, head), namespace)] = TRANSFORM_STAMPED
+        out[absolute(topics.relative_pose(head, tail), namespace)] = TRANSFORM_STAMPED
+    return out
+
+
+# -- decoding -------------------------------------------------------------------------------------
+
+
+def stamp_ns(stamp: Any) -> int:
+    return stamp.sec * NS_PER_S + stamp.nanosec
+
+
+def seconds(stamp_ns_value: int) -> float:
+    """Float seconds of an integer-ns stamp, as conversions.seconds_from_stamp computes them."""
+    sec, nsec = divmod(stamp_ns_value, NS_PER_S)
+    return sec + nsec / NS_PER_S
+
+
+def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
+    return typestore().deserialize_cdr(data, msgtype)
+
+
+def decode_relative_pose(msg: Any) -> tuple[list[float], list[list[float]]]:
+    """(p_i_j_in_i, R_i_j), as conversions.relative_pose_from_msg."""
+    tr = msg.transform.translation
+    q = msg.transform.rotation
+    return [tr.x, tr.y, tr.z], matrix_from_quaternion(q.x, q.y, q.z, q.w)
+
+
+def decode_twist(msg: Any) -> list[float]:
+    lin, ang = msg.twist.linear, msg.twist.angular
+    return [lin.x, lin.y, lin.z, ang.x, ang.y, ang.z]
+
+
+def decode_wrench(msg: Any) -> list[float]:
+    f, tq = msg.wrench.force, msg.wrench.torque
+    return [f.x, f.y, f.z, tq.x, tq.y, tq.z]
+
+
+def decode_poses(msg: Any) -> tuple[list[list[float]], list[list[list[float]]]]:
+    """(p (N,3), R (N,3,3)) from a ground-truth PoseArray, as conversions.poses_from_msg."""
+    p = [[ps.position.x, ps.position.y, ps.position.z] for ps in msg.poses]
+    R = [
+        matrix_from_quaternion(ps.orientation.x, ps.orientation.y, ps.orientation.z, ps.orientation.w)
+        for ps in msg.poses
+    ]
+    return p, R
+
+
+# -- encoding (for bags written without ROS: synthetic runs, tests) -------------------------------
+
+
+class Encoder:
+    """Serialize the DESIGN.md §3 messages with rosbags (same fields as conversions.*_to_msg)."""
+
+    def __init__(self) -> None:
+        ts = typestore()
+        self.ts = ts
+        t = ts.types
+        self.Time = t["builtin_interfaces/msg/Time"]
+        self.Header = t["std_msgs/msg/Header"]
+        self.Vector3 = t["geometry_msgs/msg/Vector3"]
+        self.Quaternion = t["geometry_msgs/msg/Quaternion"]
+        self.Point = t["geometry_msgs/msg/Point"]
+        self.Pose = t["geometry_msgs/msg/Pose"]
+        self.Transform = t["geometry_msgs/msg/Transform"]
+        self.TransformStamped = t[TRANSFORM_STAMPED]
+        self.Twist = t["geometry_msgs/msg/Twist"]
+        self.TwistStamped = t[TWIST_STAMPED]
+        self.Wrench = t["geometry_msgs/msg/Wrench"]
+        self.WrenchStamped = t[WRENCH_STAMPED]
+        self.PoseArray = t[POSE_ARRAY]
+        self.Clock = t[CLOCK]
+
+    def time(self, ns: int) -> Any:
+        sec, nsec = divmod(ns, NS_PER_S)
+        return self.Time(sec=sec, nanosec=nsec)
+
+    def header(self, ns: int, frame: str) -> Any:
+        return self.Header(stamp=self.time(ns), frame_id=frame)
+
+    def clock(self, ns: int) -> bytes:
+        return bytes(self.ts.serialize_cdr(self.Clock(clock=self.time(ns)), CLOCK))
+
+    def relative_pose(
+        self, ns: int, observer: str, target: str, p: Sequence[float], R: Sequence[Sequence[float]]
+    ) -> bytes:
+        x, y, z, w = quaternion_from_matrix(R)
+        msg = self.TransformStamped(
+            header=self.header(ns, topics.agent_frame(observer)),
+            child_frame_id=topics.agent_frame(target),
+            transform=self.Transform(
+                translation=self.Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                rotation=self.Quaternion(x=x, y=y, z=z, w=w),
+            ),
+        )
+        return bytes(self.ts.serialize_cdr(msg, TRANSFORM_STAMPED))
+
+    def twist(self, ns: int, agent: str, v: Sequence[float]) -> bytes:
+        v = [float(c) for c in v]
+        msg = self.TwistStamped(
+            header=self.header(ns, topics.agent_frame(agent)),
+            twist=self.Twist(linear=self.Vector3(x=v[0], y=v[1], z=v[2]), angular=self.Vector3(x=v[3], y=v[4], z=v[5])),
+        )
+        return bytes(self.ts.serialize_cdr(msg, TWIST_STAMPED))
+
+    def wrench(self, ns: int, agent: str, u: Sequence[float]) -> bytes:
+        u = [float(c) for c in u]
+        msg = self.WrenchStamped(
+            header=self.header(ns, topics.agent_frame(agent)),
+            wrench=self.Wrench(force=self.Vector3(x=u[0], y=u[1], z=u[2]), torque=self.Vector3(x=u[3], y=u[4], z=u[5])),
+        )
+        return bytes(self.ts.serialize_cdr(msg, WRENCH_STAMPED))
+
+    def poses(self, ns: int, p: Sequence[Sequence[float]], R: Sequence[Sequence[Sequence[float]]]) -> bytes:
+        poses = []
+        for pi, Ri in zip(p, R):
+            x, y, z, w = quaternion_from_matrix(Ri)
+            poses.append(
+                self.Pose(
+                    position=self.Point(x=float(pi[0]), y=float(pi[1]), z=float(pi[2])),
+                    orientation=self.Quaternion(x=x, y=y, z=z, w=w),
+                )
+            )
+        msg = self.PoseArray(header=self.header(ns, topics.WORLD_FRAME), poses=poses)
+        return bytes(self.ts.serialize_cdr(msg, POSE_ARRAY))

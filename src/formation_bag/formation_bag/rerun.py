@@ -1,0 +1,235 @@
+"""Controller re-run: feed an agent's recorded measurements to the agent core, offline.
+
+``formation-rerun BAG [--agent ID …] [--override FILE] [--out DIR]``
+
+For each recorded velocity message of agent i (stamp t), the controller gets ṽ_i and, per tree
+neighbour j, the latest recorded relative pose with stamp ≤ t (no older than the agent's
+``measurement_timeout``; else the step is a fault with a zero wrench, as the headless runner
+does). In lockstep every measurement of step k carries the stamp t_k, so this is exactly what
+the agent node received; its wrench (stamped t_k) must then be reproduced to 1e-12. With an
+override file (gains, funnels) the report lists where and how much the wrenches change.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from formation_agent.controller import LEVEL_NAMES, AgentController, ControlOutput, MissingMeasurementError
+from formation_bag import messages as m
+from formation_bag.dataset import RunData, apply_overrides, load_run, spec_from_document
+from formation_bag.errors import BagError, OverrideError
+from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.spec import FormationSpec, agent_view
+
+DEFAULT_TOLERANCE = 1e-12
+
+
+@dataclass
+class AgentRerun:
+    """One agent's re-run, step by step (one step per recorded velocity message)."""
+
+    agent: str
+    stamps: np.ndarray  # (T,) int64 ns
+    outputs: list[ControlOutput]
+    faults: list[str | None]  # neighbours missing at that step ("2,3"), None if complete
+    recorded: np.ndarray  # (T,6), NaN where no wrench with that stamp was recorded
+    rerun: np.ndarray  # (T,6)
+
+    @property
+    def compared(self) -> int:
+        return int(np.sum(~np.isnan(self.recorded[:, 0])))
+
+    @property
+    def max_abs_diff(self) -> float:
+        d = np.abs(self.recorded - self.rerun)
+        d = d[~np.isnan(d[:, 0])]
+        return float(d.max()) if d.size else 0.0
+
+    def first_difference(self, tol: float) -> int | None:
+        d = np.abs(self.recorded - self.rerun).max(axis=1)
+        bad = np.nonzero(d > tol)[0]  # NaN compares False: missing wrenches are not differences
+        return int(bad[0]) if bad.size else None
+
+    def report(self, tol: float) -> dict[str, Any]:
+        k = self.first_difference(tol)
+        d = np.abs(self.recorded - self.rerun)
+        valid = ~np.isnan(d[:, 0])
+        force = np.linalg.norm(self.recorded[:, :3] - self.rerun[:, :3], axis=1)
+        torque = np.linalg.norm(self.recorded[:, 3:] - self.rerun[:, 3:], axis=1)
+        levels = [o.level for o in self.outputs]
+        return {
+            "steps": len(self.stamps),
+            "compared": self.compared,
+            "missing_recorded_wrench": int(np.sum(~valid)),
+            "equal": k is None,
+            "max_abs_diff": self.max_abs_diff,
+            "max_force_diff": float(np.nanmax(force)) if valid.any() else 0.0,
+            "max_torque_diff": float(np.nanmax(torque)) if valid.any() else 0.0,
+            "rms_diff": float(np.sqrt(np.nanmean(d[valid] ** 2))) if valid.any() else 0.0,
+            "first_difference": None
+            if k is None
+            else {
+                "t": m.seconds(int(self.stamps[k])),
+                "recorded": self.recorded[k].tolist(),
+                "rerun": self.rerun[k].tolist(),
+            },
+            "steps_differing": int(np.sum(d[valid].max(axis=1) > tol)) if valid.any() else 0,
+            "faults": sum(f is not None for f in self.faults),
+            "levels": {name: levels.count(i) for i, name in enumerate(LEVEL_NAMES)},
+            "min_margin_v_rerun": float(min((min(o.margin_v) for o in self.outputs), default=math.inf)),
+        }
+
+
+def rerun_agent(run: RunData, agent_id: str, spec: FormationSpec | None = None) -> AgentRerun:
+    """Re-run agent ``agent_id``'s controller on its recorded measurements (``spec`` may differ)."""
+    spec = spec or run.spec
+    view = agent_view(spec, agent_id)
+    ctrl = AgentController(view)
+    timeout_ns = round(view.controller.measurement_timeout * m.NS_PER_S)
+    vel = run.velocity[agent_id]
+    rel = {j: run.relative_pose.get((agent_id, j)) for j in view.neighbours}
+    wr = run.wrench[agent_id]
+    recorded_by_stamp = dict(zip(wr.stamps, wr.values))
+    stamps: list[int] = []
+    outs: list[ControlOutput] = []
+    faults: list[str | None] = []
+    rec_rows: list[list[float]] = []
+    last = None
+    for stamp, v in zip(vel.stamps, vel.values):
+        if stamp == last:
+            continue  # a duplicate velocity message: the agent answers a step once
+        last = stamp
+        t = m.seconds(stamp)
+        poses = {}
+        for j, series in rel.items():
+            if series is None:
+                continue
+            k = series.latest_at(stamp)
+            if k is not None and stamp - series.stamps[k] <= timeout_ns:
+                poses[j] = series.values[k]
+        try:
+            out = ctrl.compute(t, poses, v)
+            fault = None
+        except MissingMeasurementError as exc:
+            out = ctrl.fault_output(t, str(exc))
+            fault = ",".join(exc.neighbours)
+        stamps.append(stamp)
+        outs.append(out)
+        faults.append(fault)
+        rec_rows.append(recorded_by_stamp.get(stamp, [math.nan] * 6))
+    T = len(stamps)
+    return AgentRerun(
+        agent_id,
+        np.array(stamps, dtype=np.int64),
+        outs,
+        faults,
+        np.array(rec_rows, dtype=np.float64).reshape(T, 6),
+        np.array([o.wrench for o in outs], dtype=np.float64).reshape(T, 6),
+    )
+
+
+def rerun_all(
+    run: RunData, agents: list[str] | None = None, spec: FormationSpec | None = None
+) -> dict[str, AgentRerun]:
+    spec = spec or run.spec
+    ids = agents or list(spec.agent_ids)
+    for a in ids:
+        spec.agent(a)  # names the bad id
+    return {a: rerun_agent(run, a, spec) for a in ids}
+
+
+def load_override(path: Path) -> dict[str, Any]:
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise OverrideError(str(path), f"cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise OverrideError(str(path), f"not valid YAML: {exc}") from None
+    return doc or {}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-rerun",
+        description="Feed the recorded measurements of one or all agents to the agent's controller core "
+        "(offline, no ROS) and compare the wrenches with the recorded ones. Exit status: 0 equal within "
+        "--tolerance, 1 different, 2 bad input.",
+    )
+    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
+    p.add_argument("--agent", action="append", default=None, metavar="ID", help="agent id (repeatable; default all)")
+    p.add_argument("--formation", type=Path, help="formation file (default: the copy stored in the bag)")
+    p.add_argument(
+        "--override",
+        type=Path,
+        help="YAML file changing gains/funnels: {agents: {ID: {...}}, edges: {TAIL-HEAD: {...}}, defaults: {...}}",
+    )
+    p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="max |Δu| counted as equal (1e-12)")
+    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
+    p.add_argument("--out", type=Path, help="write rerun.json and rerun_<agent>.npz into this new directory")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.out is not None and args.out.exists() and any(args.out.iterdir()):
+            raise FileExistsError(f"output directory {args.out} exists and is not empty, not overwriting")
+        started = time.perf_counter()
+        run = load_run(args.bag, formation=args.formation, namespace=args.namespace, need_ground_truth=False)
+        spec = run.spec
+        if args.override is not None:
+            doc = apply_overrides(run.document, load_override(args.override), where=str(args.override))
+            spec = spec_from_document(doc, run.spec.source)
+        results = rerun_all(run, args.agent, spec)
+    except (BagError, FormationSpecError, FileExistsError, FileNotFoundError) as exc:
+        print(f"formation-rerun: {exc}", file=sys.stderr)
+        return 2
+    report = {
+        "bag": str(args.bag),
+        "override": None if args.override is None else str(args.override),
+        "tolerance": args.tolerance,
+        "agents": {a: r.report(args.tolerance) for a, r in results.items()},
+        "time": time.perf_counter() - started,
+    }
+    equal = all(r["equal"] for r in report["agents"].values())
+    report["equal"] = equal
+    for a, r in report["agents"].items():
+        verdict = "equal" if r["equal"] else "DIFFERENT"
+        line = (
+            f"agent {a}: {r['compared']}/{r['steps']} steps compared, max |Δu| {r['max_abs_diff']:.3g} "
+            f"(force {r['max_force_diff']:.3g} N, torque {r['max_torque_diff']:.3g} N·m): {verdict}"
+        )
+        if r["first_difference"] is not None:
+            line += f", first at t={r['first_difference']['t']:.6f} s, {r['steps_differing']} steps differ"
+        if r["missing_recorded_wrench"]:
+            line += f"; {r['missing_recorded_wrench']} steps without a recorded wrench"
+        print(line)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "rerun.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+        for a, r in results.items():
+            np.savez(
+                args.out / f"rerun_{a}.npz",
+                t=r.stamps / m.NS_PER_S,
+                recorded=r.recorded,
+                rerun=r.rerun,
+                margin_v=np.array([o.margin_v for o in r.outputs]).reshape(-1, 6),
+                level=np.array([o.level for o in r.outputs], dtype=np.int8),
+            )
+        print(f"report in {args.out}/rerun.json")
+    print(f"formation-rerun: wrenches {'reproduced' if equal else 'differ'} (tolerance {args.tolerance:g})")
+    return 0 if equal else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

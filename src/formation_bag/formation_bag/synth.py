@@ -1,0 +1,126 @@
+"""Lockstep bags without ROS: the headless closed loop, with every message written to a bag.
+
+For tests and benchmarks of the analysis and the re-run while no ROS run is at hand. Each
+control step k (t_k = k / control_rate) writes, in this order, what the ROS 2 lockstep run
+publishes: ``/clock``, ``/formation/ground_truth``, every relative pose, every velocity
+(all stamped t_k), then every agent's wrench stamped t_k. Each agent's controller computes
+from the *decoded* messages (quaternion -> matrix as the agent node does), so the recorded
+wrenches are what an agent node would publish. Log times are synthetic: ``wall_step`` seconds
+per step from ``start_ns``, ``message_spacing`` apart within a step.
+
+:func:`write_run_bag` returns the run's own summary (a RunRecorder filled as run_headless fills
+it), which ``formation-analyze`` must reproduce from the bag.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formation_agent.controller import ERROR, AgentController, MissingMeasurementError
+from formation_bag import messages as m
+from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
+from formation_bag.writer import SegmentedBagWriter, make_qos
+from formation_msgs_py import topics
+from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
+from formation_sim.report import RunRecorder
+from formation_sim.simulation import Simulation
+
+
+@dataclass
+class SynthResult:
+    summary: dict[str, Any]
+    recorder: RunRecorder
+    messages: int
+    steps: int
+
+
+def write_run_bag(
+    spec: FormationSpec,
+    bag: str | Path,
+    *,
+    formation_text: str | None = None,
+    storage: str = "mcap",
+    steps: int | None = None,
+    segment_seconds: float | None = 2.0,
+    wall_step: float = 1e-3,
+    message_spacing: float = 1e-6,
+    start_ns: int = 1_700_000_000 * m.NS_PER_S,
+    stop_on_violation: bool = False,
+) -> SynthResult:
+    """Run ``spec`` (sampled control, lockstep) and record every DESIGN.md §3 message in ``bag``."""
+    sim_spec = spec.simulation
+    sim = Simulation(simulator_view(spec))
+    ctrls = [AgentController(agent_view(spec, a.id)) for a in spec.agents]
+    ids = [a.id for a in spec.agents]
+    n_steps = round(sim_spec.duration * sim_spec.control_rate) if steps is None else steps
+    record_every = max(1, round(sim_spec.control_rate / sim_spec.record_rate))
+    recorder = RunRecorder(spec, record_every=record_every, mode="lockstep", control_rate=sim_spec.control_rate)
+    custom = {"mode": "lockstep", "control_rate": repr(float(sim_spec.control_rate)), "writer": "formation_bag.synth"}
+    if formation_text is not None:
+        custom[KEY_FORMATION_YAML] = formation_text
+        custom[KEY_FORMATION_FILE] = Path(spec.source).name
+    enc = m.Encoder()
+    gt_topic = m.absolute(topics.GROUND_TRUTH)
+    edges = [(e.tail, e.head) for e in spec.edges]
+    links = [(e.tail, e.head) for e in spec.edges] + [(e.head, e.tail) for e in spec.edges]
+    count = 0
+    started = time.perf_counter()
+    with SegmentedBagWriter(bag, storage=storage, segment_seconds=segment_seconds, custom_data=custom) as w:
+        for name, msgtype in m.formation_topics(ids, edges).items():
+            if msgtype != m.DIAGNOSTIC_ARRAY:
+                w.add_topic(name, msgtype, (make_qos(depth=1 if name == topics.CLOCK else 10),))
+        step_ns = round(wall_step * m.NS_PER_S)
+        space_ns = max(1, round(message_spacing * m.NS_PER_S))
+        for k in range(n_steps + 1):
+            meas = sim.sense()
+            stamp = round(meas.t * m.NS_PER_S)
+            log = start_ns + k * step_ns
+
+            def put(topic: str, data: bytes) -> None:
+                nonlocal log, count
+                w.write(topic, log, data)
+                log += space_ns
+                count += 1
+
+            s = sim.state
+            put(topics.CLOCK, enc.clock(stamp))
+            put(gt_topic, enc.poses(stamp, s.p.tolist(), s.R.tolist()))
+            received: dict[str, dict[str, Any]] = {a: {} for a in ids}
+            for i, j in links:
+                pose = meas.relative_poses[i].get(j)
+                if pose is None:
+                    continue
+                data = enc.relative_pose(stamp, i, j, pose[0], pose[1])
+                put(m.absolute(topics.relative_pose(i, j)), data)
+                received[i][j] = m.decode_relative_pose(m.deserialize(data, m.TRANSFORM_STAMPED))
+            vels = []
+            for idx, a in enumerate(ids):
+                data = enc.twist(stamp, a, meas.velocities[idx].tolist())
+                put(m.absolute(topics.velocity(a)), data)
+                vels.append(m.decode_twist(m.deserialize(data, m.TWIST_STAMPED)))
+            t = m.seconds(stamp)
+            outs = []
+            for idx, (a, c) in enumerate(zip(ids, ctrls)):
+                try:
+                    out = c.compute(t, received[a], vels[idx])
+                except MissingMeasurementError as exc:
+                    out = c.fault_output(t, str(exc))
+                    recorder.fault(t, "measurement", a, ",".join(exc.neighbours))
+                outs.append(out)
+                put(m.absolute(topics.wrench(a)), enc.wrench(stamp, a, out.wrench))
+            u = np.array([o.wrench for o in outs])
+            recorder.add(t, s.p, s.R, s.v, u, np.array([o.margin_v for o in outs]))
+            if any(o.level == ERROR for o in outs) and recorder.first_violation is None:
+                bad = next(o for o in outs if o.level == ERROR)
+                recorder.fault(t, "controller", ids[outs.index(bad)], bad.message)
+            if k == n_steps or (stop_on_violation and recorder.first_violation is not None):
+                break
+            sim.advance(u)
+    wall = time.perf_counter() - started
+    summary = recorder.summary(wall_time=wall, extra={"controller": "sampled", "physics_rate": sim_spec.physics_rate})
+    return SynthResult(summary, recorder, count, k + 1)

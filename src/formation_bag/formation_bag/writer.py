@@ -1,0 +1,430 @@
+"""A rosbag2 writer that writes in segments, so a killed recorder loses at most the last one.
+
+The bag is a standard multi-file rosbag2 directory as Jazzy's ``ros2 bag record`` leaves it
+(metadata version 9)::
+
+    BAG/metadata.yaml        relative_file_paths: [BAG_0.mcap, BAG_1.mcap, …], files: per-file info
+    BAG/BAG_0.mcap           closed segments (complete MCAP files with summary and index)
+    BAG/BAG_1.mcap
+    BAG/.BAG_2/.BAG_2.mcap   the open segment (moved to BAG/BAG_2.mcap when it is closed)
+
+Each segment is written by rosbags' :class:`rosbags.rosbag2.Writer` (typestore ``ROS2_JAZZY``)
+into a hidden directory and moved next to the others when it is closed; ``metadata.yaml`` is
+rewritten atomically after every closed segment. A recorder killed with SIGKILL therefore
+leaves a readable bag of every closed segment (``ros2 bag info`` works as is) and loses only
+the open one (rosbags keeps a segment in memory or in an uncommitted transaction until close).
+
+Segments close after ``segment_seconds`` of log time or ``segment_bytes`` of payload,
+whichever comes first, checked at every write.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from rosbags.interfaces import (
+    Connection,
+    ConnectionExtRosbag2,
+    MessageDefinition,
+    MessageDefinitionFormat,
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.errors import WriterError
+from rosbags.rosbag2.metadata import dump_qos_v9
+from rosbags.typesys.store import Typestore
+
+from formation_bag.errors import BagExistsError, BagWriterError
+from formation_bag.messages import typestore
+
+STORAGES = {"mcap": (StoragePlugin.MCAP, ".mcap"), "sqlite3": (StoragePlugin.SQLITE3, ".db3")}
+METADATA_VERSION = 9
+ROS_DISTRO = "jazzy"
+#: rmw's "infinite" duration, as Jazzy writes it in metadata.yaml
+INFINITE = QosTime(sec=9223372036, nsec=854775807)
+ZERO = QosTime(sec=0, nsec=0)
+
+
+def make_qos(*, depth: int = 10, reliable: bool = True, transient_local: bool = False, keep_all: bool = False) -> Qos:
+    """A rosbags Qos record (offered QoS of a topic, stored in metadata.yaml)."""
+    return Qos(
+        history=QosHistory.KEEP_ALL if keep_all else QosHistory.KEEP_LAST,
+        depth=depth,
+        reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+        durability=QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+        deadline=INFINITE,
+        lifespan=INFINITE,
+        liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=INFINITE,
+        avoid_ros_namespace_conventions=False,
+    )
+
+
+class _SegmentFileWriter(Writer):
+    """rosbags' Writer for one segment, with its slow (ruamel) YAML dumps replaced.
+
+    rosbags dumps the QoS of every connection and the file metadata with ruamel.yaml, ~30 ms per
+    topic: a recorder would stall for a second at every segment. Connections and the embedded
+    metadata are the same records, emitted by :func:`_emit`.
+    """
+
+    def add_topic_fast(self, topic: str, msgtype: str, msgdef: str, rihs01: str, qos: list[Qos]) -> Connection:
+        if not self.storage:
+            raise BagWriterError(f"segment {self.path} is not open")
+        fmt = MessageDefinitionFormat.IDL if msgdef.startswith("=" * 80 + "\nIDL: ") else MessageDefinitionFormat.MSG
+        connection = Connection(
+            id=len(self.connections) + 1,
+            topic=topic,
+            msgtype=msgtype,
+            msgdef=MessageDefinition(fmt, msgdef),
+            digest=rihs01,
+            msgcount=0,
+            ext=ConnectionExtRosbag2(serialization_format="cdr", offered_qos_profiles=list(qos)),
+            owner=self,
+        )
+        if msgtype not in self.added_types:
+            self.storage.add_msgtype(connection)
+            self.added_types.add(msgtype)
+        self.storage.add_connection(connection, qos_yaml(qos))
+        self.connections.append(connection)
+        self.counts[connection.id] = 0
+        return connection
+
+    def close_fast(self, embedded_metadata: str) -> None:
+        """Finish the storage file (index, summary, embedded metadata); no metadata.yaml."""
+        if not self.storage:
+            raise BagWriterError(f"segment {self.path} is not open")
+        self.storage.close(self.version, embedded_metadata)
+        self.storage = None
+
+
+def qos_yaml(qos: list[Qos] | tuple[Qos, ...]) -> str:
+    """Offered QoS profiles as rosbag2 stores them per connection (version 9 YAML list)."""
+    return "".join(_emit(dump_qos_v9(list(qos)), 0)).rstrip("\n")
+
+
+@dataclass
+class TopicRecord:
+    name: str
+    msgtype: str
+    qos: tuple[Qos, ...]
+    count: int = 0
+
+
+@dataclass
+class SegmentInfo:
+    path: str
+    start: int
+    end: int
+    count: int
+
+
+@dataclass
+class _Open:
+    writer: _SegmentFileWriter
+    tmpdir: Path
+    final: Path
+    connections: dict[str, Connection] = field(default_factory=dict)
+    start: int = 2**63 - 1
+    end: int = 0
+    count: int = 0
+    size: int = 0
+    opened_at: int | None = None
+
+
+class SegmentedBagWriter:
+    """Write a rosbag2 bag in segments. Use as a context manager; ``close()`` finishes the bag.
+
+    ``write(topic, timestamp_ns, data)`` takes CDR-serialized messages (what a raw ROS
+    subscription delivers). Register topics first with :meth:`add_topic`; topics may be added
+    at any time (they appear from the segment that is open then).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        storage: str = "mcap",
+        segment_seconds: float | None = 2.0,
+        segment_bytes: int | None = 64 * 1024 * 1024,
+        custom_data: dict[str, str] | None = None,
+        store: Typestore | None = None,
+    ) -> None:
+        self.path = Path(path)
+        if storage not in STORAGES:
+            raise BagWriterError(f"storage {storage!r} is not one of {', '.join(STORAGES)}")
+        if self.path.exists():
+            raise BagExistsError(self.path, "bag")
+        if segment_seconds is not None and segment_seconds <= 0:
+            raise BagWriterError(f"segment_seconds must be positive, got {segment_seconds!r}")
+        if segment_bytes is not None and segment_bytes <= 0:
+            raise BagWriterError(f"segment_bytes must be positive, got {segment_bytes!r}")
+        self.storage = storage
+        self.plugin, self.suffix = STORAGES[storage]
+        self.segment_ns = None if segment_seconds is None else round(segment_seconds * 1e9)
+        self.segment_bytes = segment_bytes
+        self.custom_data = dict(custom_data or {})
+        self.store = store or typestore()
+        self.topics: dict[str, TopicRecord] = {}
+        self.segments: list[SegmentInfo] = []
+        self._open: _Open | None = None
+        self._index = 0
+        self._closed = False
+        self._msgdefs: dict[str, tuple[str, str]] = {}
+        self._closed_counts: dict[str, int] = {}
+        self.path.mkdir(parents=True)
+
+    # -- context manager ----------------------------------------------------------------------
+
+    def __enter__(self) -> SegmentedBagWriter:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    # -- topics and messages ------------------------------------------------------------------
+
+    def add_topic(self, name: str, msgtype: str, qos: tuple[Qos, ...] | list[Qos] = ()) -> None:
+        """Register a topic (absolute name, ROS 2 type such as ``geometry_msgs/msg/TwistStamped``)."""
+        if self._closed:
+            raise BagWriterError(f"bag {self.path} is closed")
+        if name in self.topics:
+            if self.topics[name].msgtype != msgtype:
+                raise BagWriterError(f"topic {name} is {self.topics[name].msgtype}, cannot add it as {msgtype}")
+            return
+        if msgtype not in self.store.types:
+            raise BagWriterError(f"topic {name}: type {msgtype} is not in the ROS2_JAZZY typestore")
+        self.topics[name] = TopicRecord(name, msgtype, tuple(qos) or (make_qos(),))
+        if self._open is not None:
+            self._connect(self._open, self.topics[name])
+
+    def write(self, topic: str, timestamp: int, data: bytes | memoryview) -> None:
+        """Write one serialized message with log time ``timestamp`` (ns since the epoch)."""
+        if self._closed:
+            raise BagWriterError(f"bag {self.path} is closed")
+        rec = self.topics.get(topic)
+        if rec is None:
+            raise BagWriterError(f"topic {topic} was not added to bag {self.path}")
+        seg = self._open
+        if seg is not None and (
+            (self.segment_ns is not None and seg.opened_at is not None and timestamp - seg.opened_at >= self.segment_ns)
+            or (self.segment_bytes is not None and seg.size >= self.segment_bytes)
+        ):
+            self._close_segment()
+            seg = None
+        if seg is None:
+            seg = self._open_segment()
+        if seg.opened_at is None:
+            seg.opened_at = timestamp
+        seg.writer.write(seg.connections[topic], timestamp, data)
+        seg.count += 1
+        seg.size += len(data)
+        seg.start = min(seg.start, timestamp)
+        seg.end = max(seg.end, timestamp)
+        rec.count += 1
+
+    def split(self) -> None:
+        """Close the open segment now (the next write opens a new one)."""
+        if self._open is not None:
+            self._close_segment()
+
+    @property
+    def message_count(self) -> int:
+        return sum(t.count for t in self.topics.values())
+
+    def close(self) -> None:
+        """Close the open segment and write the final metadata.yaml (idempotent)."""
+        if self._closed:
+            return
+        if self._open is not None:
+            self._close_segment()
+        self._write_metadata()
+        self._closed = True
+
+    # -- segments -----------------------------------------------------------------------------
+
+    def _seg_name(self, index: int) -> str:
+        return f"{self.path.name}_{index}"
+
+    def _open_segment(self) -> _Open:
+        name = self._seg_name(self._index)
+        tmpdir = self.path / f".{name}"
+        final = self.path / f"{name}{self.suffix}"
+        if tmpdir.exists() or final.exists():
+            raise BagExistsError(final, "segment")
+        writer = _SegmentFileWriter(tmpdir, version=METADATA_VERSION, storage_plugin=self.plugin)
+        try:
+            writer.open()
+        except (WriterError, OSError) as exc:
+            raise BagWriterError(f"cannot open segment {tmpdir}: {exc}") from exc
+        seg = _Open(writer, tmpdir, final)
+        for rec in self.topics.values():
+            self._connect(seg, rec)
+        self._open = seg
+        self._index += 1
+        return seg
+
+    def _connect(self, seg: _Open, rec: TopicRecord) -> None:
+        msgdef, digest = self._msgdef(rec.msgtype)
+        seg.connections[rec.name] = seg.writer.add_topic_fast(rec.name, rec.msgtype, msgdef, digest, list(rec.qos))
+
+    def _msgdef(self, msgtype: str) -> tuple[str, str]:
+        if msgtype not in self._msgdefs:
+            self._msgdefs[msgtype] = (
+                self.store.generate_msgdef(msgtype, ros_version=2)[0],
+                self.store.hash_rihs01(msgtype),
+            )
+        return self._msgdefs[msgtype]
+
+    def _close_segment(self) -> None:
+        seg, self._open = self._open, None
+        assert seg is not None
+        info = SegmentInfo(seg.final.name, seg.start, seg.end, seg.count)
+        counts = self._open_counts()
+        seg.writer.close_fast(
+            metadata_yaml(
+                storage=self.storage,
+                segments=[info],
+                topics=[
+                    (t.name, t.msgtype, t.qos, self._msgdef(t.msgtype)[1], counts.get(t.name, 0))
+                    for t in self.topics.values()
+                    if t.name in seg.connections
+                ],
+                custom_data=self.custom_data,
+            )
+        )
+        written = seg.tmpdir / f"{seg.tmpdir.name}{self.suffix}"
+        os.replace(written, seg.final)
+        shutil.rmtree(seg.tmpdir)
+        self.segments.append(info)
+        self._closed_counts = {name: self._closed_counts.get(name, 0) + n for name, n in counts.items()}
+        self._write_metadata()
+
+    def _write_metadata(self) -> None:
+        text = metadata_yaml(
+            storage=self.storage,
+            segments=self.segments,
+            topics=[
+                (t.name, t.msgtype, t.qos, self._msgdef(t.msgtype)[1], self._closed_counts.get(t.name, 0))
+                for t in self.topics.values()
+            ],
+            custom_data=self.custom_data,
+        )
+        tmp = self.path / ".metadata.yaml.tmp"
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, self.path / "metadata.yaml")
+
+    def _open_counts(self) -> dict[str, int]:
+        seg = self._open
+        if seg is None:
+            return {}
+        return {name: seg.writer.counts[c.id] for name, c in seg.connections.items()}
+
+
+def metadata_yaml(
+    *,
+    storage: str,
+    segments: list[SegmentInfo],
+    topics: list[tuple[str, str, tuple[Qos, ...], str, int]],
+    custom_data: dict[str, str] | None,
+) -> str:
+    """metadata.yaml of a multi-file bag, version 9, with the keys and layout Jazzy writes."""
+    if segments:
+        start = min(s.start for s in segments)
+        end = max(s.end for s in segments)
+    else:
+        start, end = 0, 0
+    info: dict[str, Any] = {
+        "version": METADATA_VERSION,
+        "storage_identifier": storage,
+        "duration": {"nanoseconds": max(0, end - start)},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": sum(s.count for s in segments),
+        "topics_with_message_count": [
+            {
+                "topic_metadata": {
+                    "name": name,
+                    "type": msgtype,
+                    "serialization_format": "cdr",
+                    "offered_qos_profiles": dump_qos_v9(list(qos)),
+                    "type_description_hash": digest,
+                },
+                "message_count": count,
+            }
+            for name, msgtype, qos, digest, count in topics
+        ],
+        "compression_format": "",
+        "compression_mode": "",
+        "relative_file_paths": [s.path for s in segments],
+        "files": [
+            {
+                "path": s.path,
+                "starting_time": {"nanoseconds_since_epoch": s.start},
+                "duration": {"nanoseconds": max(0, s.end - s.start)},
+                "message_count": s.count,
+            }
+            for s in segments
+        ],
+        "custom_data": dict(custom_data) if custom_data else None,
+        "ros_distro": ROS_DISTRO,
+    }
+    return "rosbag2_bagfile_information:\n" + "".join(_emit(info, 1))
+
+
+_PLAIN = re.compile(r"^[A-Za-z0-9_/][A-Za-z0-9_/.-]*$")
+_RESERVED = {"true", "false", "yes", "no", "on", "off", "null", "y", "n", "~"}
+
+
+def _scalar(x: Any) -> str:
+    if x is None:
+        return "~"
+    if isinstance(x, bool):
+        return "true" if x else "false"
+    if isinstance(x, int):
+        return str(x)
+    s = str(x)
+    if _PLAIN.match(s) and s.lower() not in _RESERVED and not re.match(r"^[0-9.+-]", s):
+        return s
+    return json.dumps(s, ensure_ascii=False)  # a JSON string is a valid YAML double-quoted scalar
+
+
+def _emit(node: Any, level: int) -> Iterator[str]:
+    """Block-style YAML as rosbag2 (yaml-cpp) writes metadata.yaml: 2 spaces, sequences indented."""
+    pad = "  " * level
+    if isinstance(node, dict):
+        for k, v in node.items():
+            key = _scalar(k)
+            if isinstance(v, dict) and v:
+                yield f"{pad}{key}:\n"
+                yield from _emit(v, level + 1)
+            elif isinstance(v, list) and v:
+                yield f"{pad}{key}:\n"
+                yield from _emit(v, level + 1)
+            elif isinstance(v, (dict, list)):
+                yield f"{pad}{key}: {'{}' if isinstance(v, dict) else '[]'}\n"
+            else:
+                yield f"{pad}{key}: {_scalar(v)}\n"
+    else:
+        for item in node:
+            if isinstance(item, dict) and item:
+                lines = list(_emit(item, level + 1))
+                first = lines[0][len(pad) + 2 :]
+                yield f"{pad}- {first}"
+                yield from lines[1:]
+            else:
+                yield f"{pad}- {_scalar(item)}\n"

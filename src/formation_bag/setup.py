@@ -1,0 +1,36 @@
+from setuptools import find_packages, setup
+
+package_name = "formation_bag"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=[
+        "setuptools",
+        "formation_msgs_py",
+        "formation_agent",
+        "formation_sim",
+        "numpy",
+        "PyYAML",
+        "rosbags",
+    ],
+    zip_safe=True,
+    maintainer="formation developers",
+    maintainer_email="formation@example.com",
+    description="Record, replay and analyse formation runs as standard ROS 2 bags.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "formation-record = formation_bag.record_node:main",
+            "formation-replay = formation_bag.replay_node:main",
+            "formation-analyze = formation_bag.analysis:main",
+            "formation-rerun = formation_bag.rerun:main",
+            "formation-bag = formation_bag.cli:main",
+        ],
+    },
+)

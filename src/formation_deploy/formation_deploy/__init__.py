@@ -1,0 +1,1 @@
+"""Deployment helpers: the docker compose generator (``formation-compose``)."""

@@ -1,0 +1,24 @@
+from setuptools import find_packages, setup
+
+package_name = "formation_deploy"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["setuptools", "formation_msgs_py"],
+    zip_safe=True,
+    maintainer="formation developers",
+    maintainer_email="formation@example.com",
+    description="Deployment helpers: docker compose generator for a formation file.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "formation-compose = formation_deploy.compose:main",
+        ],
+    },
+)

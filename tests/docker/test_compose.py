@@ -1,0 +1,106 @@
+"""formation-compose: the compose file of a formation file, and the checked-in docker/compose.yaml."""
+
+from __future__ import annotations
+
+import copy
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from formation_deploy.compose import MARK, main
+
+REPO = Path(__file__).resolve().parents[2]
+PAPER = REPO / "config" / "paper_5agents.yaml"
+CHECKED_IN = REPO / "docker" / "compose.yaml"
+IN_IMAGE = "/opt/formation/formations/paper_5agents.yaml"
+
+
+def services(path: Path) -> dict[str, Any]:
+    return yaml.safe_load(path.read_text())["services"]
+
+
+def test_checked_in_compose_file_is_the_generator_output(capsys: pytest.CaptureFixture[str]) -> None:
+    """docker/compose.yaml equals `formation-compose config/paper_5agents.yaml --out docker/compose.yaml`."""
+    status = main([str(PAPER), "--out", str(CHECKED_IN), "--context", str(REPO), "--check"])
+    assert status == 0, capsys.readouterr().out
+
+
+def test_paper_services_are_the_simulator_and_its_five_agents() -> None:
+    """Exactly sim + agent_1..agent_5, one image, the right commands, discovery settings as environment."""
+    s = services(CHECKED_IN)
+    assert sorted(s) == ["agent_1", "agent_2", "agent_3", "agent_4", "agent_5", "sim"]
+    assert s["sim"]["command"][:2] == ["sim.sh", IN_IMAGE]
+    assert s["sim"]["command"][2] == "--out"
+    for i in range(1, 6):
+        assert s[f"agent_{i}"]["command"] == ["agent.sh", IN_IMAGE, str(i)]
+    assert len({svc["image"] for svc in s.values()}) == 1
+    for svc in s.values():
+        assert set(svc["environment"]) == {"ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS"}
+        assert svc["build"] == {"context": "..", "dockerfile": "docker/Dockerfile"}
+        assert f"../config/paper_5agents.yaml:{IN_IMAGE}:ro" in svc["volumes"]
+    assert "../out:/opt/formation/out" in s["sim"]["volumes"]
+    assert sorted(s["sim"]["depends_on"]) == [f"agent_{i}" for i in range(1, 6)]
+
+
+def test_any_formation_file(tmp_path: Path, paper_doc: dict[str, Any]) -> None:
+    """A three-agent formation with string ids gives three agent services, paths relative to the output."""
+    doc = copy.deepcopy(paper_doc)
+    doc["name"] = "trio"
+    doc["agents"] = doc["agents"][:3]
+    for a, new_id in zip(doc["agents"], ["a", "b", "c"]):
+        a["id"] = new_id
+    doc["edges"] = [{"tail": "a", "head": "b"}, {"tail": "a", "head": "c"}]
+    (tmp_path / "cfg").mkdir()
+    formation = tmp_path / "cfg" / "trio.yaml"
+    formation.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "deploy" / "compose.yaml"
+    assert main([str(formation), "--out", str(out), "--context", "none", "--host-network"]) == 0
+    text = out.read_text()
+    assert text.startswith(MARK)
+    s = services(out)
+    assert sorted(s) == ["agent_a", "agent_b", "agent_c", "sim"]
+    assert s["agent_b"]["command"] == ["agent.sh", "/opt/formation/formations/trio.yaml", "b"]
+    assert all(svc["network_mode"] == "host" and svc["ipc"] == "host" for svc in s.values())
+    assert all("build" not in svc for svc in s.values())
+    assert "../cfg/trio.yaml:/opt/formation/formations/trio.yaml:ro" in s["agent_a"]["volumes"]
+    assert str(tmp_path) not in text  # no absolute host paths
+
+
+def test_invalid_formation_file_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An invalid file exits 2 with a message naming the problem, and writes nothing."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("agents: []\nedges: []\n")
+    out = tmp_path / "compose.yaml"
+    assert main([str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("formation-compose: error:")
+    assert not out.exists()
+
+
+def test_refuses_to_overwrite_a_file_it_did_not_write(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An existing compose file without the generator's mark is kept unless --force."""
+    out = tmp_path / "compose.yaml"
+    out.write_text("services: {}\n")
+    assert main([str(PAPER), "--out", str(out)]) == 2
+    assert str(out) in capsys.readouterr().err
+    assert out.read_text() == "services: {}\n"
+    assert main([str(PAPER), "--out", str(out), "--force"]) == 0
+    assert out.read_text().startswith(MARK)
+
+
+def test_check_reports_a_stale_file(tmp_path: Path) -> None:
+    """--check exits 1 and prints a diff when the file differs from the generator's output."""
+    out = tmp_path / "compose.yaml"
+    assert main([str(PAPER), "--out", str(out)]) == 0
+    out.write_text(out.read_text().replace('"1"]', '"9"]'))
+    assert main([str(PAPER), "--out", str(out), "--check"]) == 1
+
+
+def test_console_script_help() -> None:
+    """formation-compose --help works from the project's environment."""
+    exe = REPO / ".venv" / "bin" / "formation-compose"
+    result = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0
+    assert "--out" in result.stdout

@@ -1,0 +1,167 @@
+"""Multi-host deployment: every process on its own "host" (a network namespace) of a private
+network, ROS 2 discovery across hosts by multicast or by ROS_STATIC_PEERS, and the paper
+scenario, shortened, giving the same result as on one host."""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pytest
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from conftest import PrivateNetwork, Processes
+
+REPO = Path(__file__).resolve().parents[2]
+
+PINGPONG = Path(__file__).with_name("pingpong.py")
+PYTHON = REPO / ".venv" / "bin" / "python"
+PAPER = REPO / "config" / "paper_5agents.yaml"
+#: Simulated time of the shortened paper scenario (500 lockstep steps at 10 kHz).
+SHORT_DURATION = 0.05
+
+
+def discovery_env(ros_env: Callable[..., dict[str, str]], mode: str, net: PrivateNetwork) -> dict[str, str]:
+    """ROS environment for a discovery mode; UDP only, so that every message crosses eth0."""
+    env = ros_env(FASTDDS_BUILTIN_TRANSPORTS="UDPv4")
+    if mode == "multicast":
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
+    else:  # LOCALHOST: multicast only on this host's loopback; the other hosts by unicast
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        env["ROS_STATIC_PEERS"] = ";".join(h.address for h in net.hosts)
+    return env
+
+
+def test_private_network_has_no_route_off_the_machine(private_network: type[PrivateNetwork]) -> None:
+    """The hosts have their subnet and multicast routes only: no default route, nothing in the root namespace."""
+    net = private_network.create(["a", "b"])
+    subnet = ipaddress.ip_network(net.subnet)
+    for host in net.hosts:
+        routes = net.routes(host)
+        assert "default" not in routes, routes
+        assert ipaddress.ip_address(host.address) in subnet
+    root = subprocess.run(["ip", "-o", "addr"], capture_output=True, text=True, check=True).stdout
+    assert all(h.address + "/" not in root for h in net.hosts)
+
+
+@pytest.mark.parametrize("mode", ["multicast", "static_peers"])
+def test_discovery_across_hosts(
+    private_network: type[PrivateNetwork], processes: Processes, ros_env: Callable[..., dict[str, str]], mode: str
+) -> None:
+    """A publisher on one host reaches subscribers on two others (UDP over the private network)."""
+    net = private_network.create(["talker", "listener1", "listener2"], multicast=mode == "multicast")
+    env = discovery_env(ros_env, mode, net)
+    listeners = [
+        processes.start(h.name, [str(PYTHON), str(PINGPONG), "listen", "--timeout", "40"], env=env, netns=h.netns)
+        for h in net.hosts[1:]
+    ]
+    talker = processes.start(
+        "talker",
+        [str(PYTHON), str(PINGPONG), "talk", "--listeners", "2", "--timeout", "40"],
+        env=env,
+        netns=net.host("talker").netns,
+    )
+    for proc in [*listeners, talker]:
+        status = processes.wait(proc, timeout=60)
+        assert status == 0, f"{proc.name} exited {status}\n{processes.logs()}"
+
+
+# --- the formation scenario ---------------------------------------------------------------------
+
+SIM_SH = REPO / "ros2_ws" / "sim.sh"
+AGENT_SH = REPO / "ros2_ws" / "agent.sh"
+needs_deployment = pytest.mark.skipif(
+    not (SIM_SH.exists() and AGENT_SH.exists()), reason="ros2_ws/sim.sh and agent.sh are not there yet"
+)
+
+
+def run_headless(out: Path) -> None:
+    subprocess.run(
+        [
+            str(REPO / ".venv" / "bin" / "formation-headless"),
+            str(PAPER),
+            "--duration",
+            str(SHORT_DURATION),
+            "--no-plots",
+            "--quiet",
+            "--out",
+            str(out),
+        ],
+        check=True,
+        timeout=300,
+        capture_output=True,
+    )
+
+
+def run_deployment(
+    processes: Processes, out: Path, env: dict[str, str], netns: dict[str, str | None], timeout: float = 240
+) -> None:
+    """The simulator and one agent process each (``netns[name]``, None: this host); wait for the simulator."""
+    agents = [
+        processes.start(
+            f"agent_{i}",
+            [str(AGENT_SH), str(PAPER), str(i)],
+            env=env,
+            netns=netns[f"agent_{i}"],
+        )
+        for i in range(1, 6)
+    ]
+    sim = processes.start(
+        "sim",
+        [str(SIM_SH), str(PAPER), "--duration", str(SHORT_DURATION), "--out", str(out)],
+        env=env,
+        netns=netns["sim"],
+    )
+    t0 = time.monotonic()
+    status = processes.wait(sim, timeout=timeout)
+    assert status == 0, f"sim exited {status} after {time.monotonic() - t0:.1f} s\n{processes.logs()}"
+    for a in agents:  # the agents end with the run (or are stopped by the fixture)
+        if a.popen.poll() is None:
+            try:
+                a.popen.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                pass
+
+
+def assert_same_run(a: Path, b: Path) -> None:
+    ta, tb = np.load(a / "trajectory.npz"), np.load(b / "trajectory.npz")
+    for key in ("t", "p", "R", "v", "u", "e", "psi"):
+        assert ta[key].shape == tb[key].shape, key
+        np.testing.assert_array_equal(ta[key], tb[key], err_msg=key)
+    sa, sb = json.loads((a / "summary.json").read_text()), json.loads((b / "summary.json").read_text())
+    for key in ("funnels_held", "first_violation", "edges", "agents"):
+        assert sa.get(key) == sb.get(key), key
+
+
+@needs_deployment
+@pytest.mark.parametrize("mode", ["multicast"])
+def test_paper_scenario_across_hosts_equals_one_host(
+    private_network: type[PrivateNetwork],
+    processes: Processes,
+    ros_env: Callable[..., dict[str, str]],
+    tmp_path: Path,
+    mode: str,
+) -> None:
+    """Lockstep paper scenario (shortened): six hosts give the trajectory of one host, and of the headless runner."""
+    names = ["sim"] + [f"agent_{i}" for i in range(1, 6)]
+    net = private_network.create(names)
+    multi = tmp_path / "multihost"
+    run_deployment(processes, multi, discovery_env(ros_env, mode, net), {h.name: h.netns for h in net.hosts})
+    single = tmp_path / "singlehost"
+    run_deployment(processes, single, ros_env(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"), dict.fromkeys(names))
+    headless = tmp_path / "headless"
+    run_headless(headless)
+    assert_same_run(multi, single)
+    assert_same_run(multi, headless)
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__, "-v"]))

@@ -295,7 +295,7 @@ class SegmentedBagWriter:
         seg, self._open = self._open, None
         assert seg is not None
         info = SegmentInfo(seg.final.name, seg.start, seg.end, seg.count)
-        counts = self._open_counts()
+        counts = {name: seg.writer.counts[c.id] for name, c in seg.connections.items()}
         seg.writer.close_fast(
             metadata_yaml(
                 storage=self.storage,
@@ -329,11 +329,6 @@ class SegmentedBagWriter:
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, self.path / "metadata.yaml")
 
-    def _open_counts(self) -> dict[str, int]:
-        seg = self._open
-        if seg is None:
-            return {}
-        return {name: seg.writer.counts[c.id] for name, c in seg.connections.items()}
 
 
 def metadata_yaml(

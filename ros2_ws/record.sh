@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Record a running formation into a ROS 2 bag (installs the environment on first use).
+#
+#   ros2_ws/record.sh --out DIR [--formation FILE] [--storage mcap|sqlite3] [--topics T …]
+#                     [--segment-seconds S] [--segment-mb M] [--decimate TOPIC=N …] [--meta K=V …]
+#
+# Default: every topic of DESIGN.md §3 (discovered on the graph, or all of FILE's with
+# --formation, which also stores FILE in the bag for formation-analyze). Stop with Ctrl-C or
+# SIGTERM: the bag is closed cleanly. Segments of 2 s: a killed recorder loses at most the last.
+# ROS_AUTOMATIC_DISCOVERY_RANGE defaults to LOCALHOST (set it to SUBNET to record other hosts).
+# All options: formation-record --help; user guide: docs/bags.md.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+case "${1:-}" in
+  -h|--help)
+    sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'
+    "$ROOT/ros2_ws/setup.sh"
+    exec "$ROOT/.venv/bin/formation-record" --help ;;
+esac
+"$ROOT/ros2_ws/setup.sh"
+export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
+exec "$ROOT/.venv/bin/formation-record" "$@"

@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Replay a bag with its recorded timing and /clock (installs the environment on first use).
+#
+#   ros2_ws/replay.sh BAG [--rate R] [--topics T …] [--loop] [--start S] [--end S]
+#                     [--clock-hz HZ] [--wait any|all|none] [--wait-timeout S] [--quiet]
+#
+# Waits for a subscriber before it starts, shows progress once a second. Replaying a run's
+# relative poses and velocities into an agent (agent.sh FILE ID) re-runs that agent live.
+# ROS_AUTOMATIC_DISCOVERY_RANGE defaults to LOCALHOST (set it to SUBNET to reach other hosts).
+# All options: formation-replay --help; user guide: docs/bags.md.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+case "${1:-}" in
+  -h|--help)
+    sed -n '2,11p' "$0" | sed 's/^# \{0,1\}//'
+    "$ROOT/ros2_ws/setup.sh"
+    exec "$ROOT/.venv/bin/formation-replay" --help ;;
+esac
+"$ROOT/ros2_ws/setup.sh"
+export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
+exec "$ROOT/.venv/bin/formation-replay" "$@"

@@ -1,0 +1,90 @@
+"""``formation-bag info|check|repair BAG``: inspect, interop-check and repair bags (no ROS)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from formation_bag import messages as m
+from formation_bag.errors import BagError
+from formation_bag.interop import check_bag
+from formation_bag.reader import Bag, repair
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-bag",
+        description="Inspect (info), check interoperability (check: rosbags and, for MCAP, the independent "
+        "mcap + mcap_ros2 readers; Jazzy metadata.yaml format) and repair (rebuild metadata.yaml of a bag "
+        "left by a killed recorder) ROS 2 bags, without ROS. Exit status: 0 fine, 1 problems found, 2 bad input.",
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+    info = sub.add_parser("info", help="topics, types, counts, time range, segments, lost segments")
+    info.add_argument("bag", type=Path)
+    info.add_argument("--json", action="store_true", help="machine-readable output")
+    check = sub.add_parser("check", help="read back with rosbags and mcap/mcap_ros2; check metadata.yaml")
+    check.add_argument("bag", type=Path)
+    check.add_argument("--json", action="store_true", help="machine-readable output")
+    rep = sub.add_parser("repair", help="write metadata.yaml for the readable segments of a killed recording")
+    rep.add_argument("bag", type=Path)
+    rep.add_argument("--force", action="store_true", help="replace an existing metadata.yaml")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "info":
+            with Bag(args.bag) as bag:
+                info = {
+                    "path": str(args.bag),
+                    "storage": bag.storage,
+                    "segments": [s.name for s in bag.segments],
+                    "lost": bag.lost,
+                    "recovered_without_metadata": bag.recovered,
+                    "messages": bag.message_count,
+                    "start": bag.start_time / m.NS_PER_S,
+                    "duration": (bag.end_time - bag.start_time) / m.NS_PER_S,
+                    "topics": {t.name: {"type": t.msgtype, "count": t.count} for t in bag.topics.values()},
+                    "custom_data_keys": sorted(bag.custom_data),
+                }
+            if args.json:
+                print(json.dumps(info, indent=2))
+            else:
+                print(
+                    f"bag {info['path']}: {info['storage']}, {len(info['segments'])} segments, "
+                    f"{info['messages']} messages over {info['duration']:.3f} s"
+                )
+                for lost in info["lost"]:
+                    print(f"  lost: {lost}")
+                for name, t in sorted(info["topics"].items()):
+                    print(f"  {name:<45} {t['type']:<36} {t['count']:>9}")
+            return 0
+        if args.command == "check":
+            report = check_bag(args.bag)
+            if args.json:
+                print(json.dumps(report.as_dict(), indent=2))
+            else:
+                n = sum(report.counts_rosbags.values())
+                readers = "rosbags" + (" and mcap/mcap_ros2" if report.counts_mcap is not None else "")
+                print(f"{args.bag}: {n} messages on {len(report.counts_rosbags)} topics read with {readers}")
+                for lost in report.lost:
+                    print(f"  lost: {lost}")
+                for prob in report.problems:
+                    print(f"  PROBLEM: {prob}")
+                print("OK" if report.ok else "PROBLEMS FOUND")
+            return 0 if report.ok else 1
+        meta, lost = repair(args.bag, force=args.force)
+        print(f"wrote {meta}")
+        for item in lost:
+            print(f"  lost: {item}")
+        return 0
+    except (BagError, FileExistsError) as exc:
+        print(f"formation-bag: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,349 @@
+"""``formation-record``: record the DESIGN.md §3 topics of a running formation into a bag.
+
+A thin rclpy node: raw subscriptions (the CDR bytes, nothing is deserialized) drained by one
+wait-set loop straight into a :class:`formation_bag.writer.SegmentedBagWriter`
+(a segment closes in a few ms; every subscription queues up to 1000 messages meanwhile).
+Counts: received and written per topic, and the publishers' sequence numbers (what they
+published while we listened), stored in metadata.yaml custom_data ``recorder_counts``.
+SIGINT/SIGTERM stop the node, drain the queue, close the last segment and write
+metadata.yaml (exit status 0). A SIGKILL loses at most the open segment.
+
+Topics: every DESIGN.md §3 topic of ``--formation FILE`` (exact, known before anything runs),
+plus whatever the graph shows that matches (checked every ``--discovery-period`` s); or only
+``--topics``. Log time = receive time (system clock, ns), as ``ros2 bag record`` does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import importlib
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from formation_bag import messages as m
+from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
+from formation_bag.errors import BagError, BagTopicError
+from formation_bag.writer import STORAGES, SegmentedBagWriter, make_qos
+from formation_msgs_py import qos as fqos
+from formation_msgs_py import topics
+from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.spec import load_formation
+
+#: depth of the recorder's own subscription queues (it must never be the one that drops)
+SUB_DEPTH = 1000
+
+
+def msg_class(msgtype: str) -> Any:
+    """The rclpy message class of ``pkg/msg/Name``."""
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def offered_profile(topic: str) -> QoSProfile:
+    """The project's QoS profile of a topic (formation_msgs_py.qos)."""
+    if topic == topics.CLOCK:
+        return fqos.CLOCK
+    if topic.endswith(topics.GROUND_TRUTH):
+        return fqos.GROUND_TRUTH
+    if topic == topics.DIAGNOSTICS:
+        return fqos.DIAGNOSTICS
+    return fqos.CONTROL
+
+
+def to_bag_qos(p: QoSProfile) -> Any:
+    return make_qos(
+        depth=int(p.depth),
+        reliable=p.reliability != ReliabilityPolicy.BEST_EFFORT,
+        transient_local=p.durability == DurabilityPolicy.TRANSIENT_LOCAL,
+        keep_all=p.history == HistoryPolicy.KEEP_ALL,
+    )
+
+
+def parse_decimation(items: Sequence[str]) -> list[tuple[str, int]]:
+    """``TOPIC=N`` (TOPIC may be a glob such as ``/agent_*/relative_pose/*``) -> [(pattern, N)]."""
+    out = []
+    for item in items:
+        pattern, sep, n = item.rpartition("=")
+        try:
+            every = int(n)
+        except ValueError:
+            every = 0
+        if not sep or not pattern or every < 1:
+            raise BagTopicError(f"--decimate {item!r}: expected TOPIC=N with N a positive integer")
+        out.append((pattern, every))
+    return out
+
+
+def parse_meta(items: Sequence[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise BagTopicError(f"--meta {item!r}: expected KEY=VALUE")
+        out[key] = value
+    return out
+
+
+class Recorder(Node):
+    """Raw subscriptions to the selected topics, drained by :meth:`spin` straight into the bag.
+
+    No executor: one wait set over every subscription, then *all* queued messages of each ready
+    subscription are taken (``take_message(raw=True)``) and written. rclpy's executor costs tens
+    of µs per callback, too much for a lockstep run on a small machine; this loop does not.
+    Log time = the rmw receive timestamp (system clock), as ``ros2 bag record``.
+    """
+
+    def __init__(
+        self,
+        writer: SegmentedBagWriter,
+        *,
+        known: dict[str, str],
+        only: list[str] | None,
+        namespace: str,
+        decimate: list[tuple[str, int]],
+    ) -> None:
+        super().__init__("formation_record")
+        self.writer = writer
+        self.namespace = namespace
+        self.only = only
+        self.decimate = decimate
+        self.received: dict[str, int] = {}
+        self.written: dict[str, int] = {}
+        self.seq: dict[str, list[int]] = {}  # topic -> [first, last] publication sequence number
+        self.subs: dict[str, Any] = {}
+        self._active: list[tuple[str, Any, Any, int]] = []
+        for name, msgtype in known.items():
+            if only is None or name in only:
+                self._subscribe(name, msgtype)
+        self.discover()
+
+    # -- topics ----------------------------------------------------------------------------------
+
+    def _wanted(self, name: str) -> bool:
+        if self.only is not None:
+            return name in self.only
+        return m.classify(name, self.namespace) is not None
+
+    def discover(self) -> None:
+        for name, types in self.get_topic_names_and_types():
+            if name in self.subs or not self._wanted(name) or not types:
+                continue
+            self._subscribe(name, types[0])
+
+    def _every(self, name: str) -> int:
+        for pattern, n in self.decimate:
+            if fnmatch.fnmatchcase(name, pattern):
+                return n
+        return 1
+
+    def _subscribe(self, name: str, msgtype: str) -> None:
+        try:
+            cls = msg_class(msgtype)
+        except (ImportError, AttributeError, ValueError):
+            self.get_logger().warning(f"{name}: type {msgtype} not available, not recorded")
+            self.subs[name] = None
+            return
+        pubs = self.get_publishers_info_by_topic(name)
+        offered = [p.qos_profile for p in pubs] or [offered_profile(name)]
+        best_effort = any(p.reliability == ReliabilityPolicy.BEST_EFFORT for p in offered)
+        sub_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=SUB_DEPTH,
+            reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
+        )
+        try:
+            self.writer.add_topic(name, msgtype, tuple(to_bag_qos(p) for p in offered[:1]))
+        except BagError as exc:
+            self.get_logger().warning(f"{name}: {exc}; not recorded")
+            self.subs[name] = None
+            return
+        self.received[name] = 0
+        self.written[name] = 0
+        sub = self.create_subscription(cls, name, _unused, sub_qos, raw=True)
+        self.subs[name] = sub
+        self._active.append((name, sub, cls, self._every(name)))
+
+    @property
+    def topic_count(self) -> int:
+        return len(self._active)
+
+    # -- the loop ----------------------------------------------------------------------------------
+
+    def spin(self, *, discovery_period: float, status_period: float | None) -> None:
+        """Record until the context shuts down (SIGINT/SIGTERM)."""
+        context = self.context
+        write = self.writer.write
+        received, written, seq = self.received, self.written, self.seq
+        next_discovery = time.monotonic() + discovery_period
+        next_status = None if status_period is None else time.monotonic() + status_period
+        last_total, last_t = 0, time.monotonic()
+        wait_set = None
+        n_active = -1
+        while context.ok():
+            if len(self._active) != n_active:
+                n_active = len(self._active)
+                wait_set = _rclpy.WaitSet(n_active, 0, 0, 0, 0, 0, context.handle)
+                by_pointer = {sub.handle.pointer: (name, sub, cls, every) for name, sub, cls, every in self._active}
+            wait_set.clear_entities()
+            for _, sub, _, _ in self._active:
+                wait_set.add_subscription(sub.handle)
+            wait_set.wait(100_000_000)
+            for ptr in wait_set.get_ready_entities("subscription"):
+                name, sub, cls, every = by_pointer[ptr]
+                take = sub.handle.take_message
+                while (got := take(cls, True)) is not None:
+                    data, info = got
+                    n = received[name]
+                    received[name] = n + 1
+                    s = info.get("publication_sequence_number")
+                    if s is not None:
+                        first_last = seq.get(name)
+                        if first_last is None:
+                            seq[name] = [s, s]
+                        elif s > first_last[1]:
+                            first_last[1] = s
+                    if n % every == 0:
+                        write(name, info.get("received_timestamp") or time.time_ns(), data)
+                        written[name] += 1
+            now = time.monotonic()
+            if now >= next_discovery:
+                self.discover()
+                next_discovery = now + discovery_period
+            if next_status is not None and now >= next_status:
+                total = sum(received.values())
+                print(
+                    f"formation-record: {self.topic_count} topics, {total} messages "
+                    f"({(total - last_total) / (now - last_t):.0f}/s), {len(self.writer.segments)} segments closed",
+                    flush=True,
+                )
+                last_total, last_t, next_status = total, now, now + (status_period or 0)
+
+    def finish(self) -> dict[str, Any]:
+        """Close the bag with the counts in custom_data; returns the counts."""
+        published = {}
+        for name, (first, last) in self.seq.items():
+            # one publisher per DESIGN.md topic: its sequence numbers count what it published
+            # while we listened (not for topics with several publishers, e.g. /diagnostics)
+            published[name] = last - first + 1
+        stats = {
+            "received": dict(self.received),
+            "written": dict(self.written),
+            "published_seen": published,
+            "decimate": {p: n for p, n in self.decimate},
+        }
+        self.writer.custom_data["recorder_counts"] = json.dumps(stats, sort_keys=True)
+        self.writer.close()
+        return stats
+
+
+def _unused(_msg: Any) -> None:  # the subscriptions are drained by Recorder.spin, not by an executor
+    return None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-record",
+        description="Record a running formation's topics (DESIGN.md §3) into a ROS 2 bag (MCAP or sqlite3, "
+        "metadata version 9), written in segments so a killed recorder loses at most the last one. "
+        "Stop with Ctrl-C (SIGINT) or SIGTERM: the bag is closed cleanly.",
+    )
+    p.add_argument("--out", type=Path, required=True, help="bag directory to create (must not exist)")
+    p.add_argument("--storage", choices=tuple(STORAGES), default="mcap", help="storage plugin (default mcap)")
+    p.add_argument(
+        "--topics", nargs="+", metavar="TOPIC", help="record exactly these topics (default: every DESIGN.md §3 topic)"
+    )
+    p.add_argument(
+        "--formation",
+        type=Path,
+        help="formation file: subscribe to its topics before they appear, and store the file in the bag "
+        "(custom_data) so formation-analyze needs nothing else",
+    )
+    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
+    p.add_argument("--segment-seconds", type=float, default=2.0, help="close a segment after S s (default 2)")
+    p.add_argument("--segment-mb", type=float, default=64.0, help="close a segment after M MiB (default 64)")
+    p.add_argument(
+        "--decimate",
+        nargs="+",
+        default=[],
+        metavar="TOPIC=N",
+        help="keep every N-th message of TOPIC (a glob, e.g. '/agent_*/relative_pose/*=10'); analysis and "
+        "re-run need every message of the ground truth, velocities, relative poses and wrenches",
+    )
+    p.add_argument("--meta", nargs="+", default=[], metavar="KEY=VALUE", help="extra custom_data in metadata.yaml")
+    p.add_argument("--discovery-period", type=float, default=0.5, help="graph polling period [s] (default 0.5)")
+    p.add_argument("--quiet", action="store_true", help="no periodic status lines")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        decimate = parse_decimation(args.decimate)
+        custom = parse_meta(args.meta)
+        known: dict[str, str] = {}
+        if args.formation is not None:
+            spec = load_formation(args.formation)
+            known = m.formation_topics(spec.agent_ids, [(e.tail, e.head) for e in spec.edges], args.namespace)
+            custom.setdefault(KEY_FORMATION_YAML, args.formation.read_text(encoding="utf-8"))
+            custom.setdefault(KEY_FORMATION_FILE, args.formation.name)
+        only = None
+        if args.topics:
+            only = [m.absolute(t, args.namespace) for t in args.topics]
+            for t in only:
+                k = m.classify(t, args.namespace)
+                if k is not None and t not in known:
+                    known[t] = k.msgtype
+        writer = SegmentedBagWriter(
+            args.out,
+            storage=args.storage,
+            segment_seconds=args.segment_seconds,
+            segment_bytes=round(args.segment_mb * 1024 * 1024),
+            custom_data=custom,
+        )
+    except (BagError, FormationSpecError, OSError) as exc:
+        print(f"formation-record: {exc}", file=sys.stderr)
+        return 2
+    rclpy.init(args=None)
+    node = None
+    stats: dict[str, Any] = {}
+    code = 0
+    try:
+        node = Recorder(writer, known=known, only=only, namespace=args.namespace, decimate=decimate)
+        print(f"formation-record: recording {node.topic_count} topics into {args.out}", flush=True)
+        node.spin(discovery_period=args.discovery_period, status_period=None if args.quiet else 5.0)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            try:
+                stats = node.finish()
+            except (BagError, OSError) as exc:
+                print(f"formation-record: closing {args.out} failed: {exc}", file=sys.stderr)
+                code = 1
+            node.destroy_node()
+        else:
+            writer.close()
+        rclpy.try_shutdown()
+    rec, wr = sum(stats.get("received", {}).values()), sum(stats.get("written", {}).values())
+    print(
+        f"formation-record: closed {args.out}: {wr} messages written of {rec} received "
+        f"on {len(stats.get('received', {}))} topics, {len(writer.segments)} segments",
+        flush=True,
+    )
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,221 @@
+"""``formation-replay BAG``: publish a bag's messages with their recorded timing, and /clock.
+
+Messages are published as the recorded CDR bytes (rclpy's ``Publisher.publish`` accepts
+serialized data), each at ``t0 + (log_time − start) / rate`` on the wall clock (a coarse sleep,
+then a short spin for sub-millisecond accuracy). ``/clock`` is replayed as recorded when the bag
+has it; otherwise ``--clock-hz`` generates it from the bag's log time (as ``ros2 bag play --clock``).
+Before starting, the node waits for subscribers (``--wait``) so that the first messages are
+not lost, then shows progress once a second on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.interfaces import QosDurability, QosHistory, QosReliability
+
+from formation_bag import messages as m
+from formation_bag.errors import BagError, BagTopicError
+from formation_bag.reader import Bag
+from formation_bag.record_node import msg_class
+from formation_msgs_py import qos as fqos
+from formation_msgs_py import topics
+
+SPIN_BEFORE = 0.0015  # s: sleep until this close to a deadline, then spin
+
+
+def to_rclpy_qos(profiles: Sequence[Any], topic: str) -> QoSProfile:
+    """The first recorded offered QoS profile as an rclpy profile (the project's default if none)."""
+    if topic == topics.CLOCK:
+        return fqos.CLOCK
+    if not profiles:
+        return fqos.CONTROL
+    q = profiles[0]
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_ALL if q.history == QosHistory.KEEP_ALL else HistoryPolicy.KEEP_LAST,
+        depth=max(1, int(q.depth)),
+        reliability=ReliabilityPolicy.BEST_EFFORT
+        if q.reliability == QosReliability.BEST_EFFORT
+        else ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL
+        if q.durability == QosDurability.TRANSIENT_LOCAL
+        else DurabilityPolicy.VOLATILE,
+    )
+
+
+def sleep_until(deadline: float) -> None:
+    """Sleep until ``time.perf_counter() >= deadline`` (sub-ms accurate)."""
+    while True:
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            return
+        if left > SPIN_BEFORE:
+            time.sleep(left - SPIN_BEFORE)
+
+
+class Replayer(Node):
+    def __init__(self, bag: Bag, selected: list[str], *, clock_hz: float) -> None:
+        super().__init__("formation_replay")
+        self.bag = bag
+        infos = bag.topics
+        self.pubs: dict[str, Any] = {}
+        for name in selected:
+            info = infos[name]
+            self.pubs[name] = self.create_publisher(msg_class(info.msgtype), name, to_rclpy_qos(info.qos, name))
+        self.clock_pub = None
+        self.clock_hz = 0.0
+        if topics.CLOCK not in self.pubs and clock_hz > 0:
+            from rosgraph_msgs.msg import Clock
+
+            self.clock_pub = self.create_publisher(Clock, topics.CLOCK, fqos.CLOCK)
+            self.clock_hz = clock_hz
+            self._Clock = Clock
+
+    def wait_for_subscribers(self, mode: str, timeout: float) -> bool:
+        """Wait until ``any``/``all`` publishers have a subscriber (at most ``timeout`` s)."""
+        if mode == "none":
+            return True
+        pubs = list(self.pubs.values())
+        deadline = time.monotonic() + timeout
+        check = any if mode == "any" else all
+        while time.monotonic() < deadline:
+            if check(p.get_subscription_count() > 0 for p in pubs):
+                time.sleep(0.3)  # let the other endpoints of a process match too
+                return True
+            time.sleep(0.02)
+        return False
+
+    def play(
+        self,
+        *,
+        rate: float,
+        start: int | None,
+        stop: int | None,
+        progress: bool,
+    ) -> int:
+        """Publish once; returns the number of messages published."""
+        t_first = start if start is not None else self.bag.start_time
+        t_last = stop if stop is not None else self.bag.end_time
+        span = max(1, t_last - t_first)
+        t0 = time.perf_counter()
+        count = 0
+        next_progress = t0 + 1.0
+        clock_period = None if not self.clock_hz else round(m.NS_PER_S / self.clock_hz)
+        next_clock = t_first
+        ok = self.context.ok
+        for msg in self.bag.messages(self.pubs, start=start, stop=None if stop is None else stop + 1):
+            if clock_period is not None:
+                while next_clock <= msg.log_time:
+                    sleep_until(t0 + (next_clock - t_first) / m.NS_PER_S / rate)
+                    self.clock_pub.publish(self._Clock(clock=_time(next_clock)))
+                    next_clock += clock_period
+            sleep_until(t0 + (msg.log_time - t_first) / m.NS_PER_S / rate)
+            if not ok():
+                break
+            self.pubs[msg.topic].publish(bytes(msg.data))
+            count += 1
+            if progress and time.perf_counter() >= next_progress:
+                done = (msg.log_time - t_first) / span
+                print(
+                    f"formation-replay: {(msg.log_time - t_first) / 1e9:8.2f}/{span / 1e9:.2f} s "
+                    f"({100 * done:5.1f} %), {count} messages",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                next_progress += 1.0
+        return count
+
+
+def _time(ns: int) -> Any:
+    from builtin_interfaces.msg import Time
+
+    sec, nsec = divmod(ns, m.NS_PER_S)
+    return Time(sec=sec, nanosec=nsec)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-replay",
+        description="Publish a bag's messages with their recorded timing (and /clock). Waits for subscribers "
+        "first; shows progress. Stop with Ctrl-C.",
+    )
+    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1.0)")
+    p.add_argument("--topics", nargs="+", metavar="TOPIC", help="replay only these topics (default all)")
+    p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
+    p.add_argument("--start", type=float, help="start at S seconds after the bag's first message")
+    p.add_argument("--end", type=float, help="stop at S seconds after the bag's first message")
+    p.add_argument(
+        "--clock-hz",
+        type=float,
+        default=100.0,
+        help="if the bag has no /clock (or it is not selected): publish /clock from the bag time at this rate "
+        "(default 100; 0 = none)",
+    )
+    p.add_argument(
+        "--wait",
+        choices=("any", "all", "none"),
+        default="any",
+        help="before starting, wait until any (default) / all replayed topics have a subscriber",
+    )
+    p.add_argument("--wait-timeout", type=float, default=10.0, help="give up waiting after S s and start (default 10)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.rate <= 0:
+        print(f"formation-replay: --rate must be positive, got {args.rate}", file=sys.stderr)
+        return 2
+    try:
+        bag = Bag(args.bag)
+        available = bag.topics
+        selected = list(available)
+        if args.topics:
+            selected = [m.absolute(t) for t in args.topics]
+            missing = [t for t in selected if t not in available]
+            if missing:
+                raise BagTopicError(
+                    f"bag {args.bag} has no topic {', '.join(missing)} (has: {', '.join(sorted(available))})"
+                )
+        for lost in bag.lost:
+            print(f"formation-replay: warning: lost {lost}", file=sys.stderr)
+    except BagError as exc:
+        print(f"formation-replay: {exc}", file=sys.stderr)
+        return 2
+    start = None if args.start is None else bag.start_time + round(args.start * m.NS_PER_S)
+    stop = None if args.end is None else bag.start_time + round(args.end * m.NS_PER_S)
+    rclpy.init(args=None)
+    node = None
+    try:
+        node = Replayer(bag, selected, clock_hz=args.clock_hz)
+        if not node.wait_for_subscribers(args.wait, args.wait_timeout):
+            print(f"formation-replay: no subscriber after {args.wait_timeout:g} s; starting anyway", file=sys.stderr)
+        print(f"formation-replay: replaying {len(selected)} topics of {args.bag} at rate {args.rate:g}", flush=True)
+        while True:
+            n = node.play(rate=args.rate, start=start, stop=stop, progress=not args.quiet)
+            print(f"formation-replay: published {n} messages", flush=True)
+            if not args.loop or not node.context.ok():
+                break
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        bag.close()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

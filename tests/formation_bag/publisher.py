@@ -1,0 +1,80 @@
+"""A small rclpy publisher for the recorder tests: ``python publisher.py N RATE [--formation FILE]``.
+
+Publishes N steps at RATE Hz (0 = as fast as possible): per step /clock, the ground truth and,
+for every agent of the formation (default config/paper_5agents.yaml), its velocity and wrench
+and every relative pose, all stamped k/1000 s. Prints "published N" per topic at the end as JSON.
+Waits for a subscriber on every topic first (at most 10 s).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+
+from formation_msgs_py import conversions as cv
+from formation_msgs_py import qos, topics
+from formation_msgs_py.spec import load_formation
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def main() -> int:
+    n, rate = int(sys.argv[1]), float(sys.argv[2])
+    spec = load_formation(sys.argv[4] if len(sys.argv) > 4 else ROOT / "config/paper_5agents.yaml")
+    from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
+    from rosgraph_msgs.msg import Clock
+
+    rclpy.init()
+    node = rclpy.create_node("bag_test_publisher")
+    pubs = {topics.CLOCK: node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)}
+    pubs["/" + topics.GROUND_TRUTH] = node.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
+    ids = list(spec.agent_ids)
+    links = [(e.tail, e.head) for e in spec.edges] + [(e.head, e.tail) for e in spec.edges]
+    for a in ids:
+        pubs["/" + topics.velocity(a)] = node.create_publisher(TwistStamped, topics.velocity(a), qos.CONTROL)
+        pubs["/" + topics.wrench(a)] = node.create_publisher(WrenchStamped, topics.wrench(a), qos.CONTROL)
+    for i, j in links:
+        name = topics.relative_pose(i, j)
+        pubs["/" + name] = node.create_publisher(TransformStamped, name, qos.CONTROL)
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in pubs.values()):
+        time.sleep(0.02)
+    time.sleep(0.3)
+    rng = np.random.default_rng(1)
+    p = np.array([a.position for a in spec.agents])
+    R = np.array([a.R_world_body for a in spec.agents])
+    counts = dict.fromkeys(pubs, 0)
+    period = 0.0 if rate <= 0 else 1.0 / rate
+    t0 = time.perf_counter()
+    for k in range(n):
+        t = k / 1000.0
+        stamp = cv.stamp_from_seconds(t)
+        pubs[topics.CLOCK].publish(cv.clock_msg(t))
+        pubs["/" + topics.GROUND_TRUTH].publish(cv.poses_to_msg(t, p + 0.001 * k, R))
+        for i, j in links:
+            pi, pj = spec.agent(i).index, spec.agent(j).index
+            msg = cv.relative_pose_to_msg(t, i, j, R[pi].T @ (p[pj] - p[pi]), R[pi].T @ R[pj])
+            pubs["/" + topics.relative_pose(i, j)].publish(msg)
+        for a in ids:
+            pubs["/" + topics.velocity(a)].publish(cv.twist_to_msg(t, a, rng.standard_normal(6)))
+            pubs["/" + topics.wrench(a)].publish(cv.wrench_to_msg(stamp, a, rng.standard_normal(6)))
+        for key in counts:
+            counts[key] += 1
+        if period:
+            target = t0 + (k + 1) * period
+            while time.perf_counter() < target:
+                time.sleep(min(0.001, max(0.0, target - time.perf_counter())))
+    time.sleep(0.5)
+    print(json.dumps(counts), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -160,7 +160,7 @@ step_done "smoke: entrypoint --help"
 in_image formation-check config/paper_5agents.yaml >/dev/null
 step_done "smoke: formation-check paper preset"
 in_image formation-headless config/paper_5agents.yaml --duration "$DURATION" --no-plots --quiet \
-  --out /opt/formation/out/smoke-headless
+  --out /opt/formation/out/smoke-headless >/dev/null
 python3 - "$MNT/opt/formation/out/smoke-headless/summary.json" <<'EOF'
 import json, sys
 s = json.load(open(sys.argv[1]))

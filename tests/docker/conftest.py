@@ -150,7 +150,6 @@ class Processes:
 
     @staticmethod
     def tail(proc: Proc, lines: int = 40) -> str:
-        proc.log_file.flush()
         text = proc.log.read_text(errors="replace").splitlines()
         return "\n".join(text[-lines:])
 
@@ -173,7 +172,8 @@ class Processes:
             while time.monotonic() < end and any(p.popen.poll() is None for p in running):
                 time.sleep(0.05)
         for p in self.procs:
-            p.log_file.close()
+            if not p.log_file.closed:
+                p.log_file.close()
 
 
 def make_ros_env(**extra: str) -> dict[str, str]:

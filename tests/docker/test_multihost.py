@@ -116,19 +116,15 @@ def run_deployment(
     ]
     sim = processes.start(
         "sim",
-        [str(SIM_SH), str(PAPER), "--duration", str(SHORT_DURATION), "--out", str(out)],
+        [str(SIM_SH), str(PAPER), "--duration", str(SHORT_DURATION), "--no-plots", "--quiet", "--out", str(out)],
         env=env,
         netns=netns["sim"],
     )
     t0 = time.monotonic()
     status = processes.wait(sim, timeout=timeout)
     assert status == 0, f"sim exited {status} after {time.monotonic() - t0:.1f} s\n{processes.logs()}"
-    for a in agents:  # the agents end with the run (or are stopped by the fixture)
-        if a.popen.poll() is None:
-            try:
-                a.popen.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                pass
+    processes.stop_all()  # the agents (SIGINT: they shut down cleanly)
+    assert all(a.popen.returncode is not None for a in agents)
 
 
 def assert_same_run(a: Path, b: Path) -> None:

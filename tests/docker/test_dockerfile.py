@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -72,3 +73,14 @@ def test_scripts_have_help(script: str) -> None:
     result = subprocess.run([str(REPO / "docker" / script), "--help"], capture_output=True, text=True, timeout=30)
     assert result.returncode == 0, result.stderr
     assert script in result.stdout
+
+
+@pytest.mark.skipif(
+    os.environ.get("FORMATION_DOCKER_CHECK") != "1",
+    reason="opt-in (several minutes, downloads ~450 MB): FORMATION_DOCKER_CHECK=1 ./ros2_ws/test.sh -k docker_check",
+)
+def test_docker_check_builds_and_runs_the_image() -> None:
+    """docker/check.sh builds the image offline (podman, mmdebstrap) and runs the scenario in it."""
+    result = subprocess.run([str(REPO / "docker" / "check.sh")], capture_output=True, text=True, timeout=1800)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "check: OK" in result.stdout

@@ -127,14 +127,21 @@ def run_deployment(
     assert all(a.popen.returncode is not None for a in agents)
 
 
-def assert_same_run(a: Path, b: Path) -> None:
+def assert_same_run(a: Path, b: Path, *, exact: bool = True) -> None:
+    """Same trajectory (bit for bit, or to 1e-9 relative) and the same funnel verdict."""
     ta, tb = np.load(a / "trajectory.npz"), np.load(b / "trajectory.npz")
     for key in ("t", "p", "R", "v", "u", "e", "psi"):
         assert ta[key].shape == tb[key].shape, key
-        np.testing.assert_array_equal(ta[key], tb[key], err_msg=key)
+        if exact:
+            np.testing.assert_array_equal(ta[key], tb[key], err_msg=key)
+        else:
+            np.testing.assert_allclose(ta[key], tb[key], rtol=1e-9, atol=1e-12, err_msg=key)
     sa, sb = json.loads((a / "summary.json").read_text()), json.loads((b / "summary.json").read_text())
-    for key in ("funnels_held", "first_violation", "edges", "agents"):
-        assert sa.get(key) == sb.get(key), key
+    assert sa["funnels_held"] == sb["funnels_held"]
+    assert sa["first_violation"] == sb["first_violation"]
+    if exact:
+        for key in ("edges", "agents"):
+            assert sa[key] == sb[key], key
 
 
 @needs_deployment
@@ -146,7 +153,8 @@ def test_paper_scenario_across_hosts_equals_one_host(
     tmp_path: Path,
     mode: str,
 ) -> None:
-    """Lockstep paper scenario (shortened): six hosts give the trajectory of one host, and of the headless runner."""
+    """Lockstep paper scenario (shortened): six hosts give exactly the run of one host, and the headless
+    runner's trajectory (to rounding: the ROS path converts through messages)."""
     names = ["sim"] + [f"agent_{i}" for i in range(1, 6)]
     net = private_network.create(names)
     multi = tmp_path / "multihost"
@@ -156,7 +164,7 @@ def test_paper_scenario_across_hosts_equals_one_host(
     headless = tmp_path / "headless"
     run_headless(headless)
     assert_same_run(multi, single)
-    assert_same_run(multi, headless)
+    assert_same_run(multi, headless, exact=False)
 
 
 if __name__ == "__main__":

@@ -112,7 +112,11 @@ def analyze_run(
             if bad is not None:
                 recorder.fault(t, "controller", bad[0], bad[1].message)
     wall = (run.last_log - run.first_log) / m.NS_PER_S
-    expected = round(spec.simulation.duration * (gt_rate or control_rate)) + 1
+    try:
+        duration = float(custom["duration"])
+    except (KeyError, ValueError):
+        duration = spec.simulation.duration
+    expected = round(duration * (gt_rate or control_rate)) + 1
     gaps = 0
     if gt_rate:
         step = m.NS_PER_S / gt_rate

@@ -24,6 +24,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 
 from formation_bag.errors import BagExistsError, BagFormatError, BagNotFoundError
+from formation_bag.messages import typestore
 from formation_bag.writer import STORAGES, SegmentInfo, metadata_yaml
 
 SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
@@ -243,7 +244,10 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
             infos.append(SegmentInfo(f.name, r.start_time if n else 0, r.end_time - 1 if n else 0, n))
             for c in r.connections:
                 qos = tuple(c.ext.offered_qos_profiles) if isinstance(c.ext, ConnectionExtRosbag2) else ()
-                row = topic_rows.setdefault(c.topic, [c.topic, c.msgtype, qos, c.digest, 0])
+                digest = c.digest
+                if not str(digest).startswith("RIHS01_") and c.msgtype in typestore().types:
+                    digest = typestore().hash_rihs01(c.msgtype)  # MCAP channels do not carry the hash
+                row = topic_rows.setdefault(c.topic, [c.topic, c.msgtype, qos, digest, 0])
                 row[4] += c.msgcount
         storage = bag.storage if bag.storage in STORAGES else SUFFIXES[bag.segments[0].suffix]
         text = metadata_yaml(

@@ -60,7 +60,12 @@ def write_run_bag(
     n_steps = round(sim_spec.duration * sim_spec.control_rate) if steps is None else steps
     record_every = max(1, round(sim_spec.control_rate / sim_spec.record_rate))
     recorder = RunRecorder(spec, record_every=record_every, mode="lockstep", control_rate=sim_spec.control_rate)
-    custom = {"mode": "lockstep", "control_rate": repr(float(sim_spec.control_rate)), "writer": "formation_bag.synth"}
+    custom = {
+        "mode": "lockstep",
+        "control_rate": repr(float(sim_spec.control_rate)),
+        "duration": repr(n_steps / sim_spec.control_rate),
+        "writer": "formation_bag.synth",
+    }
     if formation_text is not None:
         custom[KEY_FORMATION_YAML] = formation_text
         custom[KEY_FORMATION_FILE] = Path(spec.source).name

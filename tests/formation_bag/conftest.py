@@ -1,0 +1,130 @@
+"""Fixtures of the bag tests: synthetic lockstep bags (no ROS) and ROS processes started safely.
+
+ROS processes get a domain of their own (200 + pid % 30), discovery on this host only, a
+temporary ROS_LOG_DIR and their own session; every process a test starts is stopped by its PID
+(SIGINT, then SIGTERM, SIGKILL only as a last resort) even when the test fails.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from formation_bag.synth import SynthResult, write_run_bag
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bag_helpers, next to this file
+from bag_helpers import PAPER, VIOLATING, paper_spec
+
+
+@pytest.fixture(scope="session")
+def short_bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Path, SynthResult]]:
+    """A 0.15 s paper run at 1 kHz recorded in both storages (3 segments each)."""
+    spec = paper_spec(duration=0.15, control_rate=1000.0, physics_rate=1000.0)
+    out = {}
+    for storage in ("mcap", "sqlite3"):
+        bag = tmp_path_factory.mktemp(f"short_{storage}") / "bag"
+        out[storage] = (
+            bag,
+            write_run_bag(spec, bag, formation_text=PAPER.read_text(), storage=storage, segment_seconds=0.05),
+        )
+    return out
+
+
+@pytest.fixture(scope="session")
+def violating_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, SynthResult]:
+    """The paper run at a too-low control rate (700 Hz): agent 1 leaves its wz funnel at t ≈ 1.08 s."""
+    spec = paper_spec(**VIOLATING)
+    bag = tmp_path_factory.mktemp("violating") / "bag"
+    result = write_run_bag(
+        spec, bag, formation_text=PAPER.read_text(), segment_seconds=0.5, stop_on_violation=True
+    )
+    return bag, result
+
+
+# -- ROS processes ----------------------------------------------------------------------------------
+
+
+@dataclass
+class Processes:
+    """Starts processes in their own session with the test's ROS environment; stops exactly those."""
+
+    env: dict[str, str]
+    started: list[subprocess.Popen] = field(default_factory=list)
+
+    def start(self, args: list[str], **kw) -> subprocess.Popen:
+        proc = subprocess.Popen(
+            args,
+            env=self.env,
+            start_new_session=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            **kw,
+        )
+        self.started.append(proc)
+        return proc
+
+    @staticmethod
+    def wait_line(proc: subprocess.Popen, needle: str, timeout: float) -> str:
+        """Read stdout lines until one contains ``needle`` (fails after ``timeout`` s)."""
+        deadline = time.monotonic() + timeout
+        os.set_blocking(proc.stdout.fileno(), False)
+        buf = ""
+        while time.monotonic() < deadline:
+            chunk = proc.stdout.read()
+            if chunk:
+                buf += chunk
+                for line in buf.splitlines():
+                    if needle in line:
+                        os.set_blocking(proc.stdout.fileno(), True)
+                        return line
+            elif proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        os.set_blocking(proc.stdout.fileno(), True)
+        raise AssertionError(f"no line with {needle!r} from {proc.args} within {timeout} s; got {buf!r}")
+
+    @staticmethod
+    def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
+        """Send ``sig`` to this one process; escalate to SIGTERM, then SIGKILL; returns the exit status."""
+        for s, wait in ((sig, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            if proc.poll() is not None:
+                break
+            proc.send_signal(s)
+            try:
+                proc.wait(wait)
+            except subprocess.TimeoutExpired:
+                continue
+        return proc.wait()
+
+    def stop_all(self) -> None:
+        for proc in reversed(self.started):
+            if proc.poll() is None:
+                self.stop(proc)
+            for stream in (proc.stdout, proc.stderr):
+                if stream is not None:
+                    stream.close()
+
+
+@pytest.fixture
+def ros_procs(tmp_path: Path) -> Iterator[Processes]:
+    env = dict(os.environ)
+    env.update(
+        ROS_DOMAIN_ID=str(200 + os.getpid() % 30),
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_LOG_DIR=str(tmp_path / "ros_log"),
+        PYTHONUNBUFFERED="1",
+    )
+    procs = Processes(env)
+    try:
+        yield procs
+    finally:
+        procs.stop_all()

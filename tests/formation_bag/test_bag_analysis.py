@@ -1,0 +1,171 @@
+"""Offline analysis and controller re-run of recorded runs (no ROS)."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from bag_helpers import PAPER, VIOLATING, paper_spec
+
+from formation_bag import analysis, rerun
+from formation_bag.analysis import analyze_run, message_ages
+from formation_bag.dataset import apply_overrides, load_run
+from formation_bag.errors import BagFormatError, OverrideError
+from formation_bag.rerun import rerun_all
+from formation_sim.headless import run_headless
+
+IGNORED = {"wall_time", "real_time_factor", "bag", "source", "controller", "physics_rate", "mode", "samples"}
+
+
+def assert_same_summary(ours: dict, theirs: dict, tol: float = 1e-9, path: str = "") -> None:
+    """Same verdicts, violation and margins (to ``tol``); run-specific fields ignored."""
+    for key, value in theirs.items():
+        if key in IGNORED:
+            continue
+        where = f"{path}.{key}"
+        assert key in ours, f"{where} missing"
+        if isinstance(value, dict):
+            assert_same_summary(ours[key], value, tol, where)
+        elif isinstance(value, float) and isinstance(ours[key], float):
+            assert abs(ours[key] - value) <= tol, f"{where}: {ours[key]} != {value}"
+        else:
+            assert ours[key] == value, f"{where}: {ours[key]!r} != {value!r}"
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_analysis_reproduces_the_runs_summary(short_bags, storage: str) -> None:
+    """formation-analyze of a lockstep bag gives the run's own summary: verdicts and margins to 1e-9."""
+    bag, result = short_bags[storage]
+    run = load_run(bag)
+    _, summary, reruns = analyze_run(run)
+    assert_same_summary(summary, result.summary)
+    assert summary["bag"]["ground_truth_samples"] == result.steps
+    assert not summary["bag"]["truncated"]
+    assert all(r.max_abs_diff <= 1e-12 and r.compared == result.steps for r in reruns.values())
+
+
+def test_analysis_of_a_violating_run(violating_bag, tmp_path: Path) -> None:
+    """A run at a too-low control rate: the analysis names the agent, channel and time of the violation."""
+    bag, result = violating_bag
+    headless = run_headless(paper_spec(**VIOLATING), stop_on_violation=True).summary
+    out = tmp_path / "out"
+    code = analysis.main([str(bag), "--out", str(out)])
+    assert code == 1
+    summary = json.loads((out / "summary.json").read_text())
+    fv = summary["first_violation"]
+    assert fv == result.summary["first_violation"]  # exactly what the run itself recorded
+    assert fv["kind"] == headless["first_violation"]["kind"] == "velocity"
+    assert fv["agent"] == headless["first_violation"]["agent"] == "1"
+    assert fv["channel"] == headless["first_violation"]["channel"] == "wz"
+    # the agents computed from quaternion-coded poses: the unstable sampled loop amplifies the 1e-16
+    # differences to the headless run (matrices), so the time agrees to some 20 steps only
+    assert fv["t"] == pytest.approx(headless["first_violation"]["t"], abs=0.05)
+    assert 1.0 < fv["t"] < 1.2
+    assert summary["funnels_held"] is False
+    for name in (
+        "trajectory.npz",
+        "errors.png",
+        "orientation_errors.png",
+        "inputs.png",
+        "errors.csv",
+        "inputs.csv",
+        "positions.csv",
+        "ages.json",
+        "ages.csv",
+    ):
+        assert (out / name).exists(), name
+    traj = np.load(out / "trajectory.npz")
+    assert traj["p"].shape[1:] == (5, 3) and traj["e"].shape[1] == 4 and traj["u"].shape[2] == 6
+    ages = json.loads((out / "ages.json").read_text())
+    assert ages["relative_pose"]["1->2"]["sim_age"]["max"] == 0.0  # lockstep: measured at the step's time
+    assert ages["wrench"]["1"]["response_wall"]["median"] > 0
+    # the distance/orientation funnels alone held until then
+    assert analysis.main([str(bag), "--out", str(tmp_path / "o2"), "--velocity-margins", "none", "--no-plots"]) == 0
+    # refuses to overwrite
+    assert analysis.main([str(bag), "--out", str(out)]) == 2
+
+
+def test_analysis_of_a_truncated_bag(violating_bag, tmp_path: Path) -> None:
+    """A bag that lost its last segment and its metadata.yaml is analysed as far as it goes."""
+    src, result = violating_bag
+    bag = tmp_path / "bag"
+    shutil.copytree(src, bag)
+    segs = sorted(bag.glob("bag_*.mcap"), key=lambda p: int(p.stem.split("_")[1]))
+    (bag / "metadata.yaml").unlink()
+    last = segs[-1]
+    partial = bag / f".{last.stem}"
+    partial.mkdir()
+    data = last.read_bytes()
+    (partial / f".{last.stem}.mcap").write_bytes(data[: len(data) // 2])  # as a killed recorder leaves it
+    last.unlink()
+    run = load_run(bag)
+    assert run.recovered and len(run.lost) == 1
+    _, summary, _ = analyze_run(run)
+    assert summary["bag"]["truncated"]
+    assert 0 < summary["bag"]["ground_truth_samples"] < result.steps
+    assert summary["duration"] < result.summary["duration"]
+    # what is left agrees with the full run up to there
+    assert summary["funnels_held"]
+
+
+def test_rerun_reproduces_and_reports_overrides(violating_bag, tmp_path: Path, capsys) -> None:
+    """Re-running the recorded measurements reproduces every wrench; an override's changes are reported."""
+    bag, result = violating_bag
+    assert rerun.main([str(bag), "--out", str(tmp_path / "same")]) == 0
+    report = json.loads((tmp_path / "same" / "rerun.json").read_text())
+    assert report["equal"] and all(a["max_abs_diff"] <= 1e-12 for a in report["agents"].values())
+    assert all(a["compared"] == result.steps for a in report["agents"].values())
+    override = tmp_path / "gains.yaml"
+    override.write_text(yaml.safe_dump({"agents": {"3": {"controller": {"gamma": 10.0}}}}))
+    assert (
+        rerun.main(
+            [str(bag), "--agent", "3", "--agent", "1", "--override", str(override), "--out", str(tmp_path / "diff")]
+        )
+        == 1
+    )
+    report = json.loads((tmp_path / "diff" / "rerun.json").read_text())
+    assert report["agents"]["1"]["equal"]  # agent 1's gains did not change
+    a3 = report["agents"]["3"]
+    assert not a3["equal"] and a3["first_difference"]["t"] == 0.0 and a3["max_abs_diff"] > 1e-3
+    # γ scales the wrench: 10/15 of the recorded one at the first step
+    rec = np.array(a3["first_difference"]["recorded"])
+    np.testing.assert_allclose(np.array(a3["first_difference"]["rerun"]), rec * 10.0 / 15.0, rtol=1e-9)
+    out = capsys.readouterr().out
+    assert "agent 3" in out and "DIFFERENT" in out
+
+
+def test_override_errors_name_the_field(violating_bag) -> None:
+    """Bad override files are refused with the offending path."""
+    run = load_run(violating_bag[0], need_ground_truth=False)
+    with pytest.raises(OverrideError, match=re.escape("override.agents.9")):
+        apply_overrides(run.document, {"agents": {"9": {"controller": {"gamma": 1.0}}}})
+    with pytest.raises(OverrideError, match=re.escape("override.edges.2-4")):
+        apply_overrides(run.document, {"edges": {"2-4": {}}})
+    with pytest.raises(OverrideError, match=re.escape("override.gains")):
+        apply_overrides(run.document, {"gains": {}})
+
+
+def test_rerun_of_one_agent_only(short_bags) -> None:
+    """One agent can be re-run alone; the others are not touched."""
+    run = load_run(short_bags["mcap"][0], need_ground_truth=False)
+    only = rerun_all(run, ["4"])
+    assert list(only) == ["4"] and only["4"].max_abs_diff <= 1e-12
+
+
+def test_bag_without_formation_needs_one(tmp_path: Path, short_bags) -> None:
+    """A bag without the formation file asks for --formation; with it, the analysis runs."""
+    from formation_bag.synth import write_run_bag
+
+    bag = tmp_path / "bag"
+    write_run_bag(paper_spec(duration=0.01, control_rate=1000.0, physics_rate=1000.0), bag)
+    with pytest.raises(BagFormatError, match="--formation"):
+        load_run(bag)
+    run = load_run(bag, formation=PAPER)
+    assert len(run.ground_truth) == 11
+    ages = message_ages(run)
+    assert ages["velocity"]["2"]["sim_age"]["count"] == 11

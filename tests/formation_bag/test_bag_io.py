@@ -1,0 +1,154 @@
+"""Segmented writing, reading (also of killed recordings), repair and the interop check (no ROS)."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from formation_bag import messages as m
+from formation_bag.errors import BagExistsError, BagNotFoundError, BagWriterError
+from formation_bag.interop import JAZZY_KEYS, check_bag
+from formation_bag.reader import Bag, repair
+from formation_bag.writer import SegmentedBagWriter
+
+START = 1_700_000_000 * m.NS_PER_S
+
+
+def _write(path: Path, storage: str, n: int, *, segment_seconds: float | None = 0.1, **kw) -> list[bytes]:
+    enc = m.Encoder()
+    rng = np.random.default_rng(7)
+    payloads = []
+    with SegmentedBagWriter(path, storage=storage, segment_seconds=segment_seconds, **kw) as w:
+        w.add_topic("/clock", m.CLOCK)
+        w.add_topic("/agent_1/velocity", m.TWIST_STAMPED)
+        for k in range(n):
+            ns = k * 10_000_000
+            w.write("/clock", START + ns, enc.clock(ns))
+            data = enc.twist(ns, "1", rng.standard_normal(6).tolist())
+            payloads.append(data)
+            w.write("/agent_1/velocity", START + ns + 1000, data)
+    return payloads
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_round_trip(tmp_path: Path, storage: str) -> None:
+    """Every message comes back byte for byte, in order, from a multi-segment bag."""
+    bag = tmp_path / "bag"
+    payloads = _write(bag, storage, 50)
+    suffix = ".mcap" if storage == "mcap" else ".db3"
+    files = sorted(p.name for p in bag.iterdir())
+    assert files == sorted([f"bag_{i}{suffix}" for i in range(5)] + ["metadata.yaml"])
+    with Bag(bag) as b:
+        assert not b.recovered and not b.lost
+        got = [msg.data for msg in b.messages(["/agent_1/velocity"])]
+        assert [bytes(x) for x in got] == payloads
+        assert b.topics["/clock"].count == 50 and b.message_count == 100
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert tuple(info) == JAZZY_KEYS
+    assert info["version"] == 9 and info["storage_identifier"] == storage and info["ros_distro"] == "jazzy"
+    assert info["relative_file_paths"] == [f"bag_{i}{suffix}" for i in range(5)]
+    assert sum(f["message_count"] for f in info["files"]) == 100
+    report = check_bag(bag)
+    assert report.ok, report.problems
+    if storage == "mcap":
+        assert report.counts_mcap == {"/clock": 50, "/agent_1/velocity": 50}
+
+
+def test_segments_by_size(tmp_path: Path) -> None:
+    """A size limit closes segments too."""
+    _write(tmp_path / "bag", "mcap", 40, segment_seconds=None, segment_bytes=1000)
+    with Bag(tmp_path / "bag") as b:
+        assert len(b.segments) > 3 and b.message_count == 80
+
+
+def test_refuses_to_overwrite(tmp_path: Path) -> None:
+    """An existing path is never overwritten, and the error names it."""
+    (tmp_path / "bag").mkdir()
+    with pytest.raises(BagExistsError, match=re.escape(str(tmp_path / "bag"))):
+        SegmentedBagWriter(tmp_path / "bag")
+    with pytest.raises(BagWriterError, match="zip"):
+        SegmentedBagWriter(tmp_path / "other", storage="zip")
+
+
+def test_missing_bag_is_named(tmp_path: Path) -> None:
+    """Opening a bag that does not exist names the path."""
+    with pytest.raises(BagNotFoundError, match="nope"):
+        Bag(tmp_path / "nope")
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_sigkill_loses_at_most_the_open_segment(tmp_path: Path, storage: str) -> None:
+    """A writer process killed with SIGKILL leaves every closed segment readable, with metadata."""
+    bag = tmp_path / "bag"
+    code = textwrap.dedent(
+        f"""
+        import sys, time
+        from formation_bag import messages as m
+        from formation_bag.writer import SegmentedBagWriter
+        enc = m.Encoder()
+        w = SegmentedBagWriter({str(bag)!r}, storage={storage!r}, segment_seconds=0.2)
+        w.add_topic("/clock", m.CLOCK)
+        k = 0
+        while True:
+            w.write("/clock", time.time_ns(), enc.clock(k * 1000000))
+            if k == 20:
+                print("writing", flush=True)
+            k += 1
+            time.sleep(0.002)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "writing"
+        time.sleep(1.1)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    with Bag(bag) as b:
+        assert not b.recovered  # metadata.yaml lists the closed segments
+        assert len(b.segments) >= 3
+        assert len(b.lost) == 1 and "open when the recorder stopped" in b.lost[0]
+        stamps = [m.stamp_ns(m.deserialize(x.data, x.msgtype).clock) for x in b.messages()]
+    # contiguous from the first message: nothing but the open segment's tail is missing
+    assert stamps == [k * 1_000_000 for k in range(len(stamps))]
+    assert check_bag(bag).ok
+    # without metadata.yaml the segments are still read, and repair rebuilds it
+    (bag / "metadata.yaml").unlink()
+    with Bag(bag) as b:
+        assert b.recovered and b.message_count == len(stamps)
+    meta, lost = repair(bag)
+    assert meta.exists() and len(lost) == 1
+    assert check_bag(bag).ok
+    with pytest.raises(BagExistsError, match=r"metadata\.yaml"):
+        repair(bag)
+
+
+def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:
+    """check_bag reports a metadata.yaml whose counts do not match the files."""
+    bag = tmp_path / "bag"
+    _write(bag, "mcap", 10)
+    meta = bag / "metadata.yaml"
+    meta.write_text(meta.read_text().replace("message_count: 20", "message_count: 21", 1))
+    report = check_bag(bag)
+    assert not report.ok and any("message_count" in p for p in report.problems)
+
+
+def test_classify_topics() -> None:
+    """Topic names map to their DESIGN.md meaning, also in a namespace."""
+    assert m.classify("/agent_3/relative_pose/agent_5") == m.TopicKind("relative_pose", m.TRANSFORM_STAMPED, "3", "5")
+    assert m.classify("/agent_2/wrench").agent == "2"
+    assert m.classify("/formation/ground_truth").kind == "ground_truth"
+    assert m.classify("/run1/agent_2/velocity", "run1").kind == "velocity"
+    assert m.classify("/run1/agent_2/velocity") is None
+    assert m.classify("/rosout") is None

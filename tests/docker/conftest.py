@@ -129,9 +129,23 @@ class Processes:
         self.procs: list[Proc] = []
 
     def start(
-        self, name: str, argv: Sequence[str], *, env: Mapping[str, str], netns: str | None = None, cwd: Path = REPO
+        self,
+        name: str,
+        argv: Sequence[str],
+        *,
+        env: Mapping[str, str],
+        netns: str | None = None,
+        private_shm: bool = False,
+        cwd: Path = REPO,
     ) -> Proc:
-        cmd = (["ip", "netns", "exec", netns] if netns else []) + list(argv)
+        """Start ``argv`` in network namespace ``netns`` (None: this one); ``private_shm``: with a
+        /dev/shm of its own, as a container without ``ipc: host`` has."""
+        cmd = list(argv)
+        if private_shm:
+            mount = 'mount -t tmpfs -o mode=1777 tmpfs /dev/shm && exec "$@"'
+            cmd = ["unshare", "--mount", "sh", "-c", mount, "_", *cmd]
+        if netns:
+            cmd = ["ip", "netns", "exec", netns, *cmd]
         log = self.log_dir / f"{name}.log"
         log_file = log.open("wb")
         popen = subprocess.Popen(

@@ -4,7 +4,8 @@
     python pingpong.py listen [--count N] [--timeout S]
 
 ``talk`` publishes on ``/multihost/ping`` until N subscribers are matched and then 2 s more;
-``listen`` exits 0 after N messages. Both exit 1 on time-out, with the reason on stderr.
+``listen`` exits 0 after N messages and --linger seconds more (so that the talker sees every
+listener at once). Both exit 1 on time-out, with the reason on stderr.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--listeners", type=int, default=1, help="talk: subscribers to wait for")
     p.add_argument("--count", type=int, default=3, help="listen: messages to receive")
     p.add_argument("--timeout", type=float, default=30.0, help="give up after this many seconds")
+    p.add_argument("--linger", type=float, default=3.0, help="listen: keep subscribed this long after the last message")
     args = p.parse_args(argv)
     rclpy.init()
     host = socket.gethostname()
@@ -54,6 +56,9 @@ def main(argv: list[str] | None = None) -> int:
             rclpy.spin_once(node, timeout_sec=0.1)
         if len(got) >= args.count:
             print(f"listen: got {got[-1]!r}", flush=True)
+            linger = time.monotonic() + args.linger
+            while time.monotonic() < linger:
+                rclpy.spin_once(node, timeout_sec=0.1)
             return 0
         print(f"listen: {len(got)} of {args.count} messages before the time-out", file=sys.stderr)
         return 1

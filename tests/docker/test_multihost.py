@@ -74,6 +74,42 @@ def test_discovery_across_hosts(
         assert status == 0, f"{proc.name} exited {status}\n{processes.logs()}"
 
 
+@pytest.mark.parametrize(
+    ("network", "delivered"),
+    [("bridge", True), ("host", False)],
+    ids=["bridge-network", "host-network-without-ipc-host"],
+)
+def test_containers_need_shared_ipc_on_the_host_network(
+    private_network: type[PrivateNetwork],
+    processes: Processes,
+    ros_env: Callable[..., dict[str, str]],
+    network: str,
+    delivered: bool,
+) -> None:
+    """Two "containers" (each with its own /dev/shm, default Fast DDS transports): on a bridge network
+    (own addresses) messages arrive; on one host network they match but nothing arrives, because
+    Fast DDS then uses shared memory: why formation-compose --host-network adds ``ipc: host``."""
+    net = private_network.create(["a", "b"])
+    env = ros_env(ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")
+    listener_ns = net.hosts[1].netns if network == "bridge" else net.hosts[0].netns
+    listener = processes.start(
+        "listener",
+        [str(PYTHON), str(PINGPONG), "listen", "--timeout", "12"],
+        env=env,
+        netns=listener_ns,
+        private_shm=True,
+    )
+    talker = processes.start(
+        "talker",
+        [str(PYTHON), str(PINGPONG), "talk", "--timeout", "12"],
+        env=env,
+        netns=net.hosts[0].netns,
+        private_shm=True,
+    )
+    assert processes.wait(talker, timeout=40) == 0, processes.logs()  # discovery works in both cases
+    assert (processes.wait(listener, timeout=40) == 0) == delivered, processes.logs()
+
+
 # --- the formation scenario ---------------------------------------------------------------------
 
 SIM_SH = REPO / "ros2_ws" / "sim.sh"

@@ -187,6 +187,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-headless: {exc}", file=sys.stderr)
         return 2
     mode = args.controller or spec.simulation.controller
+    if spec.dropped_edges:
+        dropped = ", ".join(f"({a}, {b})" for a, b in spec.dropped_edges)
+        print(f"formation-headless: spanning tree: dropped edges {dropped}", file=sys.stderr)
     if mode == "sampled":
         problems = check_control_rate(spec)
         if problems:

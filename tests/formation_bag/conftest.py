@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -54,43 +55,48 @@ def violating_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Synth
 
 @dataclass
 class Processes:
-    """Starts processes in their own session with the test's ROS environment; stops exactly those."""
+    """Starts processes in their own session with the test's ROS environment; stops exactly those.
+
+    A thread per stream collects the output, so a test can wait for a line and still read all of it.
+    """
 
     env: dict[str, str]
     started: list[subprocess.Popen] = field(default_factory=list)
+    lines: dict[int, tuple[list[str], list[str]]] = field(default_factory=dict)
 
-    def start(self, args: list[str], **kw) -> subprocess.Popen:
+    def start(self, args: list[str]) -> subprocess.Popen:
         proc = subprocess.Popen(
-            args,
-            env=self.env,
-            start_new_session=True,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            **kw,
+            args, env=self.env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
         self.started.append(proc)
+        out: list[str] = []
+        err: list[str] = []
+        self.lines[proc.pid] = (out, err)
+        for stream, sink in ((proc.stdout, out), (proc.stderr, err)):
+            threading.Thread(target=lambda s=stream, k=sink: k.extend(iter(s.readline, "")), daemon=True).start()
         return proc
 
-    @staticmethod
-    def wait_line(proc: subprocess.Popen, needle: str, timeout: float) -> str:
-        """Read stdout lines until one contains ``needle`` (fails after ``timeout`` s)."""
+    def wait_line(self, proc: subprocess.Popen, needle: str, timeout: float) -> str:
+        """Wait for a stdout line containing ``needle`` (fails after ``timeout`` s or if the process ends)."""
         deadline = time.monotonic() + timeout
-        os.set_blocking(proc.stdout.fileno(), False)
-        buf = ""
+        out, err = self.lines[proc.pid]
         while time.monotonic() < deadline:
-            chunk = proc.stdout.read()
-            if chunk:
-                buf += chunk
-                for line in buf.splitlines():
-                    if needle in line:
-                        os.set_blocking(proc.stdout.fileno(), True)
-                        return line
-            elif proc.poll() is not None:
-                break
+            for line in list(out):
+                if needle in line:
+                    return line
+            if proc.poll() is not None:
+                time.sleep(0.2)
+                if not any(needle in line for line in out):
+                    break
             time.sleep(0.05)
-        os.set_blocking(proc.stdout.fileno(), True)
-        raise AssertionError(f"no line with {needle!r} from {proc.args} within {timeout} s; got {buf!r}")
+        raise AssertionError(f"no line with {needle!r} from {proc.args} in {timeout} s: {''.join(out)}{''.join(err)}")
+
+    def finish(self, proc: subprocess.Popen, timeout: float) -> tuple[str, str]:
+        """Wait for the process to exit; (stdout, stderr)."""
+        proc.wait(timeout)
+        time.sleep(0.1)  # let the reader threads reach EOF
+        out, err = self.lines[proc.pid]
+        return "".join(out), "".join(err)
 
     @staticmethod
     def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
@@ -109,9 +115,6 @@ class Processes:
         for proc in reversed(self.started):
             if proc.poll() is None:
                 self.stop(proc)
-            for stream in (proc.stdout, proc.stderr):
-                if stream is not None:
-                    stream.close()
 
 
 @pytest.fixture

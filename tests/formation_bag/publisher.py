@@ -44,7 +44,7 @@ def main() -> int:
     deadline = time.monotonic() + 10.0
     while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in pubs.values()):
         time.sleep(0.02)
-    time.sleep(0.3)
+    time.sleep(1.0)  # matched on our side: give the subscribers' side of discovery time too
     rng = np.random.default_rng(1)
     p = np.array([a.position for a in spec.agents])
     R = np.array([a.R_world_body for a in spec.agents])

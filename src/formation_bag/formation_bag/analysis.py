@@ -77,7 +77,7 @@ def analyze_run(
     recorder = RunRecorder(spec, record_every=record_every, mode=mode, control_rate=control_rate)
 
     if velocity_margins == "rerun" and reruns is None:
-        reruns = rerun_all(run)
+        reruns = rerun_all(run, check_age=False)
     reruns = reruns or {}
     rerun_index = {a: {int(s): k for k, s in enumerate(r.stamps)} for a, r in reruns.items()}
 

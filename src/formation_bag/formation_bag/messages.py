@@ -107,9 +107,8 @@ def stamp_ns(stamp: Any) -> int:
 
 
 def seconds(stamp_ns_value: int) -> float:
-    """Float seconds of an integer-ns stamp, as conversions.seconds_from_stamp computes them."""
-    sec, nsec = divmod(stamp_ns_value, NS_PER_S)
-    return sec + nsec / NS_PER_S
+    """Float seconds of an integer-ns stamp, as the agent node computes its controller time (ns / 1e9)."""
+    return stamp_ns_value / NS_PER_S
 
 
 def deserialize(data: bytes | memoryview, msgtype: str) -> Any:

@@ -194,13 +194,24 @@ class Recorder(Node):
         while context.ok():
             if len(self._active) != n_active:
                 n_active = len(self._active)
-                wait_set = _rclpy.WaitSet(n_active, 0, 0, 0, 0, 0, context.handle)
+                if n_active:
+                    wait_set = _rclpy.WaitSet(n_active, 0, 0, 0, 0, 0, context.handle)
                 by_pointer = {sub.handle.pointer: (name, sub, cls, every) for name, sub, cls, every in self._active}
-            wait_set.clear_entities()
-            for _, sub, _, _ in self._active:
-                wait_set.add_subscription(sub.handle)
-            wait_set.wait(100_000_000)
-            for ptr in wait_set.get_ready_entities("subscription"):
+            if n_active:
+                wait_set.clear_entities()
+                for _, sub, _, _ in self._active:
+                    wait_set.add_subscription(sub.handle)
+                try:
+                    wait_set.wait(100_000_000)
+                except _rclpy.RCLError:
+                    if not context.ok():
+                        break  # interrupted while waiting
+                    raise
+                ready = wait_set.get_ready_entities("subscription")
+            else:
+                time.sleep(0.1)  # nothing to record yet: discovery below
+                ready = []
+            for ptr in ready:
                 name, sub, cls, every = by_pointer[ptr]
                 take = sub.handle.take_message
                 while (got := take(cls, True)) is not None:
@@ -322,7 +333,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         node = Recorder(writer, known=known, only=only, namespace=args.namespace, decimate=decimate)
         print(f"formation-record: recording {node.topic_count} topics into {args.out}", flush=True)
-        node.spin(discovery_period=args.discovery_period, status_period=None if args.quiet else 5.0)
+        try:
+            node.spin(discovery_period=args.discovery_period, status_period=None if args.quiet else 5.0)
+        except Exception:
+            if node.context.ok():
+                raise
+            # a graph query or wait interrupted by SIGINT/SIGTERM (the context is shut down): a normal stop
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

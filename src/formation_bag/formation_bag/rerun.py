@@ -2,17 +2,19 @@
 
 ``formation-rerun BAG [--agent ID …] [--override FILE] [--out DIR]``
 
-For each recorded velocity message of agent i (stamp t), the controller gets ṽ_i and, per tree
-neighbour j, the latest recorded relative pose with stamp ≤ t (no older than the agent's
-``measurement_timeout``; else the step is a fault with a zero wrench, as the headless runner
-does). In lockstep every measurement of step k carries the stamp t_k, so this is exactly what
-the agent node received; its wrench (stamped t_k) must then be reproduced to 1e-12. With an
+As the agent node does (formation_agent.agent_node.StepSynchroniser): for each recorded velocity
+message of agent i (stamp t, in stamp order, duplicates answered once), the controller gets ṽ_i
+and, per tree neighbour j, the relative pose with the *same* stamp, at time t = stamp_ns / 1e9.
+A missing pose, or a measurement older than ``measurement_timeout`` behind the latest recorded
+/clock, gives a zero wrench (a fault). The agent computed from exactly these decoded messages, so
+its wrench (stamped t) must be reproduced to 1e-12. With an
 override file (gains, funnels) the report lists where and how much the wrenches change.
 """
 
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import math
 import sys
@@ -90,14 +92,25 @@ class AgentRerun:
         }
 
 
-def rerun_agent(run: RunData, agent_id: str, spec: FormationSpec | None = None) -> AgentRerun:
-    """Re-run agent ``agent_id``'s controller on its recorded measurements (``spec`` may differ)."""
+def rerun_agent(
+    run: RunData, agent_id: str, spec: FormationSpec | None = None, *, check_age: bool = True
+) -> AgentRerun:
+    """Re-run agent ``agent_id``'s controller on its recorded measurements (``spec`` may differ).
+
+    ``check_age=False`` skips the agent's staleness check (the simulator's shadow controllers,
+    which the analysis mirrors, compute on every published step).
+    """
     spec = spec or run.spec
     view = agent_view(spec, agent_id)
     ctrl = AgentController(view)
     timeout_ns = round(view.controller.measurement_timeout * m.NS_PER_S)
     vel = run.velocity[agent_id]
-    rel = {j: run.relative_pose.get((agent_id, j)) for j in view.neighbours}
+    rel = {
+        j: dict(zip(s.stamps, s.values)) if (s := run.relative_pose.get((agent_id, j))) is not None else {}
+        for j in view.neighbours
+    }
+    clock = sorted(zip(run.clock.log_times, run.clock.stamps))
+    clock_logs = [c[0] for c in clock]
     wr = run.wrench[agent_id]
     recorded_by_stamp = dict(zip(wr.stamps, wr.values))
     stamps: list[int] = []
@@ -105,21 +118,22 @@ def rerun_agent(run: RunData, agent_id: str, spec: FormationSpec | None = None) 
     faults: list[str | None] = []
     rec_rows: list[list[float]] = []
     last = None
-    for stamp, v in zip(vel.stamps, vel.values):
+    for stamp, log_time, v in zip(vel.stamps, vel.log_times, vel.values):
         if stamp == last:
-            continue  # a duplicate velocity message: the agent answers a step once
+            continue  # a re-sent step: the agent answers it once
         last = stamp
         t = m.seconds(stamp)
-        poses = {}
-        for j, series in rel.items():
-            if series is None:
-                continue
-            k = series.latest_at(stamp)
-            if k is not None and stamp - series.stamps[k] <= timeout_ns:
-                poses[j] = series.values[k]
+        poses = {j: by_stamp[stamp] for j, by_stamp in rel.items() if stamp in by_stamp}
+        k = bisect.bisect_right(clock_logs, log_time) - 1
+        clock_ns = clock[k][1] if k >= 0 else 0
         try:
-            out = ctrl.compute(t, poses, v)
-            fault = None
+            if check_age and clock_ns and clock_ns - stamp > timeout_ns:
+                age = (clock_ns - stamp) / m.NS_PER_S
+                out = ctrl.fault_output(t, f"measurement too old: {age:.3f} s behind /clock")
+                fault = "stale"
+            else:
+                out = ctrl.compute(t, poses, v)
+                fault = None
         except MissingMeasurementError as exc:
             out = ctrl.fault_output(t, str(exc))
             fault = ",".join(exc.neighbours)
@@ -139,13 +153,13 @@ def rerun_agent(run: RunData, agent_id: str, spec: FormationSpec | None = None) 
 
 
 def rerun_all(
-    run: RunData, agents: list[str] | None = None, spec: FormationSpec | None = None
+    run: RunData, agents: list[str] | None = None, spec: FormationSpec | None = None, *, check_age: bool = True
 ) -> dict[str, AgentRerun]:
     spec = spec or run.spec
     ids = agents or list(spec.agent_ids)
     for a in ids:
         spec.agent(a)  # names the bad id
-    return {a: rerun_agent(run, a, spec) for a in ids}
+    return {a: rerun_agent(run, a, spec, check_age=check_age) for a in ids}
 
 
 def load_override(path: Path) -> dict[str, Any]:

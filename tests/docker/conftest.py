@@ -9,6 +9,7 @@ per test run; the namespaces are deleted whatever happens (also after a failed s
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import signal
@@ -23,10 +24,6 @@ from typing import IO
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-
-#: Domain of this test run, inside the valid range 0..232 (Fast DDS refuses larger ids: the port
-#: number would overflow); in private namespaces no other run can hear it anyway.
-DOMAIN_ID = 200 + os.getpid() % 30
 
 
 def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
@@ -190,20 +187,22 @@ class Processes:
                 p.log_file.close()
 
 
-def make_ros_env(**extra: str) -> dict[str, str]:
-    """The environment of a ROS process of these tests: the project's venv first on PATH."""
+def make_ros_env(domain_id: int, **extra: str) -> dict[str, str]:
+    """The environment of a ROS process of these tests: the project's venv first on PATH, the
+    run's own ROS_DOMAIN_ID (tests/conftest.py's allocator; needed on this host, harmless in
+    the private namespaces, which no other run can hear)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "FASTDDS_", "FASTRTPS_", "RMW_"))}
     env["PATH"] = f"{REPO / '.venv' / 'bin'}:{env.get('PATH', '/usr/bin:/bin')}"
-    env["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
+    env["ROS_DOMAIN_ID"] = str(domain_id)
     env["PYTHONUNBUFFERED"] = "1"
     env.update(extra)
     return env
 
 
 @pytest.fixture
-def ros_env() -> Callable[..., dict[str, str]]:
+def ros_env(ros_domain_id: int) -> Callable[..., dict[str, str]]:
     """``ros_env(**extra)``: the environment of a ROS process (see :func:`make_ros_env`)."""
-    return make_ros_env
+    return functools.partial(make_ros_env, ros_domain_id)
 
 
 @pytest.fixture

@@ -69,7 +69,10 @@ def main() -> int:
             target = t0 + (k + 1) * period
             while time.perf_counter() < target:
                 time.sleep(min(0.001, max(0.0, target - time.perf_counter())))
-    time.sleep(0.5)
+    from rclpy.duration import Duration
+
+    for pub in pubs.values():  # reliable: stay until the subscribers have acknowledged everything
+        pub.wait_for_all_acked(Duration(seconds=10))
     print(json.dumps(counts), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()

@@ -71,7 +71,7 @@ def test_recorder_sigkill_loses_at_most_the_last_segment(ros_procs, tmp_path: Pa
     bag = tmp_path / "bag"
     segment = 0.5
     rec = _recorder(ros_procs, bag, "--segment-seconds", str(segment))
-    pub = ros_procs.start([*script("publisher.py"), "3000", "500"])
+    pub = ros_procs.start([*script("publisher.py"), "3000", "200"])
     deadline = time.monotonic() + 60
     while (
         not (bag / "metadata.yaml").exists()
@@ -109,7 +109,7 @@ def test_replay_timing_at_100_hz(ros_procs, tmp_path: Path) -> None:
             w.write("/agent_1/velocity", start + k * 10_000_000, enc.twist(k * 10_000_000, "1", rng.random(6).tolist()))
     sub = ros_procs.start([*script("subscriber.py"), "/agent_1/velocity", m.TWIST_STAMPED, "150", "60"])
     ros_procs.wait_line(sub, "ready", 60)
-    rep = ros_procs.start([*script("formation-replay"), str(bag), "--wait-timeout", "30"])
+    rep = ros_procs.start([*script("formation-replay"), str(bag), "--wait-timeout", "30", "--wait-settle", "2"])
     out, _err = ros_procs.finish(sub, timeout=90)
     rep_out, rep_err = ros_procs.finish(rep, timeout=30)
     assert rep.returncode == 0, rep_err

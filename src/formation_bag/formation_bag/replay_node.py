@@ -80,8 +80,8 @@ class Replayer(Node):
             self.clock_hz = clock_hz
             self._Clock = Clock
 
-    def wait_for_subscribers(self, mode: str, timeout: float) -> bool:
-        """Wait until ``any``/``all`` publishers have a subscriber (at most ``timeout`` s)."""
+    def wait_for_subscribers(self, mode: str, timeout: float, settle: float) -> bool:
+        """Wait until ``any``/``all`` publishers have a subscriber (at most ``timeout`` s), then ``settle`` s."""
         if mode == "none":
             return True
         pubs = list(self.pubs.values())
@@ -89,7 +89,7 @@ class Replayer(Node):
         check = any if mode == "any" else all
         while time.monotonic() < deadline:
             if check(p.get_subscription_count() > 0 for p in pubs):
-                time.sleep(0.3)  # let the other endpoints of a process match too
+                time.sleep(settle)  # our side matched; let the subscribers' side (and other topics) match too
                 return True
             time.sleep(0.02)
         return False
@@ -134,6 +134,13 @@ class Replayer(Node):
                 next_progress += 1.0
         return count
 
+    def wait_for_acks(self, timeout: float) -> None:
+        """Reliable topics: stay until the subscribers acknowledged the last messages."""
+        from rclpy.duration import Duration
+
+        for pub in self.pubs.values():
+            pub.wait_for_all_acked(Duration(nanoseconds=round(timeout * 1e9)))
+
 
 def _time(ns: int) -> Any:
     from builtin_interfaces.msg import Time
@@ -168,6 +175,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="before starting, wait until any (default) / all replayed topics have a subscriber",
     )
     p.add_argument("--wait-timeout", type=float, default=10.0, help="give up waiting after S s and start (default 10)")
+    p.add_argument(
+        "--wait-settle",
+        type=float,
+        default=0.5,
+        help="once a subscriber is seen, wait S s more so discovery completes on its side (default 0.5)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
 
@@ -199,11 +212,12 @@ def main(argv: list[str] | None = None) -> int:
     node = None
     try:
         node = Replayer(bag, selected, clock_hz=args.clock_hz)
-        if not node.wait_for_subscribers(args.wait, args.wait_timeout):
+        if not node.wait_for_subscribers(args.wait, args.wait_timeout, args.wait_settle):
             print(f"formation-replay: no subscriber after {args.wait_timeout:g} s; starting anyway", file=sys.stderr)
         print(f"formation-replay: replaying {len(selected)} topics of {args.bag} at rate {args.rate:g}", flush=True)
         while True:
             n = node.play(rate=args.rate, start=start, stop=stop, progress=not args.quiet)
+            node.wait_for_acks(5.0)
             print(f"formation-replay: published {n} messages", flush=True)
             if not args.loop or not node.context.ok():
                 break

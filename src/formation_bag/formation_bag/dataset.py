@@ -188,25 +188,23 @@ def load_run(
         rel: dict[tuple[str, str], Series] = {}
         counts: dict[str, int] = {t: 0 for t in bag.topics}
         first = last = None
-        des = m.typestore().deserialize_cdr
+        decode = m.fast_decode
         for msg in bag.messages(wanted):
             counts[msg.topic] += 1
             first = msg.log_time if first is None else min(first, msg.log_time)
             last = msg.log_time if last is None else max(last, msg.log_time)
             k = kinds[msg.topic]
-            obj = des(msg.data, msg.msgtype)
+            stamp, value = decode(k.kind, msg.data, msg.msgtype)
             if k.kind == "clock":
-                clock.add(m.stamp_ns(obj.clock), msg.log_time, None)
-                continue
-            stamp = m.stamp_ns(obj.header.stamp)
-            if k.kind == "ground_truth":
-                gt.add(stamp, msg.log_time, m.decode_poses(obj))
+                clock.add(stamp, msg.log_time, None)
+            elif k.kind == "ground_truth":
+                gt.add(stamp, msg.log_time, value)
             elif k.kind == "velocity" and k.agent in vel:
-                vel[k.agent].add(stamp, msg.log_time, m.decode_twist(obj))
+                vel[k.agent].add(stamp, msg.log_time, value)
             elif k.kind == "wrench" and k.agent in wr:
-                wr[k.agent].add(stamp, msg.log_time, m.decode_wrench(obj))
+                wr[k.agent].add(stamp, msg.log_time, value)
             elif k.kind == "relative_pose":
-                rel.setdefault((k.agent, k.target), Series()).add(stamp, msg.log_time, m.decode_relative_pose(obj))
+                rel.setdefault((k.agent, k.target), Series()).add(stamp, msg.log_time, value)
         lost, recovered = list(bag.lost), bag.recovered
         custom = dict(bag.custom_data)
     for s in (gt, clock, *vel.values(), *wr.values(), *rel.values()):

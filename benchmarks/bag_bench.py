@@ -137,7 +137,7 @@ def bench_paper(work: Path, duration: float) -> tuple[list[tuple[str, str]], dic
 def bench_recorder(work: Path, n: int, rate: float) -> list[tuple[str, str]]:
     env = dict(os.environ)
     env.update(
-        ROS_DOMAIN_ID=str(200 + os.getpid() % 30),
+        ROS_DOMAIN_ID=str(215 + os.getpid() % 18),  # Fast DDS accepts ≤ 232; below 215 may hit ephemeral ports
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
         ROS_LOG_DIR=str(work / "ros_log"),
     )

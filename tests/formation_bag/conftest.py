@@ -1,8 +1,9 @@
 """Fixtures of the bag tests: synthetic lockstep bags (no ROS) and ROS processes started safely.
 
-ROS processes get a domain of their own (200 + pid % 30), discovery on this host only, a
-temporary ROS_LOG_DIR and their own session; every process a test starts is stopped by its PID
-(SIGINT, then SIGTERM, SIGKILL only as a last resort) even when the test fails.
+ROS processes get the test run's exclusive domain (tests/conftest.py ros_domain_id), discovery
+on this host only, a temporary ROS_LOG_DIR and their own session; every process a test starts
+is stopped by its PID (SIGINT, then SIGTERM, SIGKILL only as a last resort) even when the test
+fails.
 """
 
 from __future__ import annotations
@@ -118,10 +119,10 @@ class Processes:
 
 
 @pytest.fixture
-def ros_procs(tmp_path: Path) -> Iterator[Processes]:
+def ros_procs(tmp_path: Path, ros_domain_id: int) -> Iterator[Processes]:
     env = dict(os.environ)
     env.update(
-        ROS_DOMAIN_ID=str(200 + os.getpid() % 30),
+        ROS_DOMAIN_ID=str(ros_domain_id),
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
         ROS_LOG_DIR=str(tmp_path / "ros_log"),
         PYTHONUNBUFFERED="1",

@@ -1,7 +1,8 @@
 """A small rclpy subscriber for the replay tests: ``python subscriber.py TOPIC TYPE N TIMEOUT``.
 
 Prints "ready" once subscribed, then receives N messages (or gives up after TIMEOUT s) and
-prints one JSON line: the receive times (s, time.perf_counter) and the raw message sizes.
+prints one JSON line: the receive times (s; the rmw receive timestamps, taken by the DDS thread
+when the message arrives, so Python's scheduling does not blur them) and the message sizes.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import sys
 import time
 
 import rclpy
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 
@@ -23,17 +25,19 @@ def main() -> int:
     node = rclpy.create_node("bag_test_subscriber")
     times: list[float] = []
     sizes: list[int] = []
-
-    def callback(data: bytes) -> None:
-        times.append(time.perf_counter())
-        sizes.append(len(data))
-
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-    node.create_subscription(cls, topic, callback, qos, raw=True)
+    sub = node.create_subscription(cls, topic, lambda _m: None, qos, raw=True)
     print("ready", flush=True)
     deadline = time.monotonic() + timeout
+    wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, node.context.handle)
     while len(times) < n and time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.05)
+        wait_set.clear_entities()
+        wait_set.add_subscription(sub.handle)
+        wait_set.wait(50_000_000)
+        while (got := sub.handle.take_message(cls, True)) is not None:
+            data, info = got
+            times.append(info["received_timestamp"] / 1e9)
+            sizes.append(len(data))
     print(json.dumps({"times": times, "sizes": sizes}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()

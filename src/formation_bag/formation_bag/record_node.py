@@ -123,7 +123,10 @@ class Recorder(Node):
         self.seq: dict[str, list[int]] = {}  # topic -> [first, last] publication sequence number
         self.subs: dict[str, Any] = {}
         self._active: list[tuple[str, Any, Any, int]] = []
-        for name, msgtype in known.items():
+        # ground truth last: formation-sim --wait-recorder starts when it sees a ground-truth
+        # subscriber, by then every other subscription of the recorder exists too
+        gt = m.absolute(topics.GROUND_TRUTH, namespace)
+        for name, msgtype in sorted(known.items(), key=lambda kv: kv[0] == gt):
             if only is None or name in only:
                 self._subscribe(name, msgtype)
         self.discover()

@@ -1,15 +1,39 @@
 #!/usr/bin/env bash
-# Install (on first use) and run a formation; the default is the paper's scenario.
+# Install (on first use) and run a formation through ROS 2: the simulator node and one process per
+# agent; the default is the paper's scenario (config/paper_5agents.yaml).
 #
-#   ros2_ws/run.sh [FILE] [--out DIR] [formation-headless options…]
+#   ros2_ws/run.sh [FILE] [--mode lockstep|realtime] [--out DIR] [--duration S] [--control-rate HZ]
+#                  [--record] [--netns auto|on|off] [--headless] [other options, see below]
 #
-# Writes OUT (default out/<formation>-headless): summary.json, trajectory.npz and the
-# figures errors.png, orientation_errors.png, inputs.png; prints a pass/fail summary.
-# Exit status: 0 every funnel held, 1 a funnel was violated, 2 invalid file or settings.
+# Validates FILE first (exit 2, nothing started, if invalid); starts every process in its own process
+# group with a log in OUT/logs/; shows progress (sim time, real-time factor, worst funnel margin);
+# stops everything on completion, Ctrl-C, SIGTERM or the death of a process; prints the summary and
+# writes OUT (default out/<formation>-ros2-<mode>-<time>): summary.json, trajectory.npz, errors.png,
+# orientation_errors.png, inputs.png, logs/ (and bag/ with --record).
+# Discovery stays on this host: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless set; a free
+# ROS_DOMAIN_ID is picked unless set; runs above 30 processes use a private network namespace.
+# --headless runs the same formation in one process without ROS (formation-headless, its options).
+# Exit status: 0 every funnel held, 1 a funnel was violated or a fault reported, 2 invalid file or
+# settings, 3 a process died or an agent was missing, 130 interrupted. Details: docs/ros2.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-case "${1:-}" in -h|--help) sed -n '2,9p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;; esac
+case "${1:-}" in
+  -h|--help)
+    sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'
+    echo
+    "$ROOT/ros2_ws/setup.sh"
+    "$ROOT/.venv/bin/formation-launch" --help | sed -n '/^options:/,$p'
+    exit 0 ;;
+esac
 "$ROOT/ros2_ws/setup.sh"
 FILE="$ROOT/config/paper_5agents.yaml"
 if [ $# -gt 0 ] && [ "${1#-}" = "$1" ]; then FILE="$1"; shift; fi
-exec "$ROOT/.venv/bin/formation-headless" "$FILE" "$@"
+args=()
+headless=0
+for a in "$@"; do
+  if [ "$a" = "--headless" ]; then headless=1; else args+=("$a"); fi
+done
+if [ "$headless" = 1 ]; then
+  exec "$ROOT/.venv/bin/formation-headless" "$FILE" "${args[@]+"${args[@]}"}"
+fi
+exec "$ROOT/.venv/bin/formation-launch" "$FILE" "${args[@]+"${args[@]}"}"

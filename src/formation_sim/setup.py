@@ -21,6 +21,7 @@ setup(
             "formation-check = formation_sim.check:main",
             "formation-headless = formation_sim.headless:main",
             "formation-sim = formation_sim.sim_node:main",
+            "formation-launch = formation_sim.launch:main",
             "formation-generate = formation_sim.generate:main",
         ],
     },

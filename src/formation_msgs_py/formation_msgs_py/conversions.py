@@ -112,3 +112,57 @@ def poses_from_msg(msg: PoseArray) -> tuple[list[list[float]], list[list[list[fl
 
 def clock_msg(t: float) -> Clock:
     return Clock(clock=stamp_from_seconds(t))
+
+
+# --- hot paths: fill pre-allocated messages in place (nodes publish thousands per second) -------
+
+
+def stamp_from_ns(ns: int) -> Time:
+    """A stamp from integer nanoseconds (exact)."""
+    return Time(sec=ns // NS_PER_S, nanosec=ns % NS_PER_S)
+
+
+def set_stamp_ns(stamp: Time, ns: int) -> None:
+    """Write integer nanoseconds into an existing stamp (no allocation)."""
+    stamp.sec = ns // NS_PER_S
+    stamp.nanosec = ns % NS_PER_S
+
+
+def fill_relative_pose(msg: TransformStamped, p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]) -> None:
+    """Overwrite translation (m, frame agent_i) and rotation R_i_j of a TransformStamped."""
+    tr = msg.transform.translation
+    tr.x, tr.y, tr.z = p_i_j_in_i
+    q = msg.transform.rotation
+    q.x, q.y, q.z, q.w = quaternion_from_matrix(R_i_j)
+
+
+def fill_twist(msg: TwistStamped, v: Sequence[float]) -> None:
+    """Overwrite the twist [vx, vy, vz, wx, wy, wz] (body frame) of a TwistStamped."""
+    lin, ang = msg.twist.linear, msg.twist.angular
+    lin.x, lin.y, lin.z, ang.x, ang.y, ang.z = v
+
+
+def fill_wrench(msg: WrenchStamped, u: Sequence[float]) -> None:
+    """Overwrite the wrench [fx, fy, fz, tx, ty, tz] (body frame, N and N·m) of a WrenchStamped."""
+    f, tq = msg.wrench.force, msg.wrench.torque
+    f.x, f.y, f.z, tq.x, tq.y, tq.z = u
+
+
+def relative_pose_template(observer: str, target: str) -> TransformStamped:
+    """A TransformStamped with frame names set (``agent_<observer>`` -> ``agent_<target>``)."""
+    msg = TransformStamped()
+    msg.header.frame_id = topics.agent_frame(observer)
+    msg.child_frame_id = topics.agent_frame(target)
+    return msg
+
+
+def twist_template(agent_id: str) -> TwistStamped:
+    msg = TwistStamped()
+    msg.header.frame_id = topics.agent_frame(agent_id)
+    return msg
+
+
+def wrench_template(agent_id: str) -> WrenchStamped:
+    msg = WrenchStamped()
+    msg.header.frame_id = topics.agent_frame(agent_id)
+    return msg

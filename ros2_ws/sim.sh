@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Start the simulator process alone (multi-host deployments: the agents run elsewhere, agent.sh).
+#
+#   ros2_ws/sim.sh FILE [--mode lockstep|realtime] [--out DIR] [--duration S] [--control-rate HZ] ...
+#
+# Runs formation-sim: waits for every agent of FILE to be discovered, then publishes /clock, relative
+# poses, velocities and ground truth, collects the wrenches, checks the funnels at every control step
+# and writes OUT (default out/<formation>-ros2-<mode>). All options: formation-sim --help (below).
+# Environment: ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS as for agent.sh.
+# Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 agent missing, 130 interrupted.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+case "${1:-}" in
+  -h|--help)
+    sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//'
+    echo
+    "$ROOT/ros2_ws/setup.sh"
+    exec "$ROOT/.venv/bin/formation-sim" --help ;;
+esac
+"$ROOT/ros2_ws/setup.sh"
+exec "$ROOT/.venv/bin/formation-sim" "$@"

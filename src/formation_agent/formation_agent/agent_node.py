@@ -1,0 +1,394 @@
+"""The agent node: one process per agent (DESIGN.md §3).
+
+``formation-agent --ros-args -p formation_file:=FILE -p agent_id:=ID`` reads only
+``agent_view(spec, ID)``, subscribes to exactly its own ``agent_<i>/velocity`` and the
+``agent_<i>/relative_pose/agent_<j>`` of its tree neighbours j, and publishes
+``agent_<i>/wrench`` stamped with the stamp of the measurements it answers, plus
+``/diagnostics`` at most every ``diagnostics_period`` (wall s, ≥ 0.1 s).
+
+Synchronisation (:class:`StepSynchroniser`, no ROS): a step is the set of measurements with one
+stamp. The agent computes as soon as it has its velocity and every neighbour's pose with that
+stamp; a neighbour out of sensing range sends nothing, so after ``pose_wait`` wall seconds it
+answers anyway with a zero wrench and ERROR (as the headless runner does), and a lockstep
+simulator never waits for it. A repeated stamp (the simulator re-sends a step it has no answer
+for) is answered with the same wrench; an earlier stamp (clock jumped back) resets the
+controller and the watchdogs. Non-finite measurements, and a velocity older than the agent's
+``measurement_timeout`` by the /clock (sim time), give a zero wrench and ERROR.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController, ControlOutput
+from formation_msgs_py.spec import AgentView
+
+#: Bounded memory of poses per neighbour (stamps); more only happens when the agent lags.
+_POSE_MEMORY = 8
+_NS = 1_000_000_000
+
+PoseTuple = tuple[list[float], list[list[float]]]
+
+
+def _finite(values: Sequence[float]) -> bool:
+    return all(math.isfinite(x) for x in values)
+
+
+@dataclass
+class Window:
+    """What /diagnostics reports: the worst of every step since the last report."""
+
+    margin_e: list[float]
+    margin_psi: list[float]
+    margin_v: list[float]
+    level: int = OK
+    message: str = ""
+    steps: int = 0
+    faults: int = 0
+
+    @classmethod
+    def empty(cls, n_edges: int) -> Window:
+        inf = math.inf
+        return cls([inf] * n_edges, [inf] * n_edges, [inf] * 6)
+
+    def add(self, out: ControlOutput) -> None:
+        self.steps += 1
+        pairs = ((self.margin_e, out.margin_e), (self.margin_psi, out.margin_psi), (self.margin_v, out.margin_v))
+        for dst, src in pairs:
+            for k, m in enumerate(src):
+                if m < dst[k]:
+                    dst[k] = m
+        if out.level == ERROR:
+            self.faults += 1
+        if out.level >= self.level:
+            self.level = out.level
+            self.message = out.message
+
+
+@dataclass
+class StepSynchroniser:
+    """Matches an agent's velocity with its neighbours' poses by stamp and runs the controller.
+
+    ``publish(stamp_ns, wrench)`` is called once per answered stamp (and again for a re-sent
+    stamp). Times: stamps in integer ns of sim time; ``now`` in wall seconds (monotonic).
+    """
+
+    controller: AgentController
+    publish: Callable[[int, Sequence[float]], None]
+    pose_wait: float = 0.005
+    measurement_timeout_ns: int = 100_000_000
+    poses: dict[str, dict[int, PoseTuple]] = field(default_factory=dict)
+    pending: tuple[int, list[float], float] | None = None
+    last_ns: int | None = None
+    last_wrench: tuple[float, ...] = (0.0,) * 6
+    last_output: ControlOutput | None = None
+    window: Window = None  # type: ignore[assignment]
+    resets: int = 0
+    last_measurement_wall: float | None = None
+
+    def __post_init__(self) -> None:
+        self.neighbours = tuple(e.neighbour for e in self.controller.view.edges)
+        self.poses = {j: {} for j in self.neighbours}
+        self.window = Window.empty(len(self.neighbours))
+
+    def reset(self) -> None:
+        """Forget everything that depends on time (backward clock jump)."""
+        self.controller.reset()
+        self.poses = {j: {} for j in self.neighbours}
+        self.pending = None
+        self.last_ns = None
+        self.resets += 1
+
+    def on_pose(self, j: str, ns: int, p: list[float], R: list[list[float]], now: float) -> None:
+        mem = self.poses[j]
+        mem[ns] = (p, R)
+        if len(mem) > _POSE_MEMORY:
+            del mem[next(iter(mem))]
+        self.last_measurement_wall = now
+        if self.pending is not None and self.pending[0] == ns:
+            self.try_compute(now, final=False)
+
+    def on_velocity(self, ns: int, v: list[float], now: float, clock_ns: int = 0) -> None:
+        self.last_measurement_wall = now
+        if self.last_ns is not None:
+            if ns == self.last_ns:  # the simulator re-sent a step: same answer
+                self.publish(ns, self.last_wrench)
+                return
+            if ns < self.last_ns:
+                self.reset()
+        self._clock_ns = clock_ns
+        self.pending = (ns, v, now + self.pose_wait)
+        self.try_compute(now, final=False)
+
+    def deadline(self) -> float | None:
+        return None if self.pending is None else self.pending[2]
+
+    def try_compute(self, now: float, *, final: bool) -> None:
+        """Answer the pending step if complete, or (``final``) with what has arrived."""
+        if self.pending is None:
+            return
+        ns, v, _ = self.pending
+        rel: dict[str, PoseTuple] = {}
+        for j in self.neighbours:
+            pose = self.poses[j].get(ns)
+            if pose is not None:
+                rel[j] = pose
+        if len(rel) < len(self.neighbours) and not final:
+            return
+        self.pending = None
+        t = ns / _NS
+        ctrl = self.controller
+        if len(rel) < len(self.neighbours):
+            missing = [j for j in self.neighbours if j not in rel]
+            out = ctrl.fault_output(t, f"no relative pose of neighbour(s) {', '.join(missing)} at t={t:.6f}")
+        elif not _finite(v) or not all(_finite(p) and _finite(R[0] + R[1] + R[2]) for p, R in rel.values()):
+            out = ctrl.fault_output(t, f"non-finite measurement at t={t:.6f}")
+        elif self._clock_ns and self._clock_ns - ns > self.measurement_timeout_ns:
+            age = (self._clock_ns - ns) / _NS
+            out = ctrl.fault_output(t, f"measurement too old: {age:.3f} s behind /clock")
+        else:
+            out = ctrl.compute(t, rel, v)
+        self.last_ns = ns
+        self.last_wrench = out.wrench
+        self.last_output = out
+        self.window.add(out)
+        self.publish(ns, out.wrench)
+        for j in self.neighbours:  # drop poses this step made obsolete
+            mem = self.poses[j]
+            for old in [s for s in mem if s <= ns]:
+                del mem[old]
+
+    _clock_ns: int = 0
+
+
+# --- ROS wrapper ------------------------------------------------------------------------------
+
+import rclpy  # noqa: E402  (the synchroniser above stays importable and testable without rclpy)
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
+from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped  # noqa: E402
+from rcl_interfaces.msg import ParameterDescriptor  # noqa: E402
+from rclpy.clock import JumpThreshold  # noqa: E402
+from rclpy.duration import Duration  # noqa: E402
+from rclpy.exceptions import ParameterException  # noqa: E402
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+
+from formation_msgs_py import conversions, qos, topics  # noqa: E402
+from formation_msgs_py.errors import FormationSpecError  # noqa: E402
+from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
+
+_DIAG_LEVEL = {OK: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
+
+
+class AgentNode(Node):
+    """Thin ROS wrapper around :class:`StepSynchroniser` for one agent."""
+
+    def __init__(self, node_name: str = "formation_agent") -> None:
+        super().__init__(node_name)
+        any_type = ParameterDescriptor(dynamic_typing=True, description="agent id (a number is read as text)")
+        self.declare_parameter("agent_id", "", any_type)
+        self.declare_parameter("formation_file", "")
+        self.declare_parameter("pose_wait", 0.005)
+        self.declare_parameter("diagnostics_period", 0.1)
+        agent_id = self.get_parameter("agent_id").value
+        agent_id = "" if agent_id is None else str(agent_id)
+        path = str(self.get_parameter("formation_file").value)
+        if not agent_id or not path:
+            raise FormationSpecError("", "parameters agent_id and formation_file are required")
+        view: AgentView = agent_view(load_formation(path), agent_id)
+        self.view = view
+        self.agent_id = view.agent_id
+        self.diag_period = max(0.1, float(self.get_parameter("diagnostics_period").value))
+        self.sync = StepSynchroniser(
+            AgentController(view),
+            self._publish_wrench,
+            pose_wait=float(self.get_parameter("pose_wait").value),
+            measurement_timeout_ns=round(view.controller.measurement_timeout * _NS),
+        )
+        self._msg = conversions.wrench_template(view.agent_id)
+        self._stamp = self._msg.header.stamp
+        self._pub = self.create_publisher(WrenchStamped, topics.wrench(view.agent_id), qos.CONTROL)
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
+        self.create_subscription(TwistStamped, topics.velocity(view.agent_id), self._on_velocity, qos.CONTROL)
+        for j in view.neighbours:
+            self.create_subscription(
+                TransformStamped,
+                topics.relative_pose(view.agent_id, j),
+                lambda msg, j=j: self._on_pose(j, msg),
+                qos.CONTROL,
+            )
+        self._clock = self.get_clock()
+        self._jump_handle = self._clock.create_jump_callback(
+            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=True),
+            post_callback=self._on_jump,
+        )
+        self._use_sim_time = bool(self.get_parameter("use_sim_time").value)
+        self._next_diag = time.monotonic() + self.diag_period
+        self.get_logger().info(
+            f"agent {view.agent_id}: neighbours {', '.join(view.neighbours)}; "
+            f"use_sim_time={self._use_sim_time}; pose_wait={self.sync.pose_wait * 1e3:.1f} ms"
+        )
+
+    # callbacks: messages -> synchroniser
+    def _on_velocity(self, msg: TwistStamped) -> None:
+        st = msg.header.stamp
+        tw = msg.twist
+        lin, ang = tw.linear, tw.angular
+        clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
+        self.sync.on_velocity(
+            st.sec * _NS + st.nanosec, [lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], time.monotonic(), clock_ns
+        )
+
+    def _on_pose(self, j: str, msg: TransformStamped) -> None:
+        st = msg.header.stamp
+        p, R = conversions.relative_pose_from_msg(msg)
+        self.sync.on_pose(j, st.sec * _NS + st.nanosec, p, R, time.monotonic())
+
+    def _publish_wrench(self, ns: int, u: Sequence[float]) -> None:
+        msg = self._msg
+        st = self._stamp
+        st.sec, st.nanosec = divmod(ns, _NS)
+        f, tq = msg.wrench.force, msg.wrench.torque
+        f.x, f.y, f.z, tq.x, tq.y, tq.z = u
+        self._pub.publish(msg)
+
+    def _on_jump(self, info) -> None:
+        if info.clock_change or info.delta.nanoseconds < 0:
+            self.get_logger().warning("clock jumped back: controller and watchdogs reset")
+            self.sync.reset()
+
+    # the loop: spin, then deadlines (pose wait, diagnostics) on the wall clock
+    def spin(self, executor) -> None:
+        sync = self.sync
+        mono = time.monotonic
+        while rclpy.ok(context=self.context):
+            dl = sync.deadline()
+            now = mono()
+            timeout = min(self._next_diag - now, 0.1 if dl is None else dl - now)
+            executor.spin_once(timeout_sec=max(timeout, 0.0))
+            now = mono()
+            if sync.pending is not None and now >= sync.pending[2]:
+                sync.try_compute(now, final=True)
+            if now >= self._next_diag:
+                self._publish_diagnostics(now)
+                self._next_diag = now + self.diag_period
+
+    def _publish_diagnostics(self, now: float) -> None:
+        sync = self.sync
+        w = sync.window
+        status = DiagnosticStatus()
+        status.name = f"formation_agent/{self.agent_id}"
+        status.hardware_id = topics.agent_frame(self.agent_id)
+        level, message = w.level, w.message
+        age = None if sync.last_measurement_wall is None else now - sync.last_measurement_wall
+        stale_s = None
+        if self._use_sim_time and sync.last_ns is not None:
+            clock_ns = self._clock.now().nanoseconds
+            stale_s = (clock_ns - sync.last_ns) / _NS
+            if stale_s > self.view.controller.measurement_timeout:
+                level, message = ERROR, f"no measurements for {stale_s:.3f} s (sim time)"
+        if w.steps == 0 and level == OK:
+            message = "waiting for measurements" if sync.last_ns is None else "no new measurements"
+        status.level = _DIAG_LEVEL[level]
+        status.message = message or LEVEL_NAMES[level]
+        values = [KeyValue(key="steps", value=str(w.steps)), KeyValue(key="faults", value=str(w.faults))]
+        values.append(KeyValue(key="last_stamp", value="" if sync.last_ns is None else f"{sync.last_ns / _NS:.9f}"))
+        values.append(KeyValue(key="measurement_age_wall", value="" if age is None else f"{age:.6f}"))
+        values.append(KeyValue(key="measurement_age_sim", value="" if stale_s is None else f"{stale_s:.6f}"))
+        for k, ie in enumerate(self.view.edges):
+            name = ie.edge.name
+            values.append(KeyValue(key=f"margin_e/{name}", value=_fmt(w.margin_e[k])))
+            values.append(KeyValue(key=f"margin_psi/{name}", value=_fmt(w.margin_psi[k])))
+        for c, ch in enumerate(("vx", "vy", "vz", "wx", "wy", "wz")):
+            values.append(KeyValue(key=f"margin_v/{ch}", value=_fmt(w.margin_v[c])))
+        status.values = values
+        arr = DiagnosticArray()
+        arr.header.stamp = self._clock.now().to_msg()
+        arr.status = [status]
+        self._diag_pub.publish(arr)
+        sync.window = Window.empty(len(sync.neighbours))
+
+
+def _fmt(x: float) -> str:
+    return "" if math.isinf(x) else f"{x:.6f}"
+
+
+def make_executor(kind: str, context=None):
+    """``events`` (rclpy.experimental.EventsExecutor, driven by spin_once) or ``single``."""
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor(context=context)
+    if kind == "single":
+        return SingleThreadedExecutor(context=context)
+    raise ValueError(f"executor {kind!r} is not 'events' or 'single'")
+
+
+def _cli_sets(args: Sequence[str], name: str) -> bool:
+    return any(a.startswith(f"{name}:=") for a in args)
+
+
+def _node_name(args: Sequence[str]) -> str:
+    """``formation_agent_<id>`` from ``-p agent_id:=<id>`` on the command line (else the plain name)."""
+    for a in args:
+        if a.startswith("agent_id:="):
+            ident = a.split(":=", 1)[1].strip("'\"")
+            if ident.replace("_", "").isalnum():
+                return topics.agent_node_name(ident)
+    return "formation_agent"
+
+
+USAGE = """usage: formation-agent --ros-args -p formation_file:=FILE -p agent_id:=ID [-p NAME:=VALUE ...]
+
+One agent of a formation (DESIGN.md §3): subscribes to agent_<ID>/velocity and the relative poses
+of its tree neighbours, publishes agent_<ID>/wrench and /diagnostics.
+
+parameters:
+  formation_file       formation file (YAML); only the agent's own view of it is used
+  agent_id             the agent's id in the file
+  use_sim_time         default true (the simulator publishes /clock)
+  pose_wait            wall seconds to wait for neighbours' poses after the velocity (default 0.005);
+                       a neighbour still missing then is out of range: zero wrench + ERROR
+  diagnostics_period   wall seconds between /diagnostics messages (default 0.1, minimum 0.1)
+environment:
+  FORMATION_EXECUTOR   events (default) or single
+  ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS: see docs/ros2.md
+"""
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``formation-agent``; exit 2 on a bad file or parameter."""
+    import os
+
+    argv = list(sys.argv if args is None else args)
+    if any(a in ("-h", "--help") for a in argv[1:]):
+        print(USAGE)
+        return 0
+    if not _cli_sets(argv, "use_sim_time"):
+        argv += ["--ros-args", "-p", "use_sim_time:=true"]
+    rclpy.init(args=argv)
+    node = None
+    try:
+        try:
+            node = AgentNode(_node_name(argv))
+        except (FormationSpecError, ParameterException, ValueError) as exc:
+            print(f"formation-agent: {exc}", file=sys.stderr)
+            return 2
+        executor = make_executor(os.environ.get("FORMATION_EXECUTOR", "events"), node.context)
+        executor.add_node(node)
+        node.spin(executor)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

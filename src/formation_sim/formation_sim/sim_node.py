@@ -1,0 +1,489 @@
+"""The simulator node: ``formation-sim FILE [--mode lockstep|realtime] [--out DIR] …``.
+
+Plays the world with :class:`formation_sim.simulation.Simulation`, the code path of the
+headless runner (DESIGN.md §6). Per control step k it publishes what ``Simulation.sense()``
+returns (relative poses of the tree pairs within sensing radius, noisy body twists), ``/clock``
+and the ground truth, and collects every agent's wrench.
+
+- **lockstep**: waits for every agent's WrenchStamped whose stamp equals step k's (integer ns),
+  then ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps
+  not answered within ``--resend`` wall seconds are published again to the missing agents (late
+  discovery); an agent silent for ``simulation.step_timeout`` wall seconds is named and the
+  node exits 3.
+- **realtime**: ticks at the control rate on the wall clock; each tick integrates the previous
+  period with the latest wrench of each agent held (zero-order hold), then publishes the new
+  measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by
+  zero and reported (once per agent, plus a count). The lag behind the wall clock is reported.
+
+Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
+``formation/ground_truth`` are published at ``--clock-rate`` / ``--ground-truth-rate`` (default:
+the record rate, at most the control rate). The run's outputs (DESIGN.md §8) go to ``--out``.
+Exit status: 0 every funnel held, 1 a funnel was violated or a fault reported, 2 invalid file
+or settings, 3 an agent missing (discovery or step timeout), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+
+from formation_msgs_py import conversions, qos, topics
+from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.spec import FormationSpec, simulator_view
+from formation_sim.deployment import DeferredInputRecorder, ShadowControllers, Timing
+from formation_sim.headless import check_control_rate, load_with_overrides, overrides_from_args, prepare_out_dir
+from formation_sim.report import format_summary, write_outputs
+from formation_sim.simulation import Measurements, Simulation
+
+NS = 1_000_000_000
+EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_MISSING, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+
+class AgentMissingError(RuntimeError):
+    """Agents did not answer (discovery or lockstep step timeout)."""
+
+
+class StopRequestedError(Exception):
+    """The node was asked to stop (SIGINT/SIGTERM: context shut down)."""
+
+
+class SimNode(Node):
+    """Publishers and subscriptions of the simulator; the stepping loops are :func:`run`."""
+
+    def __init__(self, spec: FormationSpec) -> None:
+        super().__init__(topics.SIM_NODE_NAME)
+        self.spec = spec
+        self.ids = spec.agent_ids
+        n = len(self.ids)
+        self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
+        self.gt_pub = self.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
+        self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), qos.CONTROL) for a in self.ids]
+        self.vel_msgs = [conversions.twist_template(a) for a in self.ids]
+        # one publisher per directed tree link, in the measurement model's order
+        self.links: dict[tuple[str, str], tuple[Any, TransformStamped]] = {}
+        for e in spec.edges:
+            for obs, tgt in ((e.tail, e.head), (e.head, e.tail)):
+                pub = self.create_publisher(TransformStamped, topics.relative_pose(obs, tgt), qos.CONTROL)
+                self.links[(obs, tgt)] = (pub, conversions.relative_pose_template(obs, tgt))
+        self.clock_msg = Clock()
+        # wrenches: latest per agent (stamp ns, values); lockstep counts answers of the current step
+        self.u_ns = [-1] * n
+        self.u_val: list[tuple[float, ...]] = [(0.0,) * 6] * n
+        self.current_ns = -1
+        self.missing = n
+        self.pub_wall: dict[int, float] = {}
+        self.timing = Timing(n)
+        self.wrench_subs = [
+            self.create_subscription(
+                WrenchStamped, topics.wrench(a), lambda msg, i=i: self._on_wrench(i, msg), qos.CONTROL
+            )
+            for i, a in enumerate(self.ids)
+        ]
+
+    def _on_wrench(self, i: int, msg: WrenchStamped) -> None:
+        st = msg.header.stamp
+        ns = st.sec * NS + st.nanosec
+        if ns < self.u_ns[i]:
+            return  # out of date (a re-sent step answered twice)
+        f, tq = msg.wrench.force, msg.wrench.torque
+        first = ns != self.u_ns[i]
+        self.u_ns[i] = ns
+        self.u_val[i] = (f.x, f.y, f.z, tq.x, tq.y, tq.z)
+        if first:
+            sent = self.pub_wall.get(ns)
+            if sent is not None:
+                self.timing.latencies.append(time.monotonic() - sent)
+            if ns == self.current_ns:
+                self.missing -= 1
+                self.timing.answered[i] += 1
+
+    # publishing ------------------------------------------------------------------------------
+    def publish_step(self, meas: Measurements, ns: int, only: set[int] | None = None) -> None:
+        """Relative poses (pairs in range) and velocities of one step, stamped ``ns``."""
+        sec, nsec = divmod(ns, NS)
+        rel = meas.relative_poses
+        vel = meas.velocities.tolist()
+        for i, a in enumerate(self.ids):
+            if only is not None and i not in only:
+                continue
+            for j, (p, R) in rel[a].items():
+                pub, msg = self.links[(a, j)]
+                st = msg.header.stamp
+                st.sec, st.nanosec = sec, nsec
+                conversions.fill_relative_pose(msg, p, R)
+                pub.publish(msg)
+        for i in range(len(self.ids)):  # velocities last: an agent computes when its velocity is in
+            if only is not None and i not in only:
+                continue
+            msg = self.vel_msgs[i]
+            st = msg.header.stamp
+            st.sec, st.nanosec = sec, nsec
+            conversions.fill_twist(msg, vel[i])
+            self.vel_pubs[i].publish(msg)
+
+    def publish_clock(self, ns: int) -> None:
+        conversions.set_stamp_ns(self.clock_msg.clock, ns)
+        self.clock_pub.publish(self.clock_msg)
+
+    def publish_ground_truth(self, t: float, sim: Simulation) -> None:
+        self.gt_pub.publish(conversions.poses_to_msg(t, sim.state.p, sim.state.R))
+
+    # discovery -------------------------------------------------------------------------------
+    def unmatched_agents(self) -> list[str]:
+        """Agents whose velocity or pose readers, or wrench writer, the simulator has not matched."""
+        out = []
+        for i, a in enumerate(self.ids):
+            ok = self.vel_pubs[i].get_subscription_count() > 0 and self.wrench_subs[i].get_publisher_count() > 0
+            ok = ok and all(pub.get_subscription_count() > 0 for (obs, _), (pub, _) in self.links.items() if obs == a)
+            if not ok:
+                out.append(a)
+        return out
+
+
+class Runner:
+    """The stepping loops of one run (lockstep or realtime)."""
+
+    def __init__(self, node: SimNode, executor: Any, spec: FormationSpec, args: argparse.Namespace) -> None:
+        self.node = node
+        self.executor = executor
+        self.spec = spec
+        self.args = args
+        s = spec.simulation
+        self.sim = Simulation(simulator_view(spec))
+        self.shadow = ShadowControllers(spec)
+        self.n_steps = round(s.duration * s.control_rate)
+        self.period = 1.0 / s.control_rate
+        record_every = max(1, round(s.control_rate / s.record_rate))
+        self.recorder = DeferredInputRecorder(
+            spec, record_every=record_every, mode=f"ros2-{args.mode}", control_rate=s.control_rate
+        )
+        gt_rate = args.ground_truth_rate or min(s.record_rate, s.control_rate)
+        clock_rate = args.clock_rate or min(s.record_rate, s.control_rate)
+        self.gt_every = max(1, round(s.control_rate / gt_rate))
+        self.clock_every = max(1, round(s.control_rate / clock_rate))
+        self.started = time.monotonic()
+        self.last_progress = self.started
+        self.step = 0
+        self.faults: dict[str, str] = {}
+
+    def ok(self) -> bool:
+        return rclpy.ok(context=self.node.context)
+
+    def spin(self, timeout: float) -> None:
+        self.executor.spin_once(timeout_sec=max(timeout, 0.0))
+        if not self.ok():
+            raise StopRequestedError
+
+    def stamp_ns(self, k: int) -> int:
+        return round(k * NS / self.spec.simulation.control_rate)
+
+    def wait_for_agents(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        last_note = time.monotonic()
+        while True:
+            missing = self.node.unmatched_agents()
+            if not missing:
+                break
+            now = time.monotonic()
+            if now > deadline:
+                raise AgentMissingError(
+                    f"discovery: agent(s) {', '.join(missing)} not matched within {timeout:g} s "
+                    "(not started, crashed, or another ROS_DOMAIN_ID / discovery range)"
+                )
+            if now - last_note > 5.0:
+                print(f"formation-sim: waiting for agent(s) {', '.join(missing)}", flush=True)
+                last_note = now
+            self.spin(0.05)
+        while self.args.wait_recorder and self.node.gt_pub.get_subscription_count() == 0:
+            if time.monotonic() > deadline:
+                raise AgentMissingError(f"discovery: no recorder subscribed to ground truth within {timeout:g} s")
+            self.spin(0.05)
+        settle = time.monotonic() + self.args.settle
+        while time.monotonic() < settle:  # let the agents' side of discovery finish too
+            self.spin(settle - time.monotonic())
+
+    def progress(self, t: float, force: bool = False) -> None:
+        now = time.monotonic()
+        if self.args.quiet or (not force and now - self.last_progress < self.args.progress_period):
+            return
+        self.last_progress = now
+        wall = now - self.started
+        rtf = t / wall if wall > 0 else 0.0
+        print(
+            f"progress t={t:.4f}/{self.spec.simulation.duration:g} rtf={rtf:.3f} "
+            f"worst_margin={self.recorder.worst_margin():+.4f}",
+            flush=True,
+        )
+
+    def _publish_aux(self, k: int, t: float, ns: int) -> None:
+        if k % self.clock_every == 0:
+            self.node.publish_clock(ns)
+        if k % self.gt_every == 0:
+            self.node.publish_ground_truth(t, self.sim)
+
+    # lockstep --------------------------------------------------------------------------------
+    def run_lockstep(self) -> None:
+        node, sim, rec, timing = self.node, self.sim, self.recorder, self.node.timing
+        step_timeout = self.spec.simulation.step_timeout
+        resend = self.args.resend
+        mono = time.monotonic
+        n = len(node.ids)
+        u = np.zeros((n, 6))
+        self.started = mono()
+        for k in range(self.n_steps + 1):
+            self.step = k
+            meas = sim.sense()
+            ns = self.stamp_ns(k)
+            node.current_ns = ns
+            node.missing = sum(1 for x in node.u_ns if x != ns)
+            self._publish_aux(k, meas.t, ns)
+            sent = mono()
+            node.pub_wall = {ns: sent}
+            node.publish_step(meas, ns)
+            # while the agents compute: shadow controllers and the funnel check of step k
+            margin_v, outputs = self.shadow.evaluate(meas, rec)
+            s = sim.state
+            rec.add(meas.t, s.p, s.R, s.v, None, margin_v)
+            self.shadow.note_errors(meas.t, outputs, rec)
+            deadline = sent + step_timeout
+            next_resend = sent + resend
+            while node.missing > 0:
+                now = mono()
+                if now >= deadline:
+                    late = [a for i, a in enumerate(node.ids) if node.u_ns[i] != ns]
+                    raise AgentMissingError(
+                        f"lockstep: no wrench from agent(s) {', '.join(late)} for step {k} (t={meas.t:.6f} s) "
+                        f"within step_timeout={step_timeout:g} s"
+                    )
+                if now >= next_resend:
+                    late = {i for i in range(n) if node.u_ns[i] != ns}
+                    node.publish_step(meas, ns, only=late)
+                    timing.resends += 1
+                    next_resend = now + resend
+                self.spin(min(deadline, next_resend) - now)
+            timing.expected += 1
+            u[:] = node.u_val
+            rec.set_inputs(u)
+            if k == self.n_steps:
+                break
+            sim.advance(u)
+            if not np.all(np.isfinite(sim.state.v)):
+                rec.fault(sim.t, "plant", "all", "non-finite state")
+                break
+            if k & 63 == 0:
+                self.progress(sim.t)
+
+    # realtime --------------------------------------------------------------------------------
+    def run_realtime(self) -> None:
+        node, sim, rec, timing = self.node, self.sim, self.recorder, self.node.timing
+        cmd_timeout_ns = round(self.spec.simulation.command_timeout * NS)
+        mono = time.monotonic
+        n = len(node.ids)
+        u = np.zeros((n, 6))
+        period = self.period
+        self.started = t0 = mono()
+        prev: tuple[Measurements, Any, np.ndarray, list] | None = None
+        for k in range(self.n_steps + 1):
+            self.step = k
+            target = t0 + k * period
+            while True:
+                now = mono()
+                if now >= target:
+                    break
+                self.spin(target - now)
+            timing.lags.append(mono() - target)
+            if prev is not None:
+                pmeas, pstate, pmargin, pouts = prev
+                pns = self.stamp_ns(k - 1)
+                for i, a in enumerate(node.ids):
+                    if node.u_ns[i] == pns:
+                        timing.on_time[i] += 1
+                    if node.u_ns[i] >= 0 and pns - node.u_ns[i] <= cmd_timeout_ns:
+                        u[i] = node.u_val[i]
+                    else:
+                        u[i] = 0.0
+                        timing.stale[i] += 1
+                        if a not in self.faults:
+                            msg = (
+                                "no wrench yet"
+                                if node.u_ns[i] < 0
+                                else f"last wrench {(pns - node.u_ns[i]) / NS:.3f} s old"
+                            )
+                            self.faults[a] = f"t={pmeas.t:.4f}: {msg} (> command_timeout): zero wrench"
+                            print(f"formation-sim: agent {a}: {self.faults[a]}", flush=True)
+                            rec.fault(pmeas.t, "command", a, "timeout")
+                timing.expected += 1
+                rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
+                rec.set_inputs(u)
+                self.shadow.note_errors(pmeas.t, pouts, rec)
+                sim.advance(u)
+                if not np.all(np.isfinite(sim.state.v)):
+                    rec.fault(sim.t, "plant", "all", "non-finite state")
+                    prev = None
+                    break
+            meas = sim.sense()
+            ns = self.stamp_ns(k)
+            node.current_ns = ns
+            self._publish_aux(k, meas.t, ns)
+            node.pub_wall[ns] = mono()
+            if len(node.pub_wall) > 64:
+                del node.pub_wall[next(iter(node.pub_wall))]
+            node.publish_step(meas, ns)
+            margin_v, outputs = self.shadow.evaluate(meas, rec)
+            prev = (meas, sim.state, margin_v, outputs)
+            self.progress(meas.t)
+        if prev is not None:  # the last sample, with the wrenches held at the end
+            pmeas, pstate, pmargin, pouts = prev
+            rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
+            rec.set_inputs(u)
+
+    def summary(self, wall: float, extra: dict[str, Any]) -> dict[str, Any]:
+        s = self.spec.simulation
+        info = {
+            "physics_rate": s.physics_rate,
+            "steps": self.step,
+            "clock_rate": s.control_rate / self.clock_every,
+            "ground_truth_rate": s.control_rate / self.gt_every,
+            "executor": self.args.executor,
+            "velocity_margins": "shadow controllers on the published measurements",
+        }
+        info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
+        if self.faults:
+            info["faults"] = self.faults
+        info.update(extra)
+        return self.recorder.summary(wall_time=wall, extra=info)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-sim",
+        description="The simulator node of a ROS 2 formation run (DESIGN.md §6): publishes /clock, relative "
+        "poses, velocities and ground truth, collects every agent's wrench, checks the funnels at every "
+        "control step and writes OUT (DESIGN.md §8). Agents are separate processes (formation-agent). "
+        "Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 agent missing, 130 interrupted. "
+        "ROS arguments may follow --ros-args.",
+    )
+    p.add_argument("file", type=Path, help="formation file (YAML)")
+    p.add_argument("--mode", choices=("lockstep", "realtime"), help="override simulation.mode")
+    p.add_argument("--out", type=Path, help="output directory (default: out/<formation>-ros2-<mode>)")
+    p.add_argument("--duration", type=float, help="override simulation.duration [s]")
+    p.add_argument("--control-rate", type=float, help="override simulation.control_rate [Hz]")
+    p.add_argument("--physics-rate", type=float, help="override simulation.physics_rate [Hz]")
+    p.add_argument("--record-rate", type=float, help="override simulation.record_rate [Hz]")
+    p.add_argument("--seed", type=int, help="override simulation.seed")
+    p.add_argument("--step-timeout", type=float, help="override simulation.step_timeout [wall s] (lockstep)")
+    p.add_argument("--command-timeout", type=float, help="override simulation.command_timeout [sim s] (realtime)")
+    p.add_argument(
+        "--discovery-timeout", type=float, default=None, help="wall s to wait for the agents (default 30 + 1/agent)"
+    )
+    p.add_argument("--settle", type=float, default=0.3, help="wall s to wait after discovery (default 0.3)")
+    p.add_argument("--resend", type=float, default=0.25, help="lockstep: re-send an unanswered step after [wall s]")
+    p.add_argument(
+        "--wait-recorder", action="store_true", help="also wait for a ground-truth subscriber (a bag recorder)"
+    )
+    p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
+    p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")
+    p.add_argument("--executor", choices=("events", "single"), default="events", help="rclpy executor")
+    p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
+    p.add_argument("--progress-period", type=float, default=1.0, help="wall s between progress lines")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    return p
+
+
+def load_spec(args: argparse.Namespace) -> FormationSpec:
+    """The formation with the command-line overrides applied (raises FormationSpecError)."""
+    over = overrides_from_args(args)
+    for opt, key in (("mode", "mode"), ("step_timeout", "step_timeout"), ("command_timeout", "command_timeout")):
+        if getattr(args, opt, None) is not None:
+            over[key] = getattr(args, opt)
+    return load_with_overrides(args.file, over)
+
+
+def make_executor(kind: str, context: Any) -> Any:
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor(context=context)
+    return SingleThreadedExecutor(context=context)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``formation-sim``."""
+    raw = list(sys.argv if argv is None else [sys.argv[0], *argv])
+    args = build_parser().parse_args(rclpy.utilities.remove_ros_args(raw)[1:])
+    try:
+        spec = load_spec(args)
+        args.mode = spec.simulation.mode
+        out = args.out or Path("out") / f"{spec.name}-ros2-{args.mode}"
+        prepare_out_dir(out, args.force)
+    except (FormationSpecError, FileExistsError) as exc:
+        print(f"formation-sim: {exc}", file=sys.stderr)
+        return EXIT_INVALID
+    problems = check_control_rate(spec)
+    if problems:
+        warn = args.allow_low_rate or spec.simulation.rate_check == "warn"
+        for msg in problems:
+            print(f"formation-sim: {'warning' if warn else 'error'}: {msg}", file=sys.stderr)
+        if not warn:
+            print("formation-sim: control rate too low; raise --control-rate or pass --allow-low-rate", file=sys.stderr)
+            return EXIT_INVALID
+    s = spec.simulation
+    print(
+        f"formation-sim: {spec.name}, {len(spec.agents)} agents, {args.mode} at {s.control_rate:g} Hz "
+        f"(physics {s.physics_rate:g} Hz), {s.duration:g} s; outputs in {out}/",
+        flush=True,
+    )
+    rclpy.init(args=raw)
+    node = runner = None
+    code = EXIT_OK
+    extra: dict[str, Any] = {}
+    try:
+        node = SimNode(spec)
+        executor = make_executor(args.executor, node.context)
+        executor.add_node(node)
+        runner = Runner(node, executor, spec, args)
+        timeout = args.discovery_timeout or 30.0 + len(spec.agents)
+        t_disc = time.monotonic()
+        runner.wait_for_agents(timeout)
+        extra["discovery_s"] = time.monotonic() - t_disc
+        print(f"formation-sim: all {len(spec.agents)} agents matched in {extra['discovery_s']:.2f} s", flush=True)
+        if args.mode == "lockstep":
+            runner.run_lockstep()
+        else:
+            runner.run_realtime()
+    except AgentMissingError as exc:
+        print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
+        extra["error"] = str(exc)
+        code = EXIT_MISSING
+    except (KeyboardInterrupt, ExternalShutdownException, StopRequestedError):
+        extra["interrupted"] = True
+        code = EXIT_INTERRUPTED
+    finally:
+        wall = time.monotonic() - runner.started if runner is not None else 0.0
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    if runner is not None and runner.recorder.samples > 0:
+        summary = runner.summary(wall, extra)
+        write_outputs(out, runner.recorder, summary, plots=not args.no_plots)
+        runner.progress(runner.recorder.t_last, force=True)
+        print(format_summary(summary), flush=True)
+        if code == EXIT_OK and not summary["funnels_held"]:
+            code = EXIT_VIOLATION
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

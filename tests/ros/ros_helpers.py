@@ -1,0 +1,115 @@
+"""Helpers of the multi-process ROS 2 tests (imported by conftest and the tests)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = REPO / ".venv" / "bin"
+RUN_SH = REPO / "ros2_ws" / "run.sh"
+PAPER = REPO / "config" / "paper_5agents.yaml"
+REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
+
+
+@dataclass
+class Procs:
+    """Processes started by one test; :meth:`stop_all` signals each PID's own process group."""
+
+    env: dict[str, str]
+    logdir: Path
+    started: list[subprocess.Popen] = field(default_factory=list)
+
+    def start(self, name: str, cmd: list[str], **kw) -> subprocess.Popen:
+        log = open(self.logdir / f"{name}.log", "wb")
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True, **kw)
+        log.close()
+        proc.log_path = self.logdir / f"{name}.log"  # type: ignore[attr-defined]
+        self.started.append(proc)
+        return proc
+
+    def agent(self, formation: Path, agent_id: str) -> subprocess.Popen:
+        return self.start(
+            f"agent_{agent_id}",
+            [
+                str(BIN / "formation-agent"),
+                "--ros-args",
+                "-p",
+                f"formation_file:={formation}",
+                "-p",
+                f"agent_id:='{agent_id}'",
+            ],
+        )
+
+    def sim(self, formation: Path, out: Path, *extra: str) -> subprocess.Popen:
+        return self.start("sim", [str(BIN / "formation-sim"), str(formation), "--out", str(out), "--no-plots", *extra])
+
+    def stop_all(self) -> None:
+        alive = [p for p in self.started if p.poll() is None]
+        for sig, grace in ((signal.SIGINT, 5.0), (signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
+            for p in alive:
+                try:
+                    os.killpg(p.pid, sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + grace
+            while time.monotonic() < deadline and any(p.poll() is None for p in alive):
+                time.sleep(0.05)
+            alive = [p for p in alive if p.poll() is None]
+            if not alive:
+                return
+
+
+def read_log(proc: subprocess.Popen) -> str:
+    return Path(proc.log_path).read_text(errors="replace")  # type: ignore[attr-defined]
+
+
+def wait_for_line(proc: subprocess.Popen, needle: str, timeout: float) -> bool:
+    """True once ``needle`` appears in the process's log (False on timeout or exit)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if needle in read_log(proc):
+            return True
+        if proc.poll() is not None:
+            return needle in read_log(proc)
+        time.sleep(0.1)
+    return False
+
+
+def processes_mentioning(text: str) -> list[int]:
+    """PIDs of live processes whose command line contains ``text`` (used to find leftovers)."""
+    found = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            cmdline = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = (d / "stat").read_text().split(")")[-1].split()[0]
+        except OSError:
+            continue
+        if text in cmdline and state != "Z":
+            found.append(int(d.name))
+    return found
+
+
+def children_by_node(parent: int) -> dict[str, int]:
+    """{node name: pid} of the agent processes started by ``parent`` (``-r __node:=NAME``, from /proc)."""
+    found = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            cmd = (d / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) != parent:
+            continue
+        for arg in cmd:
+            if arg.startswith(b"__node:="):
+                found[arg.split(b":=", 1)[1].decode()] = int(d.name)
+    return found

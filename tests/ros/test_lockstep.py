@@ -1,0 +1,169 @@
+"""Lockstep through ROS 2 processes: equal to the headless runner, deterministic, fault-safe."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from ros_helpers import BIN, PAPER, REPO, children_by_node, read_log, wait_for_line
+
+from formation_msgs_py.spec import load_formation
+from formation_sim.headless import run_headless
+
+#: 0.08 s of the paper preset at its 10 kHz control rate: 800 lockstep steps, recorded at every step
+SHORT = ("--duration", "0.08", "--record-rate", "10000")
+
+
+def _launch(env: dict[str, str], out: Path, *extra: str) -> subprocess.CompletedProcess:
+    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", *SHORT, *extra]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=180, start_new_session=True)
+
+
+def test_lockstep_equals_headless_and_is_deterministic(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """Two ROS lockstep runs equal run_headless sampled at 10 kHz (|Δe|, |Δψ| ≤ 1e-9) and each other."""
+    runs = []
+    for k in range(2):
+        out = tmp_path / f"ros{k}"
+        r = _launch(ros_env, out)
+        assert r.returncode == 0, r.stdout + r.stderr
+        runs.append(np.load(out / "trajectory.npz"))
+    spec = load_formation(PAPER, overrides={"duration": 0.08, "record_rate": 10000.0})
+    ref = run_headless(spec, controller_mode="sampled").recorder.arrays()
+    for ros in runs:
+        assert ros["t"].shape == ref["t"].shape == (801,)
+        np.testing.assert_array_equal(ros["t"], ref["t"])
+        assert np.max(np.abs(ros["e"] - ref["e"])) <= 1e-9
+        assert np.max(np.abs(ros["psi"] - ref["psi"])) <= 1e-9
+        assert np.max(np.abs(ros["u"] - ref["u"])) <= 1e-6
+    for key in runs[0].files:
+        np.testing.assert_array_equal(runs[0][key], runs[1][key], err_msg=key)
+
+
+def test_every_process_has_a_log_and_outputs(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """run.sh writes OUT as DESIGN.md §8 with one log per process and exits 0 when funnels hold."""
+    out = tmp_path / "out"
+    r = subprocess.run(
+        [str(REPO / "ros2_ws" / "run.sh"), str(PAPER), "--out", str(out), "--duration", "0.02"],
+        env=ros_env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+        start_new_session=True,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "PASS: every funnel held" in r.stdout
+    for name in ("summary.json", "trajectory.npz", "errors.png", "orientation_errors.png", "inputs.png"):
+        assert (out / name).is_file(), name
+    logs = {p.name for p in (out / "logs").iterdir()}
+    assert {"sim.log", *(f"agent_{i}.log" for i in range(1, 6)), "processes.json"} <= logs
+
+
+def test_lockstep_names_a_killed_agent(procs, tmp_path: Path) -> None:
+    """kill -9 of an agent mid-run: the simulator names it and exits 3 within its step timeout."""
+    agents = {a.id: procs.agent(PAPER, a.id) for a in load_formation(PAPER).agents}
+    sim = procs.sim(PAPER, tmp_path / "out", "--duration", "5", "--step-timeout", "2", "--progress-period", "0.2")
+    assert wait_for_line(sim, "progress t=", 90), read_log(sim)
+    os.kill(agents["3"].pid, signal.SIGKILL)
+    killed = time.monotonic()
+    code = sim.wait(timeout=30)
+    elapsed = time.monotonic() - killed
+    log = read_log(sim)
+    assert code == 3, log
+    assert "no wrench from agent(s) 3 " in log, log
+    assert elapsed < 2 + 8, elapsed
+    assert (tmp_path / "out" / "summary.json").is_file()
+
+
+def test_launcher_stops_everything_when_an_agent_dies(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """The launcher notices a dead agent at once, stops the rest and exits 3."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--duration", "5", "--no-plots"],
+        env=ros_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 90
+        while not (out / "logs" / "sim.log").exists() or "progress" not in (out / "logs" / "sim.log").read_text():
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.1)
+        pids = children_by_node(proc.pid)
+        os.kill(pids["formation_agent_2"], signal.SIGKILL)
+        stdout, _ = proc.communicate(timeout=60)
+        assert proc.returncode == 3, stdout
+        assert "agent_2 exited" in stdout
+        table = json.loads((out / "logs" / "processes.json").read_text())
+        assert all(row["returncode"] is not None for row in table)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def test_invalid_file_exits_2_before_starting(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """An invalid formation file: exit 2, a message naming the field, no output directory, no process."""
+    doc = yaml.safe_load(PAPER.read_text())
+    doc["edges"][0]["distance"] = 4.5
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "out"
+    r = subprocess.run(
+        [str(REPO / "ros2_ws" / "run.sh"), str(bad), "--out", str(out)],
+        env=ros_env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "edges[0].distance" in r.stderr
+    assert not out.exists()
+    assert "simulator" not in r.stdout
+
+
+def test_help_of_every_script() -> None:
+    """Every script answers --help with exit 0."""
+    for cmd in (
+        [str(REPO / "ros2_ws" / "run.sh"), "--help"],
+        [str(REPO / "ros2_ws" / "agent.sh"), "--help"],
+        [str(REPO / "ros2_ws" / "sim.sh"), "--help"],
+        [str(BIN / "formation-agent"), "--help"],
+        [str(BIN / "formation-sim"), "--help"],
+        [str(BIN / "formation-launch"), "--help"],
+    ):
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, (cmd, r.stderr)
+        assert "--" in r.stdout and len(r.stdout) > 200, cmd
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None, reason="unshare (util-linux) is not installed")
+def test_private_network_namespace(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """--netns on runs the formation inside its own network namespace (how 50 agents run)."""
+    from formation_sim.launch import netns_available
+
+    reason = netns_available()
+    if reason is not None:
+        pytest.skip(reason)
+    out = tmp_path / "out"
+    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--duration", "0.01", "--netns", "on"]
+    r = subprocess.run(
+        [*cmd, "--no-plots", "--quiet"],
+        env=ros_env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+        start_new_session=True,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "private network namespace" in r.stdout
+    assert json.loads((out / "summary.json").read_text())["launch"]["network_namespace"] is True

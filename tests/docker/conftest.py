@@ -199,7 +199,7 @@ def make_ros_env(domain_id: int, **extra: str) -> dict[str, str]:
     return env
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def ros_env(ros_domain_id: int) -> Callable[..., dict[str, str]]:
     """``ros_env(**extra)``: the environment of a ROS process (see :func:`make_ros_env`)."""
     return functools.partial(make_ros_env, ros_domain_id)
@@ -208,6 +208,16 @@ def ros_env(ros_domain_id: int) -> Callable[..., dict[str, str]]:
 @pytest.fixture
 def processes(tmp_path: Path) -> Iterator[Processes]:
     procs = Processes(tmp_path)
+    try:
+        yield procs
+    finally:
+        procs.stop_all()
+
+
+@pytest.fixture(scope="module")
+def module_processes(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Processes]:
+    """Like ``processes``, for module-scoped fixtures (stopped at the end of the module)."""
+    procs = Processes(tmp_path_factory.mktemp("logs"))
     try:
         yield procs
     finally:

@@ -180,27 +180,40 @@ def assert_same_run(a: Path, b: Path, *, exact: bool = True) -> None:
             assert sa[key] == sb[key], key
 
 
+NAMES = ["sim"] + [f"agent_{i}" for i in range(1, 6)]
+
+
+@pytest.fixture(scope="module")
+def one_host_runs(
+    module_processes: Processes, ros_env: Callable[..., dict[str, str]], tmp_path_factory: pytest.TempPathFactory
+) -> dict[str, Path]:
+    """The shortened paper scenario on this host: ROS processes (LOCALHOST discovery) and headless."""
+    base = tmp_path_factory.mktemp("one_host")
+    runs = {"ros": base / "ros", "headless": base / "headless"}
+    run_deployment(
+        module_processes, runs["ros"], ros_env(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"), dict.fromkeys(NAMES)
+    )
+    run_headless(runs["headless"])
+    return runs
+
+
 @needs_deployment
-@pytest.mark.parametrize("mode", ["multicast"])
+@pytest.mark.parametrize("mode", ["multicast", "static_peers"])
 def test_paper_scenario_across_hosts_equals_one_host(
     private_network: type[PrivateNetwork],
     processes: Processes,
     ros_env: Callable[..., dict[str, str]],
+    one_host_runs: dict[str, Path],
     tmp_path: Path,
     mode: str,
 ) -> None:
     """Lockstep paper scenario (shortened): six hosts give exactly the run of one host, and the headless
     runner's trajectory (to rounding: the ROS path converts through messages)."""
-    names = ["sim"] + [f"agent_{i}" for i in range(1, 6)]
-    net = private_network.create(names)
+    net = private_network.create(NAMES, multicast=mode == "multicast")
     multi = tmp_path / "multihost"
     run_deployment(processes, multi, discovery_env(ros_env, mode, net), {h.name: h.netns for h in net.hosts})
-    single = tmp_path / "singlehost"
-    run_deployment(processes, single, ros_env(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"), dict.fromkeys(names))
-    headless = tmp_path / "headless"
-    run_headless(headless)
-    assert_same_run(multi, single)
-    assert_same_run(multi, headless, exact=False)
+    assert_same_run(multi, one_host_runs["ros"])
+    assert_same_run(multi, one_host_runs["headless"], exact=False)
 
 
 if __name__ == "__main__":

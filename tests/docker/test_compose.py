@@ -104,3 +104,16 @@ def test_console_script_help() -> None:
     result = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0
     assert "--out" in result.stdout
+
+
+def test_commands_match_the_ros2_ws_scripts() -> None:
+    """The services' commands are what ros2_ws/sim.sh and agent.sh accept (their --help)."""
+    sim_sh, agent_sh = REPO / "ros2_ws" / "sim.sh", REPO / "ros2_ws" / "agent.sh"
+    if not (sim_sh.exists() and agent_sh.exists()):
+        pytest.skip("ros2_ws/sim.sh and agent.sh are not there yet")
+    sim_help = subprocess.run([str(sim_sh), "--help"], capture_output=True, text=True, timeout=120).stdout
+    agent_help = subprocess.run([str(agent_sh), "--help"], capture_output=True, text=True, timeout=60).stdout
+    s = services(CHECKED_IN)
+    for option in (a for a in s["sim"]["command"] if a.startswith("--")):
+        assert option in sim_help, option
+    assert "agent.sh FILE AGENT_ID" in agent_help

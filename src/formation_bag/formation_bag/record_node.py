@@ -246,11 +246,12 @@ class Recorder(Node):
 
     def finish(self) -> dict[str, Any]:
         """Close the bag with the counts in custom_data; returns the counts."""
-        published = {}
+        published: dict[str, int | None] = {}
         for name, (first, last) in self.seq.items():
             # one publisher per DESIGN.md topic: its sequence numbers count what it published
-            # while we listened (not for topics with several publishers, e.g. /diagnostics)
-            published[name] = last - first + 1
+            # while we listened; with several publishers (/diagnostics) they interleave: unknown
+            span = last - first + 1
+            published[name] = span if span >= self.received[name] else None
         stats = {
             "received": dict(self.received),
             "written": dict(self.written),

@@ -6,6 +6,8 @@ so the outputs have the format of DESIGN.md §8 (summary.json, trajectory.npz, e
 orientation_errors.png, inputs.png). Per ground-truth sample (stamp t_k) it uses:
 
 - u: the wrench each agent published with stamp t_k (else the latest earlier one: zero-order hold);
+  realtime runs: the latest wrench received before the next sample, zero if older than
+  ``command_timeout`` (the simulator's rule, with the recorder's receive order);
 - ṽ (trajectory ``v``): the recorded noisy twist (the bag has no true velocity);
 - the velocity-funnel margins and controller levels: from re-running each agent's controller on
   its recorded measurements (:mod:`formation_bag.rerun`; exactly what the agent computed), with
@@ -87,7 +89,23 @@ def analyze_run(
 
     wrench_exact = {a: dict(zip(run.wrench[a].stamps, run.wrench[a].values)) for a in ids}
     zeros6 = [0.0] * 6
-    for stamp, (p_list, R_list) in zip(gt.stamps, gt.values):
+    realtime = "realtime" in mode
+    # realtime: the simulator applies, over the period after sample k, the latest wrench it has
+    # received when it ticks (just before it publishes sample k+1), zero if older than
+    # command_timeout. Approximated with the recorder's receive order.
+    by_log = {a: sorted(zip(run.wrench[a].log_times, run.wrench[a].stamps, run.wrench[a].values)) for a in ids}
+    by_log_t = {a: [x[0] for x in rows] for a, rows in by_log.items()}
+    timeout_ns = round(spec.simulation.command_timeout * m.NS_PER_S)
+
+    def held(a: str, k: int) -> list[float]:
+        nxt = gt.log_times[k + 1] if k + 1 < len(gt) else run.last_log + 1
+        j = bisect.bisect_left(by_log_t[a], nxt) - 1
+        if j < 0:
+            return zeros6
+        _, st, val = by_log[a][j]
+        return val if gt.stamps[k] - st <= timeout_ns else zeros6
+
+    for kk, (stamp, (p_list, R_list)) in enumerate(zip(gt.stamps, gt.values)):
         t = m.seconds(stamp)
         outs = []
         if reruns:
@@ -101,7 +119,10 @@ def analyze_run(
             for a, o in zip(ids, outs):
                 if o is not None and o[2] and o[1] is not None:
                     recorder.fault(t, "measurement", a, o[1])
-        u = np.array([wrench_exact[a].get(stamp) or at(run.wrench[a], stamp) or zeros6 for a in ids])
+        if realtime:
+            u = np.array([held(a, kk) for a in ids])
+        else:
+            u = np.array([wrench_exact[a].get(stamp) or at(run.wrench[a], stamp) or zeros6 for a in ids])
         v = np.array([at(run.velocity[a], stamp) or zeros6 for a in ids])
         margin_v = None
         if reruns:

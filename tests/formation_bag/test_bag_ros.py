@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
 import time
 from pathlib import Path
@@ -125,3 +126,41 @@ def test_replay_refuses_unknown_topic(short_bags) -> None:
     from formation_bag.replay_node import main
 
     assert main([str(short_bags["mcap"][0]), "--topics", "/agent_9/velocity"]) == 2
+
+
+def test_replay_window_and_rate(ros_procs, tmp_path: Path) -> None:
+    """--start/--end select a window of the bag, --rate 2 plays it twice as fast."""
+    bag = tmp_path / "bag"
+    enc = m.Encoder()
+    start = 1_700_000_000 * m.NS_PER_S
+    with SegmentedBagWriter(bag) as w:
+        w.add_topic("/agent_2/velocity", m.TWIST_STAMPED)
+        for k in range(200):
+            w.write("/agent_2/velocity", start + k * 10_000_000, enc.twist(k * 10_000_000, "2", [float(k)] * 6))
+    sub = ros_procs.start([*script("subscriber.py"), "/agent_2/velocity", m.TWIST_STAMPED, "51", "60"])
+    ros_procs.wait_line(sub, "ready", 60)
+    rep = ros_procs.start(
+        [*script("formation-replay"), str(bag), "--start", "0.5", "--end", "1.0", "--rate", "2", "--wait-settle", "2"]
+    )
+    out, _ = ros_procs.finish(sub, timeout=90)
+    rep_out, rep_err = ros_procs.finish(rep, timeout=30)
+    assert rep.returncode == 0, rep_err
+    assert "published 51 messages" in rep_out  # 0.50 s … 1.00 s inclusive
+    times = np.array(json.loads(out.strip().splitlines()[-1])["times"])
+    assert times.size == 51
+    assert np.median(np.diff(times)) == pytest.approx(0.005, abs=0.001)
+
+
+def test_decimation_option() -> None:
+    """--decimate TOPIC=N parses globs and refuses malformed entries, naming them."""
+    from formation_bag.errors import BagTopicError
+    from formation_bag.record_node import parse_decimation, parse_meta
+
+    assert parse_decimation(["/agent_*/relative_pose/*=10", "/diagnostics=2"]) == [
+        ("/agent_*/relative_pose/*", 10),
+        ("/diagnostics", 2),
+    ]
+    for bad in ("/clock", "/clock=0", "=3", "/clock=x"):
+        with pytest.raises(BagTopicError, match=re.escape(bad)):
+            parse_decimation([bad])
+    assert parse_meta(["mode=lockstep", "note=a=b"]) == {"mode": "lockstep", "note": "a=b"}

@@ -219,6 +219,7 @@ class Launcher:
         self.stop_reason: str | None = None
         self.signalled: int | None = None
         self.code = EXIT_OK
+        self.agent_died = False
         self._relay: threading.Thread | None = None
         self._tty = sys.stdout.isatty()
 
@@ -316,6 +317,7 @@ class Launcher:
                 msg = f"formation-launch: {c.name} exited with status {c.returncode} (log: {c.log})"
                 if c.role == "agent" and mode == "realtime":
                     print(msg + "; realtime run continues, its wrench is zeroed by the simulator", flush=True)
+                    self.agent_died = True
                     continue
                 print(msg + "; stopping the run", file=sys.stderr, flush=True)
                 self.stop_reason = f"{c.name} exited"
@@ -324,6 +326,8 @@ class Launcher:
                 break
             time.sleep(0.05)
         self.stop_all(sim)
+        if self.agent_died and self.code in (EXIT_OK, EXIT_VIOLATION):
+            self.code = EXIT_PROCESS
         return self.code
 
     def stop_all(self, sim: Child) -> None:
@@ -463,6 +467,8 @@ def main(argv: list[str] | None = None) -> int:
         print(format_summary(summary))
         if code == EXIT_OK and not summary["funnels_held"]:
             code = EXIT_VIOLATION
+        if summary.get("faults"):
+            print("faults: " + "; ".join(f"agent {a}: {m}" for a, m in summary["faults"].items()))
     if launcher.stop_reason:
         print(f"formation-launch: stopped: {launcher.stop_reason}", file=sys.stderr)
     print(f"outputs in {out}/ (exit status {code})")

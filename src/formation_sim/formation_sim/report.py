@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,9 @@ from formation_msgs_py import funnels
 from formation_msgs_py.spec import FormationSpec
 
 VELOCITY_CHANNELS = ("vx", "vy", "vz", "wx", "wy", "wz")
+#: Violation kinds that name an edge; every other kind (velocity, measurement, controller,
+#: command, plant) names an agent.
+EDGE_KINDS = ("distance", "orientation")
 
 
 class EdgeErrors:
@@ -76,7 +78,7 @@ class Violation:
     channel: str
 
     def as_dict(self) -> dict[str, Any]:
-        key = "agent" if self.kind in ("velocity", "measurement") else "edge"
+        key = "edge" if self.kind in EDGE_KINDS else "agent"
         return {"t": self.t, "kind": self.kind, key: self.where, "channel": self.channel}
 
 
@@ -118,7 +120,10 @@ class RunRecorder:
         u: np.ndarray | None,
         margin_v: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Check one sample (ground truth at t; ``margin_v`` (N,6) from the agents if known)."""
+        """Check one sample (ground truth at t; ``margin_v`` (N,6) from the agents if known).
+
+        ``u`` None: the wrenches are not known yet; give them with :meth:`set_inputs`.
+        """
         e, psi = self.edges.errors(p, R)
         rho_e, rho_psi = self.edges.rho(t)
         xi_e = e / rho_e
@@ -162,6 +167,16 @@ class RunRecorder:
         self.samples += 1
         self.t_last = t
         return e, psi
+
+    def set_inputs(self, u: np.ndarray) -> None:
+        """Wrenches (N,6) applied from the sample added last (which was added with ``u=None``).
+
+        Lets a simulator check the funnels of step k while the agents compute, then record u_k.
+        """
+        np.maximum(self.peak_force, np.linalg.norm(u[:, :3], axis=1), out=self.peak_force)
+        np.maximum(self.peak_torque, np.linalg.norm(u[:, 3:], axis=1), out=self.peak_torque)
+        if (self.samples - 1) % self.record_every == 0:
+            self._rows["u"][-1] = np.array(u, dtype=np.float64)
 
     def fault(self, t: float, kind: str, agent: str, channel: str) -> None:
         """Record a fault that is not a funnel check (e.g. a missing measurement)."""
@@ -340,6 +355,3 @@ def _f(x: float | None) -> str:
     return "-" if x is None else f"{x:.4g}"
 
 
-def stack_margin_v(margins: Sequence[np.ndarray]) -> np.ndarray:
-    """(N,6) array of velocity margins from per-agent outputs."""
-    return np.array(margins)

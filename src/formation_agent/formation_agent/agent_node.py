@@ -209,17 +209,20 @@ class AgentNode(Node):
             pose_wait=float(self.get_parameter("pose_wait").value),
             measurement_timeout_ns=round(view.controller.measurement_timeout * _NS),
         )
-        self._msg = conversions.wrench_template(view.agent_id)
-        self._stamp = self._msg.header.stamp
+        # hot path: CDR bytes in and out (formation_msgs_py.conversions), no message objects
+        self._wrench_codec = conversions.wrench_codec(view.agent_id)
+        self._twist_codec = conversions.twist_codec(view.agent_id)
         self._pub = self.create_publisher(WrenchStamped, topics.wrench(view.agent_id), qos.CONTROL)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
-        self.create_subscription(TwistStamped, topics.velocity(view.agent_id), self._on_velocity, qos.CONTROL)
+        self.create_subscription(TwistStamped, topics.velocity(view.agent_id), self._on_velocity, qos.CONTROL, raw=True)
         for j in view.neighbours:
+            codec = conversions.relative_pose_codec(view.agent_id, j)
             self.create_subscription(
                 TransformStamped,
                 topics.relative_pose(view.agent_id, j),
-                lambda msg, j=j: self._on_pose(j, msg),
+                lambda data, j=j, codec=codec: self._on_pose(j, codec, data),
                 qos.CONTROL,
+                raw=True,
             )
         self._clock = self.get_clock()
         self._jump_handle = self._clock.create_jump_callback(
@@ -234,27 +237,18 @@ class AgentNode(Node):
         )
 
     # callbacks: messages -> synchroniser
-    def _on_velocity(self, msg: TwistStamped) -> None:
-        st = msg.header.stamp
-        tw = msg.twist
-        lin, ang = tw.linear, tw.angular
+    def _on_velocity(self, data: bytes) -> None:
+        ns, v = self._twist_codec.decode(data)
         clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
-        self.sync.on_velocity(
-            st.sec * _NS + st.nanosec, [lin.x, lin.y, lin.z, ang.x, ang.y, ang.z], time.monotonic(), clock_ns
-        )
+        self.sync.on_velocity(ns, list(v), time.monotonic(), clock_ns)
 
-    def _on_pose(self, j: str, msg: TransformStamped) -> None:
-        st = msg.header.stamp
-        p, R = conversions.relative_pose_from_msg(msg)
-        self.sync.on_pose(j, st.sec * _NS + st.nanosec, p, R, time.monotonic())
+    def _on_pose(self, j: str, codec: conversions.StampedCodec, data: bytes) -> None:
+        ns, values = codec.decode(data)
+        p, R = conversions.relative_pose_from_values(values)
+        self.sync.on_pose(j, ns, p, R, time.monotonic())
 
     def _publish_wrench(self, ns: int, u: Sequence[float]) -> None:
-        msg = self._msg
-        st = self._stamp
-        st.sec, st.nanosec = divmod(ns, _NS)
-        f, tq = msg.wrench.force, msg.wrench.torque
-        f.x, f.y, f.z, tq.x, tq.y, tq.z = u
-        self._pub.publish(msg)
+        self._pub.publish(self._wrench_codec.encode(ns, u))
 
     def _on_jump(self, info) -> None:
         if info.clock_change or info.delta.nanoseconds < 0:

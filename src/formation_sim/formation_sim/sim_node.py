@@ -70,14 +70,15 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         self.gt_pub = self.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
         self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), qos.CONTROL) for a in self.ids]
-        self.vel_msgs = [conversions.twist_template(a) for a in self.ids]
+        # hot path: messages are published and taken as CDR bytes (formation_msgs_py.conversions)
+        self.vel_codecs = [conversions.twist_codec(a) for a in self.ids]
         # one publisher per directed tree link, in the measurement model's order
-        self.links: dict[tuple[str, str], tuple[Any, TransformStamped]] = {}
+        self.links: dict[tuple[str, str], tuple[Any, conversions.StampedCodec]] = {}
         for e in spec.edges:
             for obs, tgt in ((e.tail, e.head), (e.head, e.tail)):
                 pub = self.create_publisher(TransformStamped, topics.relative_pose(obs, tgt), qos.CONTROL)
-                self.links[(obs, tgt)] = (pub, conversions.relative_pose_template(obs, tgt))
-        self.clock_msg = Clock()
+                self.links[(obs, tgt)] = (pub, conversions.relative_pose_codec(obs, tgt))
+        self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
         # wrenches: latest per agent (stamp ns, values); lockstep counts answers of the current step
         self.u_ns = [-1] * n
         self.u_val: list[tuple[float, ...]] = [(0.0,) * 6] * n
@@ -88,21 +89,19 @@ class SimNode(Node):
         self.timing = Timing(n)
         self.wrench_subs = [
             self.create_subscription(
-                WrenchStamped, topics.wrench(a), lambda msg, i=i: self._on_wrench(i, msg), qos.CONTROL
+                WrenchStamped, topics.wrench(a), lambda data, i=i: self._on_wrench(i, data), qos.CONTROL, raw=True
             )
             for i, a in enumerate(self.ids)
         ]
 
-    def _on_wrench(self, i: int, msg: WrenchStamped) -> None:
+    def _on_wrench(self, i: int, data: bytes) -> None:
         self.received += 1
-        st = msg.header.stamp
-        ns = st.sec * NS + st.nanosec
+        ns, u = self.wrench_codecs[i].decode(data)
         if ns < self.u_ns[i]:
             return  # out of date (a re-sent step answered twice)
-        f, tq = msg.wrench.force, msg.wrench.torque
         first = ns != self.u_ns[i]
         self.u_ns[i] = ns
-        self.u_val[i] = (f.x, f.y, f.z, tq.x, tq.y, tq.z)
+        self.u_val[i] = u
         if first:
             sent = self.pub_wall.get(ns)
             if sent is not None:
@@ -114,30 +113,22 @@ class SimNode(Node):
     # publishing ------------------------------------------------------------------------------
     def publish_step(self, meas: Measurements, ns: int, only: set[int] | None = None) -> None:
         """Relative poses (pairs in range) and velocities of one step, stamped ``ns``."""
-        sec, nsec = divmod(ns, NS)
         rel = meas.relative_poses
         vel = meas.velocities.tolist()
+        values = conversions.relative_pose_values
         for i, a in enumerate(self.ids):
             if only is not None and i not in only:
                 continue
             for j, (p, R) in rel[a].items():
-                pub, msg = self.links[(a, j)]
-                st = msg.header.stamp
-                st.sec, st.nanosec = sec, nsec
-                conversions.fill_relative_pose(msg, p, R)
-                pub.publish(msg)
+                pub, codec = self.links[(a, j)]
+                pub.publish(codec.encode(ns, values(p, R)))
         for i in range(len(self.ids)):  # velocities last: an agent computes when its velocity is in
             if only is not None and i not in only:
                 continue
-            msg = self.vel_msgs[i]
-            st = msg.header.stamp
-            st.sec, st.nanosec = sec, nsec
-            conversions.fill_twist(msg, vel[i])
-            self.vel_pubs[i].publish(msg)
+            self.vel_pubs[i].publish(self.vel_codecs[i].encode(ns, vel[i]))
 
     def publish_clock(self, ns: int) -> None:
-        conversions.set_stamp_ns(self.clock_msg.clock, ns)
-        self.clock_pub.publish(self.clock_msg)
+        self.clock_pub.publish(conversions.clock_bytes(ns))
 
     def publish_ground_truth(self, t: float, sim: Simulation) -> None:
         self.gt_pub.publish(conversions.poses_to_msg(t, sim.state.p, sim.state.R))

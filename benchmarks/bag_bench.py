@@ -127,8 +127,8 @@ def bench_paper(work: Path, duration: float) -> tuple[list[tuple[str, str]], dic
         ("interop check (rosbags + mcap/mcap_ros2 decode of every message)", f"{t_check:.1f} s, ok={report.ok}"),
         (
             "analysis vs the run's own summary",
-            f"verdict {summary['funnels_held']} = {res.summary['funnels_held']}, max |Δ min_margin_e| {worst:.1e}, "
-            f"re-run max |Δu| {max(r.max_abs_diff for r in reruns.values()):.1e}",
+            f"verdict {summary['funnels_held']} = {res.summary['funnels_held']}, max abs Δ min_margin_e {worst:.1e}, "
+            f"re-run max abs Δu {max(r.max_abs_diff for r in reruns.values()):.1e}",
         ),
     ]
     return rows, summary

@@ -1,0 +1,164 @@
+"""Benchmarks of the ROS 2 deployment (issue 3); results in benchmarks/RESULTS_ros.md.
+
+    .venv/bin/python benchmarks/ros_bench.py [--only lockstep,executor,realtime,scale] [--out DIR]
+
+Every run goes through ``formation-launch`` (what ``ros2_ws/run.sh`` runs): real processes, a
+picked free ROS_DOMAIN_ID, LOCALHOST discovery (a private network namespace above 30 processes).
+Figures come from each run's ``summary.json`` (wall time, real-time factor, latency from the
+measurements' publication to each wrench's reception, on-time fraction, real-time lag) and
+``logs/processes.json`` (CPU time and peak RSS of every process, from wait4). Nothing is asserted:
+the numbers depend on the machine and its load, which is printed with them.
+
+- lockstep: the paper preset at its 10 kHz control rate (``--lockstep-duration``, default 0.5 s;
+  ``--full`` for the whole 5 s).
+- executor: the same, 0.1 s, with ``--executor events`` and ``--executor single``.
+- realtime: config/realtime_5agents_100hz.yaml as written (physics 1000 Hz) and with
+  ``--physics-rate 100`` (one integrator step per tick), 10 s each.
+- scale: generated random trees of 20 and 50 agents at 100 Hz realtime (physics 100 Hz), 10 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+LAUNCH = REPO / ".venv" / "bin" / "formation-launch"
+PAPER = REPO / "config" / "paper_5agents.yaml"
+REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
+
+
+def launch(formation: Path, out: Path, *extra: str, timeout: float = 1800) -> dict[str, Any]:
+    """Run one formation through formation-launch; return summary, process table and timings."""
+    load_before = os.getloadavg()
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [str(LAUNCH), str(formation), "--out", str(out), "--no-plots", "--quiet", "--force", *extra],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        start_new_session=True,
+    )
+    total = time.monotonic() - t0
+    summary = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else {}
+    table = out / "logs" / "processes.json"
+    procs = json.loads(table.read_text()) if table.exists() else []
+    return {
+        "exit": r.returncode,
+        "total_wall_s": total,
+        "load_before": load_before,
+        "load_after": os.getloadavg(),
+        "summary": summary,
+        "processes": procs,
+        "stderr_tail": r.stderr[-2000:],
+    }
+
+
+def cpu_table(procs: list[dict[str, Any]], sim_time: float) -> dict[str, Any]:
+    """CPU seconds per process (total, including start-up) and per simulated second; peak RSS."""
+
+    def cpu(p: dict[str, Any]) -> float:
+        return p.get("cpu_user_s", 0.0) + p.get("cpu_system_s", 0.0)
+
+    sim = [p for p in procs if p["role"] == "sim"]
+    agents = [p for p in procs if p["role"] == "agent"]
+    out: dict[str, Any] = {}
+    if sim:
+        out["sim_cpu_s"] = cpu(sim[0])
+        out["sim_rss_mb"] = sim[0].get("max_rss_mb")
+    if agents:
+        a = np.array([cpu(p) for p in agents])
+        out["agent_cpu_s_mean"] = float(a.mean())
+        out["agent_cpu_s_max"] = float(a.max())
+        out["agent_rss_mb_mean"] = float(np.mean([p.get("max_rss_mb", 0.0) for p in agents]))
+        out["total_rss_mb"] = float(sum(p.get("max_rss_mb", 0.0) for p in procs))
+    out["sim_time_s"] = sim_time
+    return out
+
+
+def brief(res: dict[str, Any]) -> dict[str, Any]:
+    s = res["summary"]
+    keep = (
+        "duration",
+        "wall_time",
+        "real_time_factor",
+        "funnels_held",
+        "worst_margin",
+        "latency_ms",
+        "on_time_fraction_all",
+        "answered_fraction_all",
+        "realtime_lag_s",
+        "stale_commands",
+        "resends",
+        "discovery_s",
+        "executor",
+        "physics_rate",
+        "control_rate",
+    )
+    out = {k: s.get(k) for k in keep if k in s}
+    out["exit"] = res["exit"]
+    out["total_wall_s"] = res["total_wall_s"]
+    out["load"] = [round(x, 2) for x in (*res["load_before"], *res["load_after"])]
+    out["launch"] = s.get("launch")
+    out.update(cpu_table(res["processes"], s.get("duration", 0.0)))
+    return out
+
+
+def generated(n: int, tmp: Path) -> Path:
+    """A random tree of n agents, realtime at 100 Hz for 10 s (formation_sim.generate)."""
+    from formation_sim.generate import generate
+
+    doc = generate(n, topology="random", seed=1, control_rate=100.0, duration=10.0, name=f"bench_{n}agents")
+    doc["simulation"].update(mode="realtime", record_rate=100.0, rate_check="warn")
+    path = tmp / f"bench_{n}agents.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--only", default="lockstep,executor,realtime,scale", help="comma-separated sections")
+    p.add_argument("--lockstep-duration", type=float, default=0.5, help="simulated seconds of the paper preset")
+    p.add_argument("--full", action="store_true", help="the whole 5 s paper scenario in lockstep")
+    p.add_argument("--sizes", default="20,50", help="agent counts of the scale section")
+    p.add_argument("--out", type=Path, help="keep the run directories here (default: a temporary directory)")
+    args = p.parse_args(argv)
+    sections = set(args.only.split(","))
+    base = args.out or Path(tempfile.mkdtemp(prefix="ros_bench_"))
+    base.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}}
+
+    def record(name: str, res: dict[str, Any]) -> None:
+        results[name] = brief(res)
+        print(f"== {name}\n{json.dumps(results[name], indent=1)}", flush=True)
+
+    if "lockstep" in sections:
+        d = 5.0 if args.full else args.lockstep_duration
+        record("lockstep_paper_10kHz", launch(PAPER, base / "lockstep", "--duration", str(d)))
+    if "executor" in sections:
+        for ex in ("events", "single"):
+            record(f"executor_{ex}", launch(PAPER, base / f"exec_{ex}", "--duration", "0.1", "--executor", ex))
+    if "realtime" in sections:
+        record("realtime_5agents_100Hz_physics1000", launch(REALTIME, base / "rt5_p1000"))
+        record("realtime_5agents_100Hz_physics100", launch(REALTIME, base / "rt5_p100", "--physics-rate", "100"))
+    if "scale" in sections:
+        for n in (int(x) for x in args.sizes.split(",")):
+            f = generated(n, base)
+            record(f"realtime_{n}agents_100Hz", launch(f, base / f"rt{n}", "--allow-low-rate"))
+    (base / "ros_bench.json").write_text(json.dumps(results, indent=2) + "\n")
+    print(f"results: {base / 'ros_bench.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

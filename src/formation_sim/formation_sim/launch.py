@@ -420,6 +420,9 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_INVALID
         if args.out is None:  # fix the output directory before re-executing
             argv += ["--out", str(_default_out(spec, mode))]
+        if not os.environ.get("ROS_DOMAIN_ID"):
+            # picked here, where the host's DDS ports are visible: /dev/shm is shared with the host
+            os.environ["ROS_DOMAIN_ID"] = str(pick_domain_id())
         reexec_in_netns(argv)
     out = args.out or _default_out(spec, mode)
     try:
@@ -435,6 +438,9 @@ def main(argv: list[str] | None = None) -> int:
     env["FORMATION_EXECUTOR"] = args.executor
     if in_netns:
         env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"  # multicast on the namespace's own loopback only
+        # UDP on the namespace's loopback only: Fast DDS's shared-memory transport would use /dev/shm,
+        # which the namespace shares with the host (port files of other runs: "open_and_lock_file failed")
+        env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
     else:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if not env.get("ROS_DOMAIN_ID"):

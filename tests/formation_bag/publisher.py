@@ -3,7 +3,8 @@
 Publishes N steps at RATE Hz (0 = as fast as possible): per step /clock, the ground truth and,
 for every agent of the formation (default config/paper_5agents.yaml), its velocity and wrench
 and every relative pose, all stamped k/1000 s. Prints "published N" per topic at the end as JSON.
-Waits for a subscriber on every topic first (at most 10 s).
+Waits for a subscriber on every topic first (at most 10 s), and for every subscriber to
+acknowledge step 0 before it publishes the others.
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ def main() -> int:
     deadline = time.monotonic() + 10.0
     while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in pubs.values()):
         time.sleep(0.02)
-    time.sleep(1.0)  # matched on our side: give the subscribers' side of discovery time too
+    from rclpy.duration import Duration
+
     rng = np.random.default_rng(1)
     p = np.array([a.position for a in spec.agents])
     R = np.array([a.R_world_body for a in spec.agents])
@@ -65,12 +67,16 @@ def main() -> int:
             pubs["/" + topics.wrench(a)].publish(cv.wrench_to_msg(stamp, a, rng.standard_normal(6)))
         for key in counts:
             counts[key] += 1
+        if k == 0:
+            # step 0 stays in each reliable writer's history until acknowledged: once every
+            # subscriber has acknowledged it, both sides of discovery are complete
+            for pub in pubs.values():
+                pub.wait_for_all_acked(Duration(seconds=60))
+            t0 = time.perf_counter() - period
         if period:
             target = t0 + (k + 1) * period
             while time.perf_counter() < target:
                 time.sleep(min(0.001, max(0.0, target - time.perf_counter())))
-    from rclpy.duration import Duration
-
     for pub in pubs.values():  # reliable: stay until the subscribers have acknowledged everything
         pub.wait_for_all_acked(Duration(seconds=10))
     print(json.dumps(counts), flush=True)

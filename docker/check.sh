@@ -14,7 +14,7 @@
 #    mount, PID and network namespaces (loopback only): formation-check, formation-headless on
 #    the paper preset shortened to --duration S (default 0.05 s), an rclpy publish/subscribe
 #    round trip, and, once ros2_ws/sim.sh and agent.sh exist, the same scenario as one simulator
-#    process and one process per agent, whose summary must equal the headless one.
+#    process and one process per agent, whose trajectory must equal the headless one.
 # Options: --keep keeps the image (localhost/formation:check); --install-tools apt-installs podman
 # and mmdebstrap if missing; --ca-bundle FILE (default $PIP_CERT, '' for none) is copied into the
 # made base image with PIP_CERT set, for machines whose HTTPS goes through a TLS-inspecting proxy.
@@ -126,7 +126,7 @@ git -C "$ROOT" ls-files -z --cached --others --exclude-standard \
   | (cd "$ROOT" && xargs -0 -r sh -c 'for f; do [ -e "$f" ] && printf "%s\0" "$f"; done' _) \
   | tar -C "$ROOT" --null -T - -cf - | tar -C "$CTX" -xf -
 BUILD_LOG="$WORKDIR/build.log"
-if ! podman build --isolation=chroot --network=host --layers=false \
+if ! podman build --isolation=chroot --network=host \
       --build-arg "BASE_IMAGE=$BASE_IMAGE" -f "$CTX/docker/Dockerfile" -t "$IMAGE" "$CTX" >"$BUILD_LOG" 2>&1; then
   tail -n 30 "$BUILD_LOG" >&2
   die "podman build failed (log: $BUILD_LOG)"

@@ -84,6 +84,7 @@ cleanup() {
   rm -rf "$CTX"
 }
 trap cleanup EXIT
+trap 'exit 130' INT TERM   # so that the EXIT trap also runs when interrupted
 
 # --- 1. base image ------------------------------------------------------------------------------
 if [ -z "$BASE_IMAGE" ]; then

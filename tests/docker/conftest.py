@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -44,6 +45,23 @@ def netns_unavailable() -> str | None:
     return None
 
 
+_OURS = re.compile(r"^fm(\d+)x[0-9a-f]{4}-\w+$")
+
+
+def remove_stale_namespaces() -> list[str]:
+    """Delete the namespaces of earlier runs of these tests whose pytest process is gone (killed
+    before its clean-up ran); the names carry that pid. Returns the names deleted."""
+    listed = _ip("netns", "list", check=False).stdout.split("\n")
+    stale = []
+    for line in listed:
+        name = line.split(" ")[0]
+        match = _OURS.match(name)
+        if match and not Path(f"/proc/{match.group(1)}").exists():
+            _ip("netns", "del", name, check=False)
+            stale.append(name)
+    return stale
+
+
 @dataclass(frozen=True)
 class Host:
     """One simulated machine: a network namespace and its address on the private network."""
@@ -66,7 +84,8 @@ class PrivateNetwork:
     def create(cls, host_names: Sequence[str], *, multicast: bool = True) -> PrivateNetwork:
         """Hosts named ``host_names`` on one bridge; ``multicast=False``: no multicast route, so
         that only unicast (static peers) can find the other hosts."""
-        run_id = f"fm{os.getpid() % 100000}{uuid.uuid4().hex[:4]}"
+        remove_stale_namespaces()
+        run_id = f"fm{os.getpid()}x{uuid.uuid4().hex[:4]}"
         octet = 100 + os.getpid() % 100
         net = cls(run_id, f"10.{octet}.0.0/24")
         try:

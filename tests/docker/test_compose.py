@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import copy
+import os
+import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -117,3 +119,33 @@ def test_commands_match_the_ros2_ws_scripts() -> None:
     for option in (a for a in s["sim"]["command"] if a.startswith("--")):
         assert option in sim_help, option
     assert "agent.sh FILE AGENT_ID" in agent_help
+
+
+def _compose_cli() -> list[str] | None:
+    """A compose CLI that validates files offline: docker compose v2, or Debian's docker-compose v1."""
+    if shutil.which("docker"):
+        v2 = subprocess.run(["docker", "compose", "version"], capture_output=True, text=True, timeout=30)
+        if v2.returncode == 0:
+            return ["docker", "compose"]
+    if shutil.which("docker-compose"):
+        return ["docker-compose"]
+    return None
+
+
+@pytest.mark.parametrize("host_network", [False, True], ids=["bridge", "host-network"])
+def test_compose_cli_accepts_the_file(host_network: bool) -> None:
+    """`docker compose config` (no engine needed) accepts the generated file."""
+    cli = _compose_cli()
+    if cli is None:
+        pytest.skip("no compose CLI (docker compose v2 or docker-compose)")
+    out = REPO / "docker" / f".test-compose-{os.getpid()}.yaml"  # beside the real one: same relative paths
+    try:
+        args = [str(PAPER), "--out", str(out), "--context", str(REPO)] + (["--host-network"] if host_network else [])
+        assert main(args) == 0
+        if cli == ["docker-compose"]:  # v1 predates the top-level `name` of the Compose Specification
+            out.write_text("".join(line for line in out.read_text().splitlines(True) if not line.startswith("name:")))
+        result = subprocess.run([*cli, "-f", str(out), "config"], capture_output=True, text=True, timeout=60)
+        assert result.returncode == 0, result.stderr
+        assert "agent_5" in result.stdout
+    finally:
+        out.unlink(missing_ok=True)

@@ -285,7 +285,11 @@ class Launcher:
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, self.on_signal)
         if args.record:
-            self.start("recorder", "recorder", [str(_bin("formation-record")), "--out", str(self.out / "bag")])
+            self.start(
+                "recorder",
+                "recorder",
+                [str(_bin("formation-record")), "--out", str(self.out / "bag"), "--formation", formation],
+            )
         sim = self.start(
             "sim", "sim", [venv_python, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out)], pipe=True
         )

@@ -235,6 +235,20 @@ class Runner:
         if k % self.gt_every == 0:
             self.node.publish_ground_truth(t, self.sim)
 
+    def advance(self, u: np.ndarray) -> bool:
+        """Integrate one control period; False (and a recorded fault) if the state blew up."""
+        sim = self.sim
+        try:
+            sim.advance(u)
+        except (ValueError, OverflowError, FloatingPointError, ZeroDivisionError) as exc:
+            self.recorder.fault(sim.t, "plant", "all", f"integration failed: {exc}")
+            print(f"formation-sim: plant integration failed at t={sim.t:.4f} s: {exc}", flush=True)
+            return False
+        if not np.all(np.isfinite(sim.state.v)):
+            self.recorder.fault(sim.t, "plant", "all", "non-finite state")
+            return False
+        return True
+
     # lockstep --------------------------------------------------------------------------------
     def run_lockstep(self) -> None:
         node, sim, rec, timing = self.node, self.sim, self.recorder, self.node.timing
@@ -280,9 +294,7 @@ class Runner:
             rec.set_inputs(u)
             if k == self.n_steps:
                 break
-            sim.advance(u)
-            if not np.all(np.isfinite(sim.state.v)):
-                rec.fault(sim.t, "plant", "all", "non-finite state")
+            if not self.advance(u):
                 break
             if k & 63 == 0:
                 self.progress(sim.t)
@@ -330,9 +342,7 @@ class Runner:
                 rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
                 rec.set_inputs(u)
                 self.shadow.note_errors(pmeas.t, pouts, rec)
-                sim.advance(u)
-                if not np.all(np.isfinite(sim.state.v)):
-                    rec.fault(sim.t, "plant", "all", "non-finite state")
+                if not self.advance(u):
                     prev = None
                     break
             meas = sim.sense()

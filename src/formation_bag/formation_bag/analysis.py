@@ -5,7 +5,9 @@ the same :class:`formation_sim.report.RunRecorder` the headless runner and the s
 so the outputs have the format of DESIGN.md §8 (summary.json, trajectory.npz, errors.png,
 orientation_errors.png, inputs.png). Per ground-truth sample (stamp t_k) it uses:
 
-- u: the wrench each agent published with stamp t_k (else the latest earlier one: zero-order hold);
+- u: the wrench each agent published with stamp t_k; if the bag misses it (a recorder that matched
+  an agent late), the re-run's wrench for t_k (equal to the agent's on every recorded step), else
+  the latest earlier one (zero-order hold);
   realtime runs: the latest wrench received before the next sample, zero if older than
   ``command_timeout`` (the simulator's rule, with the recorder's receive order);
 - ṽ (trajectory ``v``): the recorded noisy twist (the bag has no true velocity);
@@ -90,6 +92,7 @@ def analyze_run(
     wrench_exact = {a: dict(zip(run.wrench[a].stamps, run.wrench[a].values)) for a in ids}
     zeros6 = [0.0] * 6
     realtime = "realtime" in mode
+    substituted: dict[str, int] = {}
     # realtime: the simulator applies, over the period after sample k, the latest wrench it has
     # received when it ticks (just before it publishes sample k+1), zero if older than
     # command_timeout. Approximated with the recorder's receive order.
@@ -122,7 +125,16 @@ def analyze_run(
         if realtime:
             u = np.array([held(a, kk) for a in ids])
         else:
-            u = np.array([wrench_exact[a].get(stamp) or at(run.wrench[a], stamp) or zeros6 for a in ids])
+            rows = []
+            for a, o in zip(ids, outs or [None] * len(ids)):
+                w = wrench_exact[a].get(stamp)
+                if w is None and o is not None and o[2]:
+                    # not in the bag (the recorder matched this agent late): the re-run's wrench,
+                    # which equals the agent's on every recorded step
+                    w = list(o[0].wrench)
+                    substituted[a] = substituted.get(a, 0) + 1
+                rows.append(w or at(run.wrench[a], stamp) or zeros6)
+            u = np.array(rows)
         v = np.array([at(run.velocity[a], stamp) or zeros6 for a in ids])
         margin_v = None
         if reruns:
@@ -154,6 +166,8 @@ def analyze_run(
         "ground_truth_rate": gt_rate,
         "topics": run.topic_counts,
         "velocity_margins": velocity_margins,
+        "wrenches_from_rerun": substituted,
+        "recorder_counts": _recorder_counts(custom),
         "rerun": {
             a: {"equal": r.first_difference(1e-12) is None, "max_abs_diff": r.max_abs_diff, "compared": r.compared}
             for a, r in reruns.items()
@@ -162,6 +176,21 @@ def analyze_run(
     }
     summary = recorder.summary(wall_time=wall, extra={"source": "bag", "bag": bag_info})
     return recorder, summary, reruns
+
+
+def _recorder_counts(custom: dict[str, str]) -> dict[str, Any] | None:
+    """The recorder's counts, and per topic how many messages its publisher sent that are not in the bag."""
+    try:
+        counts = json.loads(custom["recorder_counts"])
+    except (KeyError, ValueError):
+        return None
+    total = counts.get("published_total") or {}
+    counts["missing"] = {
+        t: n - counts["written"].get(t, 0)
+        for t, n in total.items()
+        if n is not None and n > counts["written"].get(t, 0) and not counts.get("decimate")
+    }
+    return counts
 
 
 # -- ages -----------------------------------------------------------------------------------------

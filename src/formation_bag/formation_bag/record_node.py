@@ -247,15 +247,20 @@ class Recorder(Node):
     def finish(self) -> dict[str, Any]:
         """Close the bag with the counts in custom_data; returns the counts."""
         published: dict[str, int | None] = {}
+        total: dict[str, int | None] = {}
         for name, (first, last) in self.seq.items():
-            # one publisher per DESIGN.md topic: its sequence numbers count what it published
-            # while we listened; with several publishers (/diagnostics) they interleave: unknown
+            # one publisher per DESIGN.md topic: its sequence numbers (from 1) count what it
+            # published in total and while we listened; with several publishers (/diagnostics)
+            # they interleave: unknown
             span = last - first + 1
-            published[name] = span if span >= self.received[name] else None
+            single = span >= self.received[name]
+            published[name] = span if single else None
+            total[name] = last if single else None
         stats = {
             "received": dict(self.received),
             "written": dict(self.written),
             "published_seen": published,
+            "published_total": total,
             "decimate": {p: n for p, n in self.decimate},
         }
         self.writer.custom_data["recorder_counts"] = json.dumps(stats, sort_keys=True)

@@ -316,7 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
         "violated, 2 bad input.",
     )
     p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
-    p.add_argument("--out", type=Path, help="output directory (default: out/<bag name>-analysis)")
+    p.add_argument("--out", type=Path, help="output directory (default: <bag>-analysis next to the bag)")
     p.add_argument("--formation", type=Path, help="formation file (default: the copy the recorder stored in the bag)")
     p.add_argument(
         "--velocity-margins",
@@ -334,7 +334,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     started = time.perf_counter()
-    out = args.out or Path("out") / f"{args.bag.resolve().name}-analysis"
+    bag = args.bag.resolve()
+    out = args.out or bag.parent / f"{bag.stem if bag.is_file() else bag.name}-analysis"
     try:
         if out.exists() and any(out.iterdir()) and not args.force:
             raise FileExistsError(f"output directory {out} exists and is not empty (use --force to overwrite)")

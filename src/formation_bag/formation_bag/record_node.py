@@ -19,6 +19,7 @@ import argparse
 import fnmatch
 import importlib
 import json
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -30,6 +31,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
 from formation_bag import messages as m
 from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
@@ -123,6 +125,7 @@ class Recorder(Node):
         self.seq: dict[str, list[int]] = {}  # topic -> [first, last] publication sequence number
         self.subs: dict[str, Any] = {}
         self._active: list[tuple[str, Any, Any, int]] = []
+        self.stopping = False
         # ground truth last: formation-sim --wait-recorder starts when it sees a ground-truth
         # subscriber, by then every other subscription of the recorder exists too
         gt = m.absolute(topics.GROUND_TRUTH, namespace)
@@ -184,22 +187,28 @@ class Recorder(Node):
 
     # -- the loop ----------------------------------------------------------------------------------
 
+    def request_stop(self, *_args: object) -> None:
+        """Signal handler (SIGINT/SIGTERM): finish the current wait, drain, then stop."""
+        self.stopping = True
+
     def spin(self, *, discovery_period: float, status_period: float | None) -> None:
-        """Record until the context shuts down (SIGINT/SIGTERM)."""
+        """Record until :meth:`request_stop` (SIGINT/SIGTERM) or the context shuts down.
+
+        On stop, every message the subscriptions have already received is still taken and written
+        (a publisher that got its acknowledgements has handed them to us), then the loop ends.
+        """
         context = self.context
-        write = self.writer.write
-        received, written, seq = self.received, self.written, self.seq
         next_discovery = time.monotonic() + discovery_period
         next_status = None if status_period is None else time.monotonic() + status_period
         last_total, last_t = 0, time.monotonic()
         wait_set = None
         n_active = -1
-        while context.ok():
+        while context.ok() and not self.stopping:
             if len(self._active) != n_active:
                 n_active = len(self._active)
                 if n_active:
                     wait_set = _rclpy.WaitSet(n_active, 0, 0, 0, 0, 0, context.handle)
-                by_pointer = {sub.handle.pointer: (name, sub, cls, every) for name, sub, cls, every in self._active}
+                by_pointer = {sub.handle.pointer: entry for entry in self._active for sub in (entry[1],)}
             if n_active:
                 wait_set.clear_entities()
                 for _, sub, _, _ in self._active:
@@ -210,39 +219,55 @@ class Recorder(Node):
                     if not context.ok():
                         break  # interrupted while waiting
                     raise
-                ready = wait_set.get_ready_entities("subscription")
+                for ptr in wait_set.get_ready_entities("subscription"):
+                    self._take_all(*by_pointer[ptr])
             else:
                 time.sleep(0.1)  # nothing to record yet: discovery below
-                ready = []
-            for ptr in ready:
-                name, sub, cls, every = by_pointer[ptr]
-                take = sub.handle.take_message
-                while (got := take(cls, True)) is not None:
-                    data, info = got
-                    n = received[name]
-                    received[name] = n + 1
-                    s = info.get("publication_sequence_number")
-                    if s is not None:
-                        first_last = seq.get(name)
-                        if first_last is None:
-                            seq[name] = [s, s]
-                        elif s > first_last[1]:
-                            first_last[1] = s
-                    if n % every == 0:
-                        write(name, info.get("received_timestamp") or time.time_ns(), data)
-                        written[name] += 1
             now = time.monotonic()
             if now >= next_discovery:
                 self.discover()
                 next_discovery = now + discovery_period
             if next_status is not None and now >= next_status:
-                total = sum(received.values())
+                total = sum(self.received.values())
                 print(
                     f"formation-record: {self.topic_count} topics, {total} messages "
                     f"({(total - last_total) / (now - last_t):.0f}/s), {len(self.writer.segments)} segments closed",
                     flush=True,
                 )
                 last_total, last_t, next_status = total, now, now + (status_period or 0)
+        if context.ok():
+            self.drain()
+
+    def drain(self, quiet: float = 0.2) -> None:
+        """Take what the subscriptions hold until nothing has arrived for ``quiet`` s."""
+        last = time.monotonic()
+        while time.monotonic() - last < quiet:
+            if sum(self._take_all(*entry) for entry in self._active):
+                last = time.monotonic()
+            else:
+                time.sleep(0.01)
+
+    def _take_all(self, name: str, sub: Any, cls: Any, every: int) -> int:
+        """Take and write every queued message of one subscription; returns how many."""
+        take = sub.handle.take_message
+        received, seq, write = self.received, self.seq, self.writer.write
+        count = 0
+        while (got := take(cls, True)) is not None:
+            data, info = got
+            count += 1
+            n = received[name]
+            received[name] = n + 1
+            s = info.get("publication_sequence_number")
+            if s is not None:
+                first_last = seq.get(name)
+                if first_last is None:
+                    seq[name] = [s, s]
+                elif s > first_last[1]:
+                    first_last[1] = s
+            if n % every == 0:
+                write(name, info.get("received_timestamp") or time.time_ns(), data)
+                self.written[name] += 1
+        return count
 
     def finish(self) -> dict[str, Any]:
         """Close the bag with the counts in custom_data; returns the counts."""
@@ -335,12 +360,17 @@ def main(argv: list[str] | None = None) -> int:
     except (BagError, FormationSpecError, OSError) as exc:
         print(f"formation-record: {exc}", file=sys.stderr)
         return 2
-    rclpy.init(args=None)
+    # our own SIGINT/SIGTERM handlers: rclpy's would shut the context down at once, before the
+    # messages already received are written
+    rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # until the node exists: KeyboardInterrupt
     node = None
     stats: dict[str, Any] = {}
     code = 0
     try:
         node = Recorder(writer, known=known, only=only, namespace=args.namespace, decimate=decimate)
+        signal.signal(signal.SIGINT, node.request_stop)
+        signal.signal(signal.SIGTERM, node.request_stop)
         print(f"formation-record: recording {node.topic_count} topics into {args.out}", flush=True)
         try:
             node.spin(discovery_period=args.discovery_period, status_period=None if args.quiet else 5.0)

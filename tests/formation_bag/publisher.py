@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from formation_msgs_py import conversions as cv
-from formation_msgs_py import qos, topics
+from formation_msgs_py import topics
 from formation_msgs_py.spec import load_formation
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -32,16 +33,19 @@ def main() -> int:
 
     rclpy.init()
     node = rclpy.create_node("bag_test_publisher")
-    pubs = {topics.CLOCK: node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)}
-    pubs["/" + topics.GROUND_TRUTH] = node.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
+    # reliable with a deep history: on a loaded machine the project's keep-last-10 publishers may
+    # overwrite samples before delivery; this publisher tests the recorder, so it loses nothing
+    deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    pubs = {topics.CLOCK: node.create_publisher(Clock, topics.CLOCK, deep)}
+    pubs["/" + topics.GROUND_TRUTH] = node.create_publisher(PoseArray, topics.GROUND_TRUTH, deep)
     ids = list(spec.agent_ids)
     links = [(e.tail, e.head) for e in spec.edges] + [(e.head, e.tail) for e in spec.edges]
     for a in ids:
-        pubs["/" + topics.velocity(a)] = node.create_publisher(TwistStamped, topics.velocity(a), qos.CONTROL)
-        pubs["/" + topics.wrench(a)] = node.create_publisher(WrenchStamped, topics.wrench(a), qos.CONTROL)
+        pubs["/" + topics.velocity(a)] = node.create_publisher(TwistStamped, topics.velocity(a), deep)
+        pubs["/" + topics.wrench(a)] = node.create_publisher(WrenchStamped, topics.wrench(a), deep)
     for i, j in links:
         name = topics.relative_pose(i, j)
-        pubs["/" + name] = node.create_publisher(TransformStamped, name, qos.CONTROL)
+        pubs["/" + name] = node.create_publisher(TransformStamped, name, deep)
     deadline = time.monotonic() + 10.0
     while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in pubs.values()):
         time.sleep(0.02)
@@ -78,7 +82,7 @@ def main() -> int:
             while time.perf_counter() < target:
                 time.sleep(min(0.001, max(0.0, target - time.perf_counter())))
     for pub in pubs.values():  # reliable: stay until the subscribers have acknowledged everything
-        pub.wait_for_all_acked(Duration(seconds=10))
+        pub.wait_for_all_acked(Duration(seconds=60))
     print(json.dumps(counts), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()

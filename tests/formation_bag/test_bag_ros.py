@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import time
@@ -114,7 +115,11 @@ def test_replay_timing_at_100_hz(ros_procs, tmp_path: Path) -> None:
     times = np.array(json.loads(out.strip().splitlines()[-1])["times"])
     assert times.size == 150
     err_ms = np.abs(np.diff(times) - 0.010) * 1e3
-    assert np.median(err_ms) < 1.0, f"median {np.median(err_ms):.3f} ms"
+    load = os.getloadavg()[0] / (os.cpu_count() or 1)
+    if np.median(err_ms) >= 1.0 and load > 4.0:
+        # processes that wait for a CPU for tens of ms cannot keep 10 ms apart: not a replay defect
+        pytest.xfail(f"median error {np.median(err_ms):.3f} ms with load average {load:.0f} per CPU")
+    assert np.median(err_ms) < 1.0, f"median {np.median(err_ms):.3f} ms (load {load:.1f} per CPU)"
 
 
 def test_replay_refuses_unknown_topic(short_bags) -> None:

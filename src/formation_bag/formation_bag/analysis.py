@@ -146,15 +146,15 @@ def analyze_run(
                 recorder.fault(t, "controller", bad[0], bad[1].message)
     wall = (run.last_log - run.first_log) / m.NS_PER_S
     try:
-        duration = float(custom["duration"])
+        duration: float | None = float(custom["duration"])
     except (KeyError, ValueError):
-        duration = spec.simulation.duration
-    expected = round(duration * (gt_rate or control_rate)) + 1
+        duration = None  # the run may have overridden the file's duration: unknown
+    expected = None if duration is None else round(duration * (gt_rate or control_rate)) + 1
     gaps = 0
     if gt_rate:
         step = m.NS_PER_S / gt_rate
         gaps = int(sum(max(0, round((b - a) / step) - 1) for a, b in zip(gt.stamps, gt.stamps[1:])))
-    truncated = bool(run.lost) or len(gt) < expected
+    truncated = bool(run.lost) or run.recovered or (expected is not None and len(gt) < expected)
     bag_info = {
         "path": str(run.path),
         "recovered_without_metadata": run.recovered,
@@ -355,8 +355,9 @@ def main(argv: list[str] | None = None) -> int:
     write_csv(out, recorder, ages)
     print(format_summary(summary))
     b = summary["bag"]
+    expected = "" if b["ground_truth_expected"] is None else f" of {b['ground_truth_expected']} expected"
     print(
-        f"bag: {b['ground_truth_samples']} ground-truth samples of {b['ground_truth_expected']} expected, "
+        f"bag: {b['ground_truth_samples']} ground-truth samples{expected}, "
         f"{b['ground_truth_gaps']} gaps{', TRUNCATED' if b['truncated'] else ''}; "
         f"analysed in {time.perf_counter() - started:.2f} s"
     )

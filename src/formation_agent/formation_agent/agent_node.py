@@ -171,7 +171,7 @@ import rclpy  # noqa: E402  (the synchroniser above stays importable and testabl
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped  # noqa: E402
 from rcl_interfaces.msg import ParameterDescriptor  # noqa: E402
-from rclpy.clock import JumpThreshold  # noqa: E402
+from rclpy.clock import ClockChange, JumpThreshold, TimeJump  # noqa: E402
 from rclpy.duration import Duration  # noqa: E402
 from rclpy.exceptions import ParameterException  # noqa: E402
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
@@ -250,8 +250,9 @@ class AgentNode(Node):
     def _publish_wrench(self, ns: int, u: Sequence[float]) -> None:
         self._pub.publish(self._wrench_codec.encode(ns, u))
 
-    def _on_jump(self, info) -> None:
-        if info.clock_change or info.delta.nanoseconds < 0:
+    def _on_jump(self, info: TimeJump) -> None:
+        changed = info.clock_change in (ClockChange.ROS_TIME_ACTIVATED, ClockChange.ROS_TIME_DEACTIVATED)
+        if info.delta.nanoseconds < 0 or (changed and self.sync.last_ns is not None):
             self.get_logger().warning("clock jumped back: controller and watchdogs reset")
             self.sync.reset()
 

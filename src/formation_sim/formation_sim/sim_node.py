@@ -327,6 +327,8 @@ class Runner:
                         timing.on_time[i] += 1
                     if node.u_ns[i] >= 0 and pns - node.u_ns[i] <= cmd_timeout_ns:
                         u[i] = node.u_val[i]
+                    elif node.u_ns[i] < 0 and pns <= cmd_timeout_ns:
+                        u[i] = 0.0  # no wrench yet, but the run is younger than the command timeout
                     else:
                         u[i] = 0.0
                         timing.stale[i] += 1

@@ -42,7 +42,7 @@ from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.errors import BagError
 from formation_bag.rerun import AgentRerun, rerun_all
 from formation_msgs_py.errors import FormationSpecError
-from formation_sim.report import RunRecorder, format_summary, write_outputs
+from formation_sim.report import VELOCITY_CHANNELS, RunRecorder, format_summary, write_outputs
 
 VELOCITY_MARGIN_MODES = ("rerun", "none")
 
@@ -108,7 +108,46 @@ def analyze_run(
         _, st, val = by_log[a][j]
         return val if gt.stamps[k] - st <= timeout_ns else zeros6
 
+    # control steps without a ground-truth sample (ground truth recorded below the control rate):
+    # their velocity margins, faults and wrench peaks are still known from the re-run and the bag
+    gt_set = set(gt.stamps)
+    between = sorted({int(s) for r in reruns.values() for s in r.stamps} - gt_set) if reruns else []
+    between_pos = 0
+
+    def between_steps(until: int | None) -> None:
+        nonlocal between_pos
+        while between_pos < len(between) and (until is None or between[between_pos] < until):
+            step = between[between_pos]
+            between_pos += 1
+            if not lockstep_checks:
+                continue
+            t_s = m.seconds(step)
+            at_step = [
+                (a, reruns[a].outputs[k], reruns[a].faults[k])
+                for a in ids
+                if a in reruns and (k := rerun_index[a].get(step)) is not None
+            ]
+            for a, _, fault in at_step:
+                if fault is not None:
+                    recorder.fault(t_s, "measurement", a, fault)
+            for a, out, _ in at_step:
+                i = ids.index(a)
+                mv = min(out.margin_v)
+                recorder.min_margin_v[i] = min(recorder.min_margin_v[i], mv)
+                if recorder.first_violation is None and mv <= 0:
+                    ch = VELOCITY_CHANNELS[out.margin_v.index(mv)]
+                    recorder.fault(t_s, "velocity", a, ch)
+                w = wrench_exact[a].get(step) or list(out.wrench)
+                recorder.peak_force[i] = max(recorder.peak_force[i], math.sqrt(sum(x * x for x in w[:3])))
+                recorder.peak_torque[i] = max(recorder.peak_torque[i], math.sqrt(sum(x * x for x in w[3:])))
+            if recorder.first_violation is None:
+                bad = next(((a, out) for a, out, _ in at_step if out.level == ERROR), None)
+                if bad is not None:
+                    recorder.fault(t_s, "controller", bad[0], bad[1].message)
+
+    lockstep_checks = not realtime
     for kk, (stamp, (p_list, R_list)) in enumerate(zip(gt.stamps, gt.values)):
+        between_steps(stamp)
         t = m.seconds(stamp)
         outs = []
         if reruns:
@@ -144,6 +183,7 @@ def analyze_run(
             bad = next(((a, o[0]) for a, o in zip(ids, outs) if o is not None and o[2] and o[0].level == ERROR), None)
             if bad is not None:
                 recorder.fault(t, "controller", bad[0], bad[1].message)
+    between_steps(gt.stamps[-1] + 1 if len(gt) else None)  # not past the last sample: the run's end
     wall = (run.last_log - run.first_log) / m.NS_PER_S
     try:
         duration: float | None = float(custom["duration"])
@@ -164,6 +204,7 @@ def analyze_run(
         "ground_truth_expected": expected,
         "ground_truth_gaps": gaps,
         "ground_truth_rate": gt_rate,
+        "steps_between_ground_truth": len(between) if lockstep_checks else 0,
         "topics": run.topic_counts,
         "velocity_margins": velocity_margins,
         "wrenches_from_rerun": substituted,
@@ -277,9 +318,11 @@ def write_csv(out: Path, recorder: RunRecorder, ages: dict[str, Any]) -> list[Pa
             + [f"rho_e_{n}" for n in names]
             + [f"rho_psi_{n}" for n in names],
             (
-                [repr(float(t[k]))] + [repr(float(x)) for x in np.concatenate(
-                    [arr["e"][k], arr["psi"][k], arr["rho_e"][k], arr["rho_psi"][k]]
-                )]
+                [repr(float(t[k]))]
+                + [
+                    repr(float(x))
+                    for x in np.concatenate([arr["e"][k], arr["psi"][k], arr["rho_e"][k], arr["rho_psi"][k]])
+                ]
                 for k in range(t.size)
             ),
         )

@@ -65,9 +65,15 @@ class Processes:
     started: list[subprocess.Popen] = field(default_factory=list)
     lines: dict[int, tuple[list[str], list[str]]] = field(default_factory=dict)
 
-    def start(self, args: list[str]) -> subprocess.Popen:
+    def start(self, args: list[str], env: dict[str, str] | None = None) -> subprocess.Popen:
+        """Start ``args`` with the test's environment (plus ``env``)."""
         proc = subprocess.Popen(
-            args, env=self.env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+            args,
+            env={**self.env, **(env or {})},
+            start_new_session=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         self.started.append(proc)
         out: list[str] = []

@@ -22,9 +22,14 @@ from formation_bag.writer import SegmentedBagWriter
 pytest.importorskip("rclpy")
 
 
-def _recorder(ros_procs, bag: Path, *extra: str):
+#: processes that a test kills with SIGKILL use UDP only: Fast DDS shared memory would leave
+#: segments in /dev/shm behind
+NO_SHM = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+
+
+def _recorder(ros_procs, bag: Path, *extra: str, env: dict[str, str] | None = None):
     proc = ros_procs.start(
-        [*script("formation-record"), "--out", str(bag), "--formation", str(PAPER), "--quiet", *extra]
+        [*script("formation-record"), "--out", str(bag), "--formation", str(PAPER), "--quiet", *extra], env
     )
     ros_procs.wait_line(proc, "formation-record: recording", 60)
     return proc
@@ -68,8 +73,8 @@ def test_recorder_sigkill_loses_at_most_the_last_segment(ros_procs, tmp_path: Pa
     """A recorder killed with SIGKILL leaves its closed segments readable and listed in metadata.yaml."""
     bag = tmp_path / "bag"
     segment = 0.5
-    rec = _recorder(ros_procs, bag, "--segment-seconds", str(segment))
-    pub = ros_procs.start([*script("publisher.py"), "3000", "200"])
+    rec = _recorder(ros_procs, bag, "--segment-seconds", str(segment), env=NO_SHM)
+    pub = ros_procs.start([*script("publisher.py"), "3000", "200"], NO_SHM)
     deadline = time.monotonic() + 60
     while (
         not (bag / "metadata.yaml").exists()

@@ -143,6 +143,8 @@ class _Open:
     count: int = 0
     size: int = 0
     opened_at: int | None = None
+    storage: Any = None  # the rosbags storage plugin writer of this segment
+    counts: dict[int, int] = field(default_factory=dict)  # the segment writer's per-connection counts
 
 
 class SegmentedBagWriter:
@@ -231,7 +233,10 @@ class SegmentedBagWriter:
             seg = self._open_segment()
         if seg.opened_at is None:
             seg.opened_at = timestamp
-        seg.writer.write(seg.connections[topic], timestamp, data)
+        conn = seg.connections[topic]
+        # rosbags' Writer.write minus its per-message checks (the connection is ours, no compression)
+        seg.storage.write(conn, timestamp, data)
+        seg.counts[conn.id] += 1
         seg.count += 1
         seg.size += len(data)
         seg.start = min(seg.start, timestamp)
@@ -273,6 +278,8 @@ class SegmentedBagWriter:
         except (WriterError, OSError) as exc:
             raise BagWriterError(f"cannot open segment {tmpdir}: {exc}") from exc
         seg = _Open(writer, tmpdir, final)
+        seg.storage = writer.storage
+        seg.counts = writer.counts
         for rec in self.topics.values():
             self._connect(seg, rec)
         self._open = seg

@@ -4,12 +4,13 @@ Publishes N steps at RATE Hz (0 = as fast as possible): per step /clock, the gro
 for every agent of the formation (default config/paper_5agents.yaml), its velocity and wrench
 and every relative pose, all stamped k/1000 s. Prints "published N" per topic at the end as JSON.
 Waits for a subscriber on every topic first (at most 10 s), and for every subscriber to
-acknowledge step 0 before it publishes the others.
+acknowledge step 0 before it publishes the others. BAG_TEST_BEST_EFFORT=1 publishes best effort.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,8 @@ def main() -> int:
     # reliable with a deep history: on a loaded machine the project's keep-last-10 publishers may
     # overwrite samples before delivery; this publisher tests the recorder, so it loses nothing
     deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    if os.environ.get("BAG_TEST_BEST_EFFORT"):  # as formation-sim --measurement-qos best-effort
+        deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
     pubs = {topics.CLOCK: node.create_publisher(Clock, topics.CLOCK, deep)}
     pubs["/" + topics.GROUND_TRUTH] = node.create_publisher(PoseArray, topics.GROUND_TRUTH, deep)
     ids = list(spec.agent_ids)
@@ -76,6 +79,8 @@ def main() -> int:
             # subscriber has acknowledged it, both sides of discovery are complete
             for pub in pubs.values():
                 pub.wait_for_all_acked(Duration(seconds=60))
+            if os.environ.get("BAG_TEST_BEST_EFFORT"):
+                time.sleep(2.0)  # no acknowledgements in best effort: let the recorder switch and match
             t0 = time.perf_counter() - period
         if period:
             target = t0 + (k + 1) * period

@@ -69,6 +69,21 @@ def test_record_round_trip(ros_procs, tmp_path: Path, storage: str, stop_signal:
     assert report.ok, report.problems
 
 
+def test_recorder_switches_to_best_effort_publishers(ros_procs, tmp_path: Path) -> None:
+    """Subscribed (reliable) before the publishers exist, the recorder still records best-effort ones."""
+    bag = tmp_path / "bag"
+    rec = _recorder(ros_procs, bag)
+    pub = ros_procs.start([*script("publisher.py"), "200", "200"], {"BAG_TEST_BEST_EFFORT": "1"})
+    out, err = ros_procs.finish(pub, timeout=120)
+    assert pub.returncode == 0, err
+    time.sleep(0.5)
+    assert ros_procs.stop(rec) == 0
+    with Bag(bag) as b:
+        counts = {name: t.count for name, t in b.topics.items()}
+    # best effort may drop a message on a loaded machine; a reliable-only recorder would record none
+    assert all(counts[t] >= 190 for t in json.loads(out.strip().splitlines()[-1]))
+
+
 def test_recorder_sigkill_loses_at_most_the_last_segment(ros_procs, tmp_path: Path) -> None:
     """A recorder killed with SIGKILL leaves its closed segments readable and listed in metadata.yaml."""
     bag = tmp_path / "bag"

@@ -124,6 +124,8 @@ class Recorder(Node):
         self.written: dict[str, int] = {}
         self.seq: dict[str, list[int]] = {}  # topic -> [first, last] publication sequence number
         self.subs: dict[str, Any] = {}
+        self.reliable: set[str] = set()
+        self.active_version = 0
         self._active: list[tuple[str, Any, Any, int]] = []
         self.stopping = False
         # ground truth last: formation-sim --wait-recorder starts when it sees a ground-truth
@@ -142,10 +144,18 @@ class Recorder(Node):
         return m.classify(name, self.namespace) is not None
 
     def discover(self) -> None:
+        """Subscribe to new wanted topics; re-subscribe best effort where only such publishers appear."""
         for name, types in self.get_topic_names_and_types():
-            if name in self.subs or not self._wanted(name) or not types:
+            if not self._wanted(name) or not types:
                 continue
-            self._subscribe(name, types[0])
+            if name not in self.subs:
+                self._subscribe(name, types[0])
+            elif name in self.reliable and self.subs[name] is not None and self.subs[name].get_publisher_count() == 0:
+                # subscribed (reliable) before the publisher existed; a best-effort publisher
+                # (e.g. --measurement-qos best-effort) never matches a reliable subscription
+                pubs = self.get_publishers_info_by_topic(name)
+                if pubs and any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in pubs):
+                    self._resubscribe(name, best_effort=True)
 
     def _every(self, name: str) -> int:
         for pattern, n in self.decimate:
@@ -163,12 +173,6 @@ class Recorder(Node):
         pubs = self.get_publishers_info_by_topic(name)
         offered = [p.qos_profile for p in pubs] or [offered_profile(name)]
         best_effort = any(p.reliability == ReliabilityPolicy.BEST_EFFORT for p in offered)
-        sub_qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=SUB_DEPTH,
-            reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.VOLATILE,
-        )
         try:
             self.writer.add_topic(name, msgtype, tuple(to_bag_qos(p) for p in offered[:1]))
         except BagError as exc:
@@ -177,9 +181,31 @@ class Recorder(Node):
             return
         self.received[name] = 0
         self.written[name] = 0
+        self._create(name, cls, best_effort)
+
+    def _create(self, name: str, cls: Any, best_effort: bool) -> None:
+        sub_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=SUB_DEPTH,
+            reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
+        )
         sub = self.create_subscription(cls, name, _unused, sub_qos, raw=True)
         self.subs[name] = sub
+        if best_effort:
+            self.reliable.discard(name)
+        else:
+            self.reliable.add(name)
         self._active.append((name, sub, cls, self._every(name)))
+        self.active_version += 1
+
+    def _resubscribe(self, name: str, *, best_effort: bool) -> None:
+        entry = next(e for e in self._active if e[0] == name)
+        self._take_all(*entry)
+        self._active.remove(entry)
+        self.destroy_subscription(entry[1])
+        self.get_logger().info(f"{name}: best-effort publisher, subscribing best effort")
+        self._create(name, entry[2], best_effort)
 
     @property
     def topic_count(self) -> int:
@@ -203,8 +229,10 @@ class Recorder(Node):
         last_total, last_t = 0, time.monotonic()
         wait_set = None
         n_active = -1
+        version = -1
         while context.ok() and not self.stopping:
-            if len(self._active) != n_active:
+            if self.active_version != version:
+                version = self.active_version
                 n_active = len(self._active)
                 if n_active:
                     wait_set = _rclpy.WaitSet(n_active, 0, 0, 0, 0, 0, context.handle)

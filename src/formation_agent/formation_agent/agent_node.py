@@ -194,6 +194,7 @@ class AgentNode(Node):
         self.declare_parameter("formation_file", "")
         self.declare_parameter("pose_wait", 0.005)
         self.declare_parameter("diagnostics_period", 0.1)
+        self.declare_parameter("measurement_qos", "reliable")
         agent_id = self.get_parameter("agent_id").value
         agent_id = "" if agent_id is None else str(agent_id)
         path = str(self.get_parameter("formation_file").value)
@@ -214,14 +215,15 @@ class AgentNode(Node):
         self._twist_codec = conversions.twist_codec(view.agent_id)
         self._pub = self.create_publisher(WrenchStamped, topics.wrench(view.agent_id), qos.CONTROL)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
-        self.create_subscription(TwistStamped, topics.velocity(view.agent_id), self._on_velocity, qos.CONTROL, raw=True)
+        meas_qos = qos.measurements(str(self.get_parameter("measurement_qos").value))
+        self.create_subscription(TwistStamped, topics.velocity(view.agent_id), self._on_velocity, meas_qos, raw=True)
         for j in view.neighbours:
             codec = conversions.relative_pose_codec(view.agent_id, j)
             self.create_subscription(
                 TransformStamped,
                 topics.relative_pose(view.agent_id, j),
                 lambda data, j=j, codec=codec: self._on_pose(j, codec, data),
-                qos.CONTROL,
+                meas_qos,
                 raw=True,
             )
         self._clock = self.get_clock()
@@ -349,6 +351,7 @@ parameters:
   pose_wait            wall seconds to wait for neighbours' poses after the velocity (default 0.005);
                        a neighbour still missing then is out of range: zero wrench + ERROR
   diagnostics_period   wall seconds between /diagnostics messages (default 0.1, minimum 0.1)
+  measurement_qos      reliable (default) or best_effort: must match the simulator's --measurement-qos
 environment:
   FORMATION_EXECUTOR   events (default) or single
   ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS: see docs/ros2.md

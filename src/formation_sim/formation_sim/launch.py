@@ -173,6 +173,12 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"private network namespace: auto = when more than {NETNS_THRESHOLD} participants (default)",
     )
     p.add_argument("--executor", choices=("events", "single"), default="events", help="rclpy executor of every node")
+    p.add_argument(
+        "--measurement-qos",
+        choices=("reliable", "best-effort"),
+        default="reliable",
+        help="QoS of relative poses and velocities; best-effort (realtime only) costs less CPU per message",
+    )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
@@ -182,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _sim_args(args: argparse.Namespace, out: Path) -> list[str]:
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", "--executor", args.executor]
+    cmd += ["--measurement-qos", args.measurement_qos]
     for opt in (
         "mode",
         "duration",
@@ -303,6 +310,8 @@ class Launcher:
                 f"agent_id:='{a.id}'",
                 "-p",
                 "use_sim_time:=true",
+                "-p",
+                f"measurement_qos:={args.measurement_qos.replace('-', '_')}",
                 "-r",
                 f"__node:=formation_agent_{a.id}",
             ]
@@ -393,6 +402,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-launch: INVALID: {exc}", file=sys.stderr)
         return EXIT_INVALID
     mode = args.mode or spec.simulation.mode
+    if mode == "lockstep" and args.measurement_qos != "reliable":
+        print("formation-launch: --measurement-qos best-effort is for realtime runs only", file=sys.stderr)
+        return EXIT_INVALID
     problems = check_control_rate(spec)
     if problems:
         warn = args.allow_low_rate or spec.simulation.rate_check == "warn"

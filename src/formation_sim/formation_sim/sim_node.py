@@ -62,21 +62,22 @@ class StopRequestedError(Exception):
 class SimNode(Node):
     """Publishers and subscriptions of the simulator; the stepping loops are :func:`run`."""
 
-    def __init__(self, spec: FormationSpec) -> None:
+    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable") -> None:
         super().__init__(topics.SIM_NODE_NAME)
+        meas_qos = qos.measurements(measurement_qos)
         self.spec = spec
         self.ids = spec.agent_ids
         n = len(self.ids)
         self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         self.gt_pub = self.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
-        self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), qos.CONTROL) for a in self.ids]
+        self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), meas_qos) for a in self.ids]
         # hot path: messages are published and taken as CDR bytes (formation_msgs_py.conversions)
         self.vel_codecs = [conversions.twist_codec(a) for a in self.ids]
         # one publisher per directed tree link, in the measurement model's order
         self.links: dict[tuple[str, str], tuple[Any, conversions.StampedCodec]] = {}
         for e in spec.edges:
             for obs, tgt in ((e.tail, e.head), (e.head, e.tail)):
-                pub = self.create_publisher(TransformStamped, topics.relative_pose(obs, tgt), qos.CONTROL)
+                pub = self.create_publisher(TransformStamped, topics.relative_pose(obs, tgt), meas_qos)
                 self.links[(obs, tgt)] = (pub, conversions.relative_pose_codec(obs, tgt))
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
         # wrenches: latest per agent (stamp ns, values); lockstep counts answers of the current step
@@ -410,6 +411,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
     p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")
     p.add_argument("--executor", choices=("events", "single"), default="events", help="rclpy executor")
+    p.add_argument(
+        "--measurement-qos",
+        choices=("reliable", "best-effort"),
+        default="reliable",
+        help="QoS of relative poses and velocities (best-effort: realtime only; agents need -p measurement_qos)",
+    )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--progress-period", type=float, default=1.0, help="wall s between progress lines")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
@@ -442,6 +449,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         spec = load_spec(args)
         args.mode = spec.simulation.mode
+        if args.mode == "lockstep" and args.measurement_qos != "reliable":
+            raise FormationSpecError("--measurement-qos", "lockstep needs reliable measurements (a lost one stalls)")
         out = args.out or Path("out") / f"{spec.name}-ros2-{args.mode}"
         prepare_out_dir(out, args.force)
     except (FormationSpecError, FileExistsError) as exc:
@@ -466,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
     code = EXIT_OK
     extra: dict[str, Any] = {}
     try:
-        node = SimNode(spec)
+        node = SimNode(spec, args.measurement_qos)
         executor = make_executor(args.executor, node.context)
         executor.add_node(node)
         runner = Runner(node, executor, spec, args)

@@ -4,9 +4,10 @@ A thin rclpy node: raw subscriptions (the CDR bytes, nothing is deserialized) dr
 wait-set loop straight into a :class:`formation_bag.writer.SegmentedBagWriter`
 (a segment closes in a few ms; every subscription queues up to 1000 messages meanwhile).
 Counts: received and written per topic, and the publishers' sequence numbers (what they
-published while we listened), stored in metadata.yaml custom_data ``recorder_counts``.
-SIGINT/SIGTERM stop the node, drain the queue, close the last segment and write
-metadata.yaml (exit status 0). A SIGKILL loses at most the open segment.
+published in total and while we listened), stored in metadata.yaml custom_data ``recorder_counts``.
+SIGINT/SIGTERM (our own handlers) stop the loop, take and write what the subscriptions already
+received, close the last segment and write metadata.yaml (exit status 0). A SIGKILL loses at
+most the open segment.
 
 Topics: every DESIGN.md §3 topic of ``--formation FILE`` (exact, known before anything runs),
 plus whatever the graph shows that matches (checked every ``--discovery-period`` s); or only

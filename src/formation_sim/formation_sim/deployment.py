@@ -5,8 +5,6 @@
   the velocity-funnel margins (and the ``measurement``/``controller`` faults) recorded in
   ``summary.json`` are the agents' own, step for step, as in the headless runner. In realtime
   they are the margins the agent would have at the simulator's sample times.
-- :class:`DeferredInputRecorder`: a :class:`RunRecorder` whose funnel check for step k runs
-  while the agents compute (the wrenches are filled in when they arrive).
 - :class:`Timing`: latency (measurements published -> wrench received, wall) and on-time counts.
 """
 
@@ -51,17 +49,6 @@ class ShadowControllers:
                 if o.level == ERROR:
                     recorder.fault(t, "controller", aid, o.message)
                     return
-
-
-class DeferredInputRecorder(RunRecorder):
-    """:meth:`add` with ``u=None`` first (funnel check), then :meth:`set_inputs` (peaks, row)."""
-
-    def set_inputs(self, u: np.ndarray) -> None:
-        """Wrenches (N,6) applied from the sample added last."""
-        np.maximum(self.peak_force, np.linalg.norm(u[:, :3], axis=1), out=self.peak_force)
-        np.maximum(self.peak_torque, np.linalg.norm(u[:, 3:], axis=1), out=self.peak_torque)
-        if (self.samples - 1) % self.record_every == 0:
-            self._rows["u"][-1] = np.array(u, dtype=np.float64)
 
 
 @dataclass

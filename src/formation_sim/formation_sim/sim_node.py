@@ -42,9 +42,9 @@ from rosgraph_msgs.msg import Clock
 from formation_msgs_py import conversions, qos, topics
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import FormationSpec, simulator_view
-from formation_sim.deployment import DeferredInputRecorder, ShadowControllers, Timing
+from formation_sim.deployment import ShadowControllers, Timing
 from formation_sim.headless import check_control_rate, load_with_overrides, overrides_from_args, prepare_out_dir
-from formation_sim.report import format_summary, write_outputs
+from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
 
 NS = 1_000_000_000
@@ -160,7 +160,8 @@ class Runner:
         self.n_steps = round(s.duration * s.control_rate)
         self.period = 1.0 / s.control_rate
         record_every = max(1, round(s.control_rate / s.record_rate))
-        self.recorder = DeferredInputRecorder(
+        # add(..., u=None) checks step k while the agents compute; set_inputs(u) when they answered
+        self.recorder = RunRecorder(
             spec, record_every=record_every, mode=f"ros2-{args.mode}", control_rate=s.control_rate
         )
         gt_rate = args.ground_truth_rate or min(s.record_rate, s.control_rate)

@@ -23,7 +23,8 @@ SHORT = ("--duration", "0.08", "--record-rate", "10000")
 
 
 def _launch(env: dict[str, str], out: Path, *extra: str) -> subprocess.CompletedProcess:
-    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", *SHORT, *extra]
+    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record", *SHORT]
+    cmd += extra
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=180, start_new_session=True)
 
 
@@ -48,7 +49,7 @@ def test_lockstep_equals_headless_and_is_deterministic(ros_env: dict[str, str], 
 
 
 def test_every_process_has_a_log_and_outputs(ros_env: dict[str, str], tmp_path: Path) -> None:
-    """run.sh writes OUT as DESIGN.md §8 with one log per process and exits 0 when funnels hold."""
+    """run.sh writes OUT as DESIGN.md §8 (a bag by default) with one log per process; exit 0 when funnels hold."""
     out = tmp_path / "out"
     r = subprocess.run(
         [str(REPO / "ros2_ws" / "run.sh"), str(PAPER), "--out", str(out), "--duration", "0.02"],
@@ -63,7 +64,8 @@ def test_every_process_has_a_log_and_outputs(ros_env: dict[str, str], tmp_path: 
     for name in ("summary.json", "trajectory.npz", "errors.png", "orientation_errors.png", "inputs.png"):
         assert (out / name).is_file(), name
     logs = {p.name for p in (out / "logs").iterdir()}
-    assert {"sim.log", *(f"agent_{i}.log" for i in range(1, 6)), "processes.json"} <= logs
+    assert {"sim.log", "recorder.log", *(f"agent_{i}.log" for i in range(1, 6)), "processes.json"} <= logs
+    assert (out / "bag" / "metadata.yaml").is_file()
 
 
 def test_lockstep_names_a_killed_agent(procs, tmp_path: Path) -> None:
@@ -86,7 +88,7 @@ def test_launcher_stops_everything_when_an_agent_dies(ros_env: dict[str, str], t
     """The launcher notices a dead agent at once, stops the rest and exits 3."""
     out = tmp_path / "out"
     proc = subprocess.Popen(
-        [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--duration", "5", "--no-plots"],
+        [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--duration", "5", "--no-plots", "--no-record"],
         env=ros_env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

@@ -97,13 +97,14 @@ def test_sigint_to_run_sh_leaves_no_process(ros_env: dict[str, str], tmp_path: P
         while not (sim_log.exists() and "progress" in sim_log.read_text()):
             assert time.monotonic() < deadline and proc.poll() is None, proc.poll()
             time.sleep(0.1)
-        assert len(processes_mentioning(str(formation))) >= 6
+        assert len(processes_mentioning(str(formation))) >= 7  # simulator, 5 agents, recorder
         proc.send_signal(signal.SIGINT)
         stdout, _ = proc.communicate(timeout=90)
         assert proc.returncode == 130, stdout
         assert processes_mentioning(str(formation)) == [], stdout
         table = json.loads((out / "logs" / "processes.json").read_text())
-        assert len(table) == 6 and all(row["returncode"] is not None for row in table), (table, stdout)
+        assert len(table) == 7 and all(row["returncode"] is not None for row in table), (table, stdout)
+        assert {row["role"] for row in table} == {"sim", "agent", "recorder"}
         for row in table:
             assert not Path(f"/proc/{row['pid']}").exists() or "Z" in Path(f"/proc/{row['pid']}/stat").read_text()
         assert json.loads((out / "summary.json").read_text())["interrupted"] is True

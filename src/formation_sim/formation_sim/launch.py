@@ -165,7 +165,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--discovery-timeout", type=float, help="wall s to wait for the agents (default 30 + 1/agent)")
     p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
     p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")
-    p.add_argument("--record", action="store_true", help="record a bag into OUT/bag (formation-record)")
+    p.add_argument(
+        "--record",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="record a bag into OUT/bag with formation-record (default: on; --no-record to skip). While "
+        "recording, ground truth is published at every control step unless --ground-truth-rate is given, so "
+        "that formation-analyze OUT/bag reproduces the run's summary",
+    )
     p.add_argument(
         "--netns",
         choices=("auto", "on", "off"),
@@ -186,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _sim_args(args: argparse.Namespace, out: Path) -> list[str]:
+def _sim_args(args: argparse.Namespace, out: Path, spec: FormationSpec) -> list[str]:
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", "--executor", args.executor]
     cmd += ["--measurement-qos", args.measurement_qos]
     for opt in (
@@ -210,6 +217,9 @@ def _sim_args(args: argparse.Namespace, out: Path) -> list[str]:
             cmd.append(f"--{flag.replace('_', '-')}")
     if args.record:
         cmd.append("--wait-recorder")
+        if args.ground_truth_rate is None:
+            # the analysis checks the funnels at the recorded ground-truth samples: all of them
+            cmd += ["--ground-truth-rate", str(spec.simulation.control_rate)]
     return cmd
 
 
@@ -295,10 +305,24 @@ class Launcher:
             self.start(
                 "recorder",
                 "recorder",
-                [str(_bin("formation-record")), "--out", str(self.out / "bag"), "--formation", formation],
+                [
+                    str(_bin("formation-record")),
+                    "--out",
+                    str(self.out / "bag"),
+                    "--formation",
+                    formation,
+                    "--quiet",
+                    "--meta",
+                    f"mode={mode}",
+                    f"control_rate={spec.simulation.control_rate!r}",
+                    f"duration={spec.simulation.duration!r}",
+                ],
             )
         sim = self.start(
-            "sim", "sim", [venv_python, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out)], pipe=True
+            "sim",
+            "sim",
+            [venv_python, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec)],
+            pipe=True,
         )
         for a in spec.agents:
             cmd = [

@@ -24,6 +24,7 @@ CORE_MODULES = [
     "formation_sim.measurement",
     "formation_sim.simulation",
     "formation_sim.headless",
+    "formation_sim.team",
     "formation_sim.report",
     "formation_sim.check",
     "formation_sim.generate",

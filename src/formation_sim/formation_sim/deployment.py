@@ -1,10 +1,6 @@
 """ROS-free bookkeeping of a ROS 2 run, used by the simulator node (``sim_node``).
 
-- :class:`ShadowControllers`: the simulator re-runs every agent's controller core on exactly
-  the measurements it published. In lockstep these are the measurements the agents answer, so
-  the velocity-funnel margins (and the ``measurement``/``controller`` faults) recorded in
-  ``summary.json`` are the agents' own, step for step, as in the headless runner. In realtime
-  they are the margins the agent would have at the simulator's sample times.
+(The simulator's shadow of the agents' controllers is :class:`formation_sim.team.AgentTeam`.)
 - :class:`Timing`: latency (measurements published -> wrench received, wall) and on-time counts.
 """
 
@@ -15,40 +11,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from formation_agent.controller import ERROR, AgentController, ControlOutput, MissingMeasurementError
-from formation_msgs_py.spec import FormationSpec, agent_view
-from formation_sim.report import RunRecorder
-from formation_sim.simulation import Measurements
-
-
-class ShadowControllers:
-    """Every agent's controller core, evaluated on the published measurements (no ROS)."""
-
-    def __init__(self, spec: FormationSpec) -> None:
-        self.ids = spec.agent_ids
-        self.controllers = [AgentController(agent_view(spec, a)) for a in self.ids]
-
-    def evaluate(self, meas: Measurements, recorder: RunRecorder | None) -> tuple[np.ndarray, list[ControlOutput]]:
-        """(margin_v (N,6), outputs); records ``measurement`` faults as the headless runner does."""
-        outputs = []
-        for i, ctrl in enumerate(self.controllers):
-            try:
-                out = ctrl.compute(meas.t, meas.relative_poses[ctrl.agent_id], meas.velocities[i])
-            except MissingMeasurementError as exc:
-                out = ctrl.fault_output(meas.t, str(exc))
-                if recorder is not None:
-                    recorder.fault(meas.t, "measurement", ctrl.agent_id, ",".join(exc.neighbours))
-            outputs.append(out)
-        return np.array([o.margin_v for o in outputs]), outputs
-
-    def note_errors(self, t: float, outputs: list[ControlOutput], recorder: RunRecorder) -> None:
-        """A controller at ERROR (saturated) is a violation, as in the headless runner."""
-        if recorder.first_violation is None:
-            for aid, o in zip(self.ids, outputs):
-                if o.level == ERROR:
-                    recorder.fault(t, "controller", aid, o.message)
-                    return
 
 
 @dataclass

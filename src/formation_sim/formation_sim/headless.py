@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from formation_agent.controller import ERROR, AgentController, ControlOutput, MissingMeasurementError
 from formation_msgs_py.errors import FormationError, FormationSpecError
-from formation_msgs_py.spec import FormationSpec, agent_view, load_formation, simulator_view
+from formation_msgs_py.spec import FormationSpec, load_formation, simulator_view
 from formation_sim.plant import PlantState
 from formation_sim.rates import rate_needs
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
+from formation_sim.team import AgentTeam
 
 ProgressFn = Callable[[float, float, float], None]
 
@@ -50,23 +50,6 @@ def check_control_rate(spec: FormationSpec) -> list[str]:
     ]
 
 
-def _control(
-    controllers: list[AgentController], meas: Measurements, recorder: RunRecorder | None
-) -> tuple[np.ndarray, list[ControlOutput]]:
-    u = np.zeros((len(controllers), 6))
-    outputs = []
-    for i, ctrl in enumerate(controllers):
-        try:
-            out = ctrl.compute(meas.t, meas.relative_poses[ctrl.agent_id], meas.velocities[i])
-        except MissingMeasurementError as exc:
-            out = ctrl.fault_output(meas.t, str(exc))
-            if recorder is not None:
-                recorder.fault(meas.t, "measurement", ctrl.agent_id, ",".join(exc.neighbours))
-        u[i] = out.wrench
-        outputs.append(out)
-    return u, outputs
-
-
 def run_headless(
     spec: FormationSpec,
     *,
@@ -80,7 +63,7 @@ def run_headless(
         raise ValueError(f"controller mode {mode!r} is not sampled or continuous")
     sim_spec = spec.simulation
     sim = Simulation(simulator_view(spec))
-    controllers = [AgentController(agent_view(spec, a.id)) for a in spec.agents]
+    team = AgentTeam(spec)
     n_steps = round(sim_spec.duration * sim_spec.control_rate)
     record_every = max(1, round(sim_spec.control_rate / sim_spec.record_rate))
     recorder = RunRecorder(spec, record_every=record_every, mode=f"headless-{mode}", control_rate=sim_spec.control_rate)
@@ -89,17 +72,14 @@ def run_headless(
 
     def stage_wrench(t: float, state: PlantState) -> np.ndarray:
         meas = Measurements(t, -1, sim.sensors.measure(state.p, state.R), sim.plant.measured_velocity(t, state))
-        return _control(controllers, meas, None)[0]
+        return team.evaluate(meas, None)[0]
 
     for k in range(n_steps + 1):
         meas = sim.sense()
-        u, outputs = _control(controllers, meas, recorder)
-        margin_v = np.array([o.margin_v for o in outputs])
+        u, margin_v, outputs = team.evaluate(meas, recorder)
         s = sim.state
         recorder.add(meas.t, s.p, s.R, s.v, u, margin_v)
-        if any(o.level == ERROR for o in outputs) and recorder.first_violation is None:
-            bad = next(o for o in outputs if o.level == ERROR)
-            recorder.fault(meas.t, "controller", spec.agents[outputs.index(bad)].id, bad.message)
+        team.note_errors(meas.t, outputs, recorder)
         if k == n_steps or (stop_on_violation and recorder.first_violation is not None):
             break
         sim.advance(stage_wrench if mode == "continuous" else u)

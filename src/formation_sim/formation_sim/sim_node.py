@@ -42,10 +42,11 @@ from rosgraph_msgs.msg import Clock
 from formation_msgs_py import conversions, qos, topics
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import FormationSpec, simulator_view
-from formation_sim.deployment import ShadowControllers, Timing
+from formation_sim.deployment import Timing
 from formation_sim.headless import check_control_rate, load_with_overrides, overrides_from_args, prepare_out_dir
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
+from formation_sim.team import AgentTeam
 
 NS = 1_000_000_000
 EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_MISSING, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -156,7 +157,7 @@ class Runner:
         self.args = args
         s = spec.simulation
         self.sim = Simulation(simulator_view(spec))
-        self.shadow = ShadowControllers(spec)
+        self.shadow = AgentTeam(spec)
         self.n_steps = round(s.duration * s.control_rate)
         self.period = 1.0 / s.control_rate
         record_every = max(1, round(s.control_rate / s.record_rate))
@@ -271,7 +272,7 @@ class Runner:
             node.pub_wall = {ns: sent}
             node.publish_step(meas, ns)
             # while the agents compute: shadow controllers and the funnel check of step k
-            margin_v, outputs = self.shadow.evaluate(meas, rec)
+            _, margin_v, outputs = self.shadow.evaluate(meas, rec)
             s = sim.state
             rec.add(meas.t, s.p, s.R, s.v, None, margin_v)
             self.shadow.note_errors(meas.t, outputs, rec)
@@ -357,7 +358,7 @@ class Runner:
             if len(node.pub_wall) > 64:
                 del node.pub_wall[next(iter(node.pub_wall))]
             node.publish_step(meas, ns)
-            margin_v, outputs = self.shadow.evaluate(meas, rec)
+            _, margin_v, outputs = self.shadow.evaluate(meas, rec)
             prev = (meas, sim.state, margin_v, outputs)
             self.progress(meas.t)
         if prev is not None:  # the last sample, with the wrenches held at the end

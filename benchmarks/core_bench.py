@@ -2,6 +2,8 @@
 
     .venv/bin/python benchmarks/core_bench.py [--quick] [--json FILE]
 
+Times are CPU seconds of this process (and wall seconds for the runs): the machines are shared.
+
 1. controller evaluation time per agent: a leaf (1 edge) and a 3-neighbour agent;
 2. headless paper scenario (5 s): sampled at 10 kHz and continuous (physics 10 kHz): wall time
    and real-time factor;
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import time
@@ -37,14 +40,15 @@ def controller_time(spec, agent_id: str, number: int = 20000, repeat: int = 7) -
     ctrl = AgentController(agent_view(spec, agent_id))
     rel, v = meas.relative_poses[agent_id], meas.velocities[i].tolist()
     ctrl.compute(0.0, rel, v)
-    times = timeit.repeat(lambda: ctrl.compute(0.1, rel, v), number=number, repeat=repeat)
+    # CPU time, not wall: the machines are shared, and CPU time is far less sensitive to load
+    times = timeit.repeat(lambda: ctrl.compute(0.1, rel, v), number=number, repeat=repeat, timer=time.process_time)
     return statistics.median(times) / number * 1e6
 
 
 def headless(spec, mode: str) -> dict:
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = run_headless(spec, controller_mode=mode)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     s = res.summary
     return {
         "mode": mode,
@@ -53,6 +57,8 @@ def headless(spec, mode: str) -> dict:
         "duration": spec.simulation.duration,
         "wall_s": round(wall, 2),
         "real_time_factor": round(spec.simulation.duration / wall, 3),
+        "cpu_s": round(cpu, 2),
+        "cpu_real_time_factor": round(spec.simulation.duration / cpu, 3),
         "funnels_held": s["funnels_held"],
         "worst_margin": s["worst_margin"],
         "arrays": res.recorder.arrays(),
@@ -66,7 +72,10 @@ def main() -> None:
     args = parser.parse_args()
     duration = 1.0 if args.quick else 5.0
     paper = load_formation(REPO / "config" / "paper_5agents.yaml", overrides={"duration": duration})
-    results: dict = {"machine": f"{platform.processor() or platform.machine()}, {platform.python_version()}"}
+    results: dict = {
+        "machine": f"{platform.processor() or platform.machine()}, {platform.python_version()}",
+        "load_average_1min": round(os.getloadavg()[0], 2),
+    }
     results["controller_us"] = {
         "leaf (agent 2, 1 edge)": round(controller_time(paper, "2"), 2),
         "agent 1 (2 edges)": round(controller_time(paper, "1"), 2),

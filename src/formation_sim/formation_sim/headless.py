@@ -105,11 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", type=Path, help="formation file (YAML)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: out/<formation>-headless)")
     p.add_argument("--controller", choices=("sampled", "continuous"), help="override simulation.controller")
-    p.add_argument("--duration", type=float, help="override simulation.duration [s]")
-    p.add_argument("--control-rate", type=float, help="override simulation.control_rate [Hz]")
-    p.add_argument("--physics-rate", type=float, help="override simulation.physics_rate [Hz]")
-    p.add_argument("--record-rate", type=float, help="override simulation.record_rate [Hz]")
-    p.add_argument("--seed", type=int, help="override simulation.seed")
+    add_override_options(p)
     p.add_argument(
         "--allow-low-rate", action="store_true", help="run even if the control rate is below the need (warn)"
     )
@@ -118,6 +114,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
+
+
+def add_override_options(p: argparse.ArgumentParser, *, ros: bool = False) -> None:
+    """The ``simulation.*`` overrides every runner takes (``ros``: also mode and timeouts)."""
+    if ros:
+        p.add_argument("--mode", choices=("lockstep", "realtime"), help="override simulation.mode")
+    p.add_argument("--duration", type=float, help="override simulation.duration [s]")
+    p.add_argument("--control-rate", type=float, help="override simulation.control_rate [Hz]")
+    p.add_argument("--physics-rate", type=float, help="override simulation.physics_rate [Hz]")
+    p.add_argument("--record-rate", type=float, help="override simulation.record_rate [Hz]")
+    p.add_argument("--seed", type=int, help="override simulation.seed")
+    if ros:
+        p.add_argument("--step-timeout", type=float, help="override simulation.step_timeout [wall s] (lockstep)")
+        p.add_argument("--command-timeout", type=float, help="override simulation.command_timeout [sim s] (realtime)")
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:

@@ -38,7 +38,7 @@ from typing import IO, Any
 
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import FormationSpec
-from formation_sim.headless import check_control_rate, prepare_out_dir
+from formation_sim.headless import add_override_options, check_control_rate, prepare_out_dir
 from formation_sim.report import format_summary
 
 EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_PROCESS, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -148,20 +148,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-launch",
         description="Run a formation through ROS 2: the simulator node and one process per agent "
-        "(and a bag recorder with --record). Writes OUT as DESIGN.md §8 with one log per process in "
+        "(and, unless --no-record, a bag recorder). Writes OUT as DESIGN.md §8 with one log per process in "
         "OUT/logs. Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 a process died or an "
         "agent was missing, 130 interrupted.",
     )
     p.add_argument("file", type=Path, help="formation file (YAML)")
-    p.add_argument("--mode", choices=("lockstep", "realtime"), help="override simulation.mode")
     p.add_argument("--out", type=Path, help="output directory (default: out/<formation>-ros2-<mode>-<time>)")
-    p.add_argument("--duration", type=float, help="override simulation.duration [s]")
-    p.add_argument("--control-rate", type=float, help="override simulation.control_rate [Hz]")
-    p.add_argument("--physics-rate", type=float, help="override simulation.physics_rate [Hz]")
-    p.add_argument("--record-rate", type=float, help="override simulation.record_rate [Hz]")
-    p.add_argument("--seed", type=int, help="override simulation.seed")
-    p.add_argument("--step-timeout", type=float, help="override simulation.step_timeout [wall s] (lockstep)")
-    p.add_argument("--command-timeout", type=float, help="override simulation.command_timeout [sim s] (realtime)")
+    add_override_options(p, ros=True)
     p.add_argument("--discovery-timeout", type=float, help="wall s to wait for the agents (default 30 + 1/agent)")
     p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
     p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")

@@ -43,7 +43,13 @@ from formation_msgs_py import conversions, qos, topics
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.deployment import Timing
-from formation_sim.headless import check_control_rate, load_with_overrides, overrides_from_args, prepare_out_dir
+from formation_sim.headless import (
+    add_override_options,
+    check_control_rate,
+    load_with_overrides,
+    overrides_from_args,
+    prepare_out_dir,
+)
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
 from formation_sim.team import AgentTeam
@@ -393,15 +399,8 @@ def build_parser() -> argparse.ArgumentParser:
         "ROS arguments may follow --ros-args.",
     )
     p.add_argument("file", type=Path, help="formation file (YAML)")
-    p.add_argument("--mode", choices=("lockstep", "realtime"), help="override simulation.mode")
     p.add_argument("--out", type=Path, help="output directory (default: out/<formation>-ros2-<mode>)")
-    p.add_argument("--duration", type=float, help="override simulation.duration [s]")
-    p.add_argument("--control-rate", type=float, help="override simulation.control_rate [Hz]")
-    p.add_argument("--physics-rate", type=float, help="override simulation.physics_rate [Hz]")
-    p.add_argument("--record-rate", type=float, help="override simulation.record_rate [Hz]")
-    p.add_argument("--seed", type=int, help="override simulation.seed")
-    p.add_argument("--step-timeout", type=float, help="override simulation.step_timeout [wall s] (lockstep)")
-    p.add_argument("--command-timeout", type=float, help="override simulation.command_timeout [sim s] (realtime)")
+    add_override_options(p, ros=True)
     p.add_argument(
         "--discovery-timeout", type=float, default=None, help="wall s to wait for the agents (default 30 + 1/agent)"
     )

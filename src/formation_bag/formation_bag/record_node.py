@@ -45,6 +45,10 @@ from formation_msgs_py.spec import load_formation
 
 #: depth of the recorder's own subscription queues (it must never be the one that drops)
 SUB_DEPTH = 1000
+#: with --formation, the ground-truth subscription waits until every other subscription has matched
+#: a publisher, then this many seconds (the publishers' side of discovery), at most DEFER_TIMEOUT s
+DEFER_SETTLE = 0.5
+DEFER_TIMEOUT = 60.0
 
 
 def msg_class(msgtype: str) -> Any:
@@ -129,12 +133,23 @@ class Recorder(Node):
         self.active_version = 0
         self._active: list[tuple[str, Any, Any, int]] = []
         self.stopping = False
-        # ground truth last: formation-sim --wait-recorder starts when it sees a ground-truth
-        # subscriber, by then every other subscription of the recorder exists too
+        # Ground truth last, and only once every other subscription has matched a publisher (then
+        # DEFER_SETTLE s more): formation-sim --wait-recorder starts stepping when it sees a
+        # ground-truth subscriber, and DDS delivers nothing published before both sides matched.
         gt = m.absolute(topics.GROUND_TRUTH, namespace)
-        for name, msgtype in sorted(known.items(), key=lambda kv: kv[0] == gt):
-            if only is None or name in only:
+        self._deferred: tuple[str, str] | None = None
+        self._defer_until = time.monotonic() + DEFER_TIMEOUT
+        self._matched_at: float | None = None
+        for name, msgtype in known.items():
+            if only is not None and name not in only:
+                continue
+            if name == gt:
+                self._deferred = (name, msgtype)
+            else:
                 self._subscribe(name, msgtype)
+        if self._deferred is not None and not self._active:
+            self._subscribe(*self._deferred)
+            self._deferred = None
         self.discover()
 
     # -- topics ----------------------------------------------------------------------------------
@@ -144,10 +159,31 @@ class Recorder(Node):
             return name in self.only
         return m.classify(name, self.namespace) is not None
 
+    def check_deferred(self) -> None:
+        """Subscribe to the ground truth once every other subscription has matched (or after a timeout)."""
+        if self._deferred is None:
+            return
+        now = time.monotonic()
+        # /diagnostics is optional (agents publish it at ≤ 10 Hz, tools may not): not waited for
+        if all(sub.get_publisher_count() > 0 for name, sub, _, _ in self._active if name != topics.DIAGNOSTICS):
+            if self._matched_at is None:
+                self._matched_at = now
+        else:
+            self._matched_at = None
+        ready = self._matched_at is not None and now - self._matched_at >= DEFER_SETTLE
+        if ready or now > self._defer_until:
+            name, msgtype = self._deferred
+            self._deferred = None
+            self._subscribe(name, msgtype)
+            why = "every publisher matched" if ready else f"not every publisher matched in {DEFER_TIMEOUT:g} s"
+            print(f"formation-record: {why}; subscribed to {name}", flush=True)
+
     def discover(self) -> None:
         """Subscribe to new wanted topics; re-subscribe best effort where only such publishers appear."""
         for name, types in self.get_topic_names_and_types():
             if not self._wanted(name) or not types:
+                continue
+            if self._deferred is not None and name == self._deferred[0]:
                 continue
             if name not in self.subs:
                 self._subscribe(name, types[0])
@@ -253,6 +289,7 @@ class Recorder(Node):
             else:
                 time.sleep(0.1)  # nothing to record yet: discovery below
             now = time.monotonic()
+            self.check_deferred()
             if now >= next_discovery:
                 self.discover()
                 next_discovery = now + discovery_period

@@ -30,7 +30,7 @@ from formation_bag.record_node import msg_class
 from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics
 
-SPIN_BEFORE = 0.0015  # s: sleep until this close to a deadline, then spin
+SPIN_BEFORE = 0.003  # s: sleep until this close to a deadline, then spin (scheduler wake-up latency)
 
 
 def to_rclpy_qos(profiles: Sequence[Any], topic: str) -> QoSProfile:

@@ -18,6 +18,7 @@ CORE_MODULES = [
     "formation_msgs_py.so3",
     "formation_msgs_py.funnels",
     "formation_msgs_py.topics",
+    "formation_msgs_py.wire",
     "formation_agent.controller",
     "formation_sim.plant",
     "formation_sim.signals",

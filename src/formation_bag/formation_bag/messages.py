@@ -1,8 +1,8 @@
 """The DESIGN.md §3 topics without ROS: names, types, and CDR <-> Python values via rosbags.
 
-Decoding mirrors :mod:`formation_msgs_py.conversions` (which needs the ROS message classes):
-the same field order and the same quaternion conversion (:func:`so3.matrix_from_quaternion`),
-so a relative pose decoded here gives the controller exactly the numbers the agent node saw.
+Decoding uses the agent node's own decoders and CDR codecs (:mod:`formation_msgs_py.wire`, no
+ROS import), so a relative pose decoded here gives the controller exactly the numbers the agent
+node saw.
 """
 
 from __future__ import annotations
@@ -17,10 +17,9 @@ from typing import Any
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from formation_msgs_py import topics
+from formation_msgs_py import topics, wire
 from formation_msgs_py.so3 import matrix_from_quaternion, quaternion_from_matrix
-
-NS_PER_S = 1_000_000_000
+from formation_msgs_py.wire import NS_PER_S, stamp_ns
 
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
@@ -82,9 +81,7 @@ def classify(topic: str, namespace: str = "") -> TopicKind | None:
     return None
 
 
-def formation_topics(
-    agent_ids: Sequence[str], edges: Sequence[tuple[str, str]], namespace: str = ""
-) -> dict[str, str]:
+def formation_topics(agent_ids: Sequence[str], edges: Sequence[tuple[str, str]], namespace: str = "") -> dict[str, str]:
     """Every DESIGN.md §3 topic of a formation: {absolute name: type}."""
     out = {
         topics.CLOCK: CLOCK,
@@ -103,10 +100,6 @@ def formation_topics(
 # -- decoding -------------------------------------------------------------------------------------
 
 
-def stamp_ns(stamp: Any) -> int:
-    return stamp.sec * NS_PER_S + stamp.nanosec
-
-
 def seconds(stamp_ns_value: int) -> float:
     """Float seconds of an integer-ns stamp, as the agent node computes its controller time (ns / 1e9)."""
     return stamp_ns_value / NS_PER_S
@@ -116,39 +109,21 @@ def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
     return typestore().deserialize_cdr(data, msgtype)
 
 
-def decode_relative_pose(msg: Any) -> tuple[list[float], list[list[float]]]:
-    """(p_i_j_in_i, R_i_j), as conversions.relative_pose_from_msg."""
-    tr = msg.transform.translation
-    q = msg.transform.rotation
-    return [tr.x, tr.y, tr.z], matrix_from_quaternion(q.x, q.y, q.z, q.w)
-
-
-def decode_twist(msg: Any) -> list[float]:
-    lin, ang = msg.twist.linear, msg.twist.angular
-    return [lin.x, lin.y, lin.z, ang.x, ang.y, ang.z]
-
-
-def decode_wrench(msg: Any) -> list[float]:
-    f, tq = msg.wrench.force, msg.wrench.torque
-    return [f.x, f.y, f.z, tq.x, tq.y, tq.z]
-
-
-def decode_poses(msg: Any) -> tuple[list[list[float]], list[list[list[float]]]]:
-    """(p (N,3), R (N,3,3)) from a ground-truth PoseArray, as conversions.poses_from_msg."""
-    p = [[ps.position.x, ps.position.y, ps.position.z] for ps in msg.poses]
-    R = [
-        matrix_from_quaternion(ps.orientation.x, ps.orientation.y, ps.orientation.z, ps.orientation.w)
-        for ps in msg.poses
-    ]
-    return p, R
+# the agent node's own decoders (by field name, so rosbags messages work too)
+decode_relative_pose = wire.relative_pose_from_msg
+decode_twist = wire.twist_from_msg
+decode_wrench = wire.wrench_from_msg
+decode_poses = wire.poses_from_msg
 
 
 # -- fast decoding of the fixed-layout messages (little-endian CDR), same numbers as rosbags ---------
 
 _U32 = struct.Struct("<I")
 _STAMP = struct.Struct("<iI")
-_D6 = struct.Struct("<6d")
 _D7 = struct.Struct("<7d")
+# the nodes' codecs (formation_msgs_py.wire); decoding ignores the frame names
+_POSE_CODEC = wire.StampedCodec(["", ""], 7)
+_SIX_CODEC = wire.StampedCodec([""], 6)
 
 
 def _align(off: int, a: int) -> int:
@@ -187,13 +162,13 @@ def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int,
     if kind == "clock":
         sec, nsec = _STAMP.unpack_from(data, 4)
         return sec * NS_PER_S + nsec, None
-    stamp, off = _header(data)
     if kind == "relative_pose":
-        off = _align(_skip_string(data, off), 8)
-        x, y, z, qx, qy, qz, qw = _D7.unpack_from(data, off)
-        return stamp, ([x, y, z], matrix_from_quaternion(qx, qy, qz, qw))
+        stamp, values = _POSE_CODEC.decode(data)
+        return stamp, wire.relative_pose_from_values(values)
     if kind in ("velocity", "wrench"):
-        return stamp, list(_D6.unpack_from(data, _align(off, 8)))
+        stamp, values = _SIX_CODEC.decode(data)
+        return stamp, list(values)
+    stamp, off = _header(data)
     if kind == "ground_truth":
         off = _align(off, 4)
         n = _U32.unpack_from(data, off)[0]

@@ -1,0 +1,137 @@
+"""ROS-free halves of the message conversions: decoding by field names, and raw CDR bytes.
+
+The decoders read fields by name, so they take rclpy messages (the nodes) and rosbags
+messages (bag analysis, no ROS) alike; :mod:`formation_msgs_py.conversions` re-exports them next
+to the encoders that need the ROS message classes. Quaternions are converted only by
+:func:`formation_msgs_py.so3.matrix_from_quaternion` and its inverse.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Sequence
+from typing import Any
+
+from formation_msgs_py import topics
+from formation_msgs_py.so3 import matrix_from_quaternion, quaternion_from_matrix
+
+NS_PER_S = 1_000_000_000
+
+
+def stamp_ns(stamp: Any) -> int:
+    """A stamp as integer nanoseconds (exact: use it to match steps)."""
+    return stamp.sec * NS_PER_S + stamp.nanosec
+
+
+def relative_pose_from_msg(msg: Any) -> tuple[list[float], list[list[float]]]:
+    """(p_i_j_in_i, R_i_j) as Python lists, the form the controller reads fastest."""
+    tr = msg.transform.translation
+    q = msg.transform.rotation
+    return [tr.x, tr.y, tr.z], matrix_from_quaternion(q.x, q.y, q.z, q.w)
+
+
+def twist_from_msg(msg: Any) -> list[float]:
+    lin, ang = msg.twist.linear, msg.twist.angular
+    return [lin.x, lin.y, lin.z, ang.x, ang.y, ang.z]
+
+
+def wrench_from_msg(msg: Any) -> list[float]:
+    f, tq = msg.wrench.force, msg.wrench.torque
+    return [f.x, f.y, f.z, tq.x, tq.y, tq.z]
+
+
+def poses_from_msg(msg: Any) -> tuple[list[list[float]], list[list[list[float]]]]:
+    """(p (N,3), R (N,3,3)) as nested lists from a ground-truth PoseArray."""
+    p = [[ps.position.x, ps.position.y, ps.position.z] for ps in msg.poses]
+    R = [
+        matrix_from_quaternion(ps.orientation.x, ps.orientation.y, ps.orientation.z, ps.orientation.w)
+        for ps in msg.poses
+    ]
+    return p, R
+
+
+# --- hot paths without message objects: serialized CDR (what rclpy's raw publish/subscribe use) ---
+#
+# rclpy builds a Python object for every nested message it takes (Header, Time, Vector3, …:
+# ~70 µs per WrenchStamped here) and converts every published object field by field. The nodes'
+# per-step messages are fixed-layout, so they are written and read as CDR bytes instead
+# (little-endian PLAIN_CDR, 4-byte encapsulation header, alignment counted after it). Layout of
+# every stamped type used here: int32 sec, uint32 nanosec, the message's strings (uint32 length
+# including the NUL, bytes, NUL; 4-aligned), then float64 fields (8-aligned). Checked against
+# rclpy.serialization in tests/ros/test_conversions_cdr.py.
+
+_CDR_LE = b"\x00\x01\x00\x00"
+_STAMP = struct.Struct("<iI")
+_U32 = struct.Struct("<I")
+
+
+class StampedCodec:
+    """Encode/decode one stamped message type with fixed strings: stamp + ``n_doubles`` float64.
+
+    ``strings`` are the message's string fields in order (header.frame_id, then e.g.
+    child_frame_id); the doubles follow in declaration order (TwistStamped: linear xyz, angular
+    xyz; WrenchStamped: force, torque; TransformStamped: translation xyz, rotation xyzw).
+    """
+
+    def __init__(self, strings: Sequence[str], n_doubles: int) -> None:
+        mid = b""
+        off = 8  # after sec, nanosec
+        for s in strings:
+            raw = s.encode("utf-8") + b"\0"
+            pad = (-off) % 4
+            mid += b"\0" * pad + _U32.pack(len(raw)) + raw
+            off += pad + 4 + len(raw)
+        pad = (-off) % 8
+        mid += b"\0" * pad
+        self.n_strings = len(strings)
+        self.n_doubles = n_doubles
+        self._pack = struct.Struct(f"<4siI{len(mid)}s{n_doubles}d").pack
+        self._mid = mid
+        self._doubles = struct.Struct(f"<{n_doubles}d")
+
+    def encode(self, ns: int, values: Sequence[float]) -> bytes:
+        """CDR bytes of the message stamped ``ns`` (integer nanoseconds) carrying ``values``."""
+        sec, nsec = divmod(ns, NS_PER_S)
+        return self._pack(_CDR_LE, sec, nsec, self._mid, *values)
+
+    def decode(self, data: bytes) -> tuple[int, tuple[float, ...]]:
+        """(stamp in integer ns, the doubles) of CDR bytes of this type (any string contents)."""
+        sec, nsec = _STAMP.unpack_from(data, 4)
+        off = 8
+        for _ in range(self.n_strings):
+            off += (-off) % 4
+            off += 4 + _U32.unpack_from(data, 4 + off)[0]
+        off += (-off) % 8
+        return sec * NS_PER_S + nsec, self._doubles.unpack_from(data, 4 + off)
+
+
+def twist_codec(agent_id: str) -> StampedCodec:
+    """TwistStamped in frame ``agent_<id>``: [vx, vy, vz, wx, wy, wz]."""
+    return StampedCodec([topics.agent_frame(agent_id)], 6)
+
+
+def wrench_codec(agent_id: str) -> StampedCodec:
+    """WrenchStamped in frame ``agent_<id>``: [fx, fy, fz, tx, ty, tz]."""
+    return StampedCodec([topics.agent_frame(agent_id)], 6)
+
+
+def relative_pose_codec(observer: str, target: str) -> StampedCodec:
+    """TransformStamped ``agent_<observer>`` -> ``agent_<target>``: translation xyz, quaternion xyzw."""
+    return StampedCodec([topics.agent_frame(observer), topics.agent_frame(target)], 7)
+
+
+def clock_bytes(ns: int) -> bytes:
+    """CDR bytes of a rosgraph_msgs/Clock at ``ns`` (integer nanoseconds)."""
+    sec, nsec = divmod(ns, NS_PER_S)
+    return _CDR_LE + _STAMP.pack(sec, nsec)
+
+
+def relative_pose_values(p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]) -> tuple[float, ...]:
+    """The 7 doubles of a relative pose: translation (m, frame agent_i) and quaternion (x, y, z, w)."""
+    return (*p_i_j_in_i, *quaternion_from_matrix(R_i_j))
+
+
+def relative_pose_from_values(values: Sequence[float]) -> tuple[list[float], list[list[float]]]:
+    """(p_i_j_in_i, R_i_j) as Python lists from the 7 doubles of :func:`relative_pose_values`."""
+    px, py, pz, qx, qy, qz, qw = values
+    return [px, py, pz], matrix_from_quaternion(qx, qy, qz, qw)

@@ -510,9 +510,7 @@ def _make_edge(index: int, e: Mapping[str, Any], path: str, tail: AgentSpec, hea
     d_con = e["d_con"] if e["d_con"] is not None else min(tail.sensing_radius, head.sensing_radius)
     d_des = e["distance"]
     if not d_col < d_des < d_con:
-        raise FormationSpecError(
-            f"{path}.distance", f"{d_des} is not inside (d_col={d_col}, d_con={d_con})", d_des
-        )
+        raise FormationSpecError(f"{path}.distance", f"{d_des} is not inside (d_col={d_col}, d_con={d_con})", d_des)
     s_min = min(tail.sensing_radius, head.sensing_radius)
     if d_con > s_min + 1e-12:
         raise FormationSpecError(

@@ -26,34 +26,16 @@ def paper_doc() -> dict[str, Any]:
 
 
 # --- ROS 2 isolation ------------------------------------------------------------------------
-# Every test run that starts ROS processes takes a ROS_DOMAIN_ID no other live run holds: an
-# exclusive flock on /tmp/formation-ros-domain-<id>.lock, held until the pytest process exits.
-# Ids come from 1..101 and 215..232 (Fast DDS refuses ids above 232; 102..214 may collide with
-# ephemeral ports on Linux), starting from a pid-derived offset.
-_DOMAIN_IDS = [*range(1, 102), *range(215, 233)]
-_held_domain: tuple[int, object] | None = None
+# Every test run that starts ROS processes takes a ROS_DOMAIN_ID no other live run holds: the
+# allocator formation-launch uses (formation_sim.dds_env: free port block and an exclusive flock,
+# held until the pytest process exits).
 
 
 def allocate_ros_domain_id() -> int:
     """A ROS_DOMAIN_ID reserved for this process (the same one on every call)."""
-    global _held_domain
-    if _held_domain is not None:
-        return _held_domain[0]
-    import fcntl
-    import os
+    from formation_sim.dds_env import reserve_domain_id
 
-    start = os.getpid() % len(_DOMAIN_IDS)
-    for k in range(len(_DOMAIN_IDS)):
-        domain = _DOMAIN_IDS[(start + k) % len(_DOMAIN_IDS)]
-        handle = open(f"/tmp/formation-ros-domain-{domain}.lock", "w")  # held for the session
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        _held_domain = (domain, handle)
-        return domain
-    raise RuntimeError("every ROS_DOMAIN_ID is held by another test run")
+    return reserve_domain_id()
 
 
 @pytest.fixture(scope="session")

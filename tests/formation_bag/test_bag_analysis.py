@@ -84,8 +84,11 @@ def test_analysis_of_a_violating_run(violating_bag, tmp_path: Path) -> None:
     ages = json.loads((out / "ages.json").read_text())
     assert ages["relative_pose"]["1->2"]["sim_age"]["max"] == 0.0  # lockstep: measured at the step's time
     assert ages["wrench"]["1"]["response_wall"]["median"] > 0
-    # the distance/orientation funnels alone held until then
-    assert analysis.main([str(bag), "--out", str(tmp_path / "o2"), "--velocity-margins", "none", "--no-plots"]) == 0
+    # the distance/orientation funnels alone held until then; the bag stops there: INCOMPLETE, not PASS
+    assert analysis.main([str(bag), "--out", str(tmp_path / "o2"), "--velocity-margins", "none", "--no-plots"]) == 4
+    partial = json.loads((tmp_path / "o2" / "summary.json").read_text())
+    assert partial["verdict"] == "INCOMPLETE" and partial["first_violation"] is None
+    assert partial["incomplete_reason"].startswith("data missing: ground truth: ")
     # refuses to overwrite
     assert analysis.main([str(bag), "--out", str(out)]) == 2
 
@@ -109,8 +112,10 @@ def test_analysis_of_a_truncated_bag(violating_bag, tmp_path: Path) -> None:
     assert summary["bag"]["truncated"]
     assert 0 < summary["bag"]["ground_truth_samples"] < result.steps
     assert summary["duration"] < result.summary["duration"]
-    # what is left agrees with the full run up to there
-    assert summary["funnels_held"]
+    # what is left agrees with the full run up to there, and says what it lacks
+    assert summary["verdict"] == "INCOMPLETE" and summary["first_violation"] is None
+    assert summary["funnels_held"] is None
+    assert any(item.startswith("lost ") for item in summary["bag"]["missing"])
 
 
 def test_rerun_reproduces_and_reports_overrides(violating_bag, tmp_path: Path, capsys) -> None:

@@ -120,12 +120,16 @@ def write_run_bag(
                 put(m.absolute(topics.wrench(a)), enc.wrench(stamp, a, out.wrench))
             u = np.array([o.wrench for o in outs])
             recorder.add(t, s.p, s.R, s.v, u, np.array([o.margin_v for o in outs]))
-            if any(o.level == ERROR for o in outs) and recorder.first_violation is None:
-                bad = next(o for o in outs if o.level == ERROR)
-                recorder.fault(t, "controller", ids[outs.index(bad)], bad.message)
+            for a, o in zip(ids, outs):
+                if o.level == ERROR:
+                    recorder.fault(t, "controller", a, o.message)
             if k == n_steps or (stop_on_violation and recorder.first_violation is not None):
                 break
             sim.advance(u)
     wall = time.perf_counter() - started
-    summary = recorder.summary(wall_time=wall, extra={"controller": "sampled", "physics_rate": sim_spec.physics_rate})
+    summary = recorder.summary(
+        wall_time=wall,
+        requested_duration=sim_spec.duration,
+        extra={"controller": "sampled", "physics_rate": sim_spec.physics_rate},
+    )
     return SynthResult(summary, recorder, count, k + 1)

@@ -9,15 +9,18 @@
 | ``INCOMPLETE`` | any other reason: I/O error, disk full, lag budget, data missing, internal | 4    |
 | ``INCOMPLETE`` | interrupted (SIGINT/SIGTERM)                                             | 130  |
 
-A crash never exits 1: 1 means a funnel was violated and nothing else.
+A crash never exits 1: 1 means a funnel was violated and nothing else. A violation seen before a
+run stopped early is still FAIL (exit 1, or 130 when interrupted): the data shows it. Missing
+data is never a violation.
 """
 
 from __future__ import annotations
 
 import enum
+from dataclasses import dataclass
 
 
-class Verdict(str, enum.Enum):
+class Verdict(enum.StrEnum):
     """What a run (or the analysis of its bag) concludes."""
 
     PASS = "PASS"
@@ -42,3 +45,37 @@ EXIT_STATUS_HELP = (
     "4 incomplete for another reason (I/O error, disk full, lag budget, data missing, internal error), "
     "130 interrupted"
 )
+
+
+@dataclass(frozen=True)
+class Incomplete:
+    """Why a run has no PASS/FAIL verdict over its whole requested duration."""
+
+    code: ExitCode
+    reason: str
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """A verdict, its exit status and (INCOMPLETE) the reason."""
+
+    verdict: Verdict
+    exit_code: ExitCode
+    reason: str | None = None
+
+
+def decide(violated: bool, incomplete: Incomplete | None) -> Outcome:
+    """The verdict of a run: a violation seen is FAIL even if the run stopped early; missing data
+    or an early stop without a violation is INCOMPLETE. An interrupted run exits 130 either way."""
+    if violated:
+        interrupted = incomplete is not None and incomplete.code == ExitCode.INTERRUPTED
+        code = ExitCode.INTERRUPTED if interrupted else ExitCode.FAIL
+        return Outcome(Verdict.FAIL, code, None if incomplete is None else incomplete.reason)
+    if incomplete is not None:
+        return Outcome(Verdict.INCOMPLETE, incomplete.code, incomplete.reason)
+    return Outcome(Verdict.PASS, ExitCode.PASS)
+
+
+def exit_code_of(summary: dict) -> int:
+    """The exit status a summary.json stands for (``verdict``, ``exit_status``)."""
+    return int(summary.get("exit_status", ExitCode.INCOMPLETE))

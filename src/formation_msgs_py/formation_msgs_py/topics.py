@@ -9,6 +9,9 @@ from __future__ import annotations
 CLOCK = "/clock"  # ROS fixes /clock at the root, whatever the namespace
 GROUND_TRUTH = "formation/ground_truth"
 DIAGNOSTICS = "/diagnostics"  # the ROS convention: one global diagnostics topic
+#: lockstep: the bag recorder's acknowledgement (rosgraph_msgs/Clock): every step up to this stamp
+#: is in the bag. Not recorded; the simulator does not advance more than one step past it.
+RECORDER_ACK = "formation/recorder_ack"
 WORLD_FRAME = "world"
 
 

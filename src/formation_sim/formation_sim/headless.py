@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from formation_msgs_py.errors import FormationError, FormationSpecError
+from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete
 from formation_msgs_py.spec import FormationSpec, load_formation, simulator_view
 from formation_sim.plant import PlantState
 from formation_sim.rates import rate_needs
@@ -74,6 +75,7 @@ def run_headless(
         meas = Measurements(t, -1, sim.sensors.measure(state.p, state.R), sim.plant.measured_velocity(t, state))
         return team.evaluate(meas, None)[0]
 
+    incomplete = None
     for k in range(n_steps + 1):
         meas = sim.sense()
         u, margin_v, outputs = team.evaluate(meas, recorder)
@@ -84,14 +86,19 @@ def run_headless(
             break
         sim.advance(stage_wrench if mode == "continuous" else u)
         if not np.all(np.isfinite(sim.state.v)):
-            recorder.fault(sim.t, "plant", "all", "non-finite state")
+            incomplete = Incomplete(ExitCode.INCOMPLETE, f"plant state not finite at t={sim.t:.6f} s")
             break
         now = time.perf_counter()
         if progress is not None and now - last_report > 1.0:
             progress(sim.t, sim.t / (now - started), recorder.worst_margin())
             last_report = now
     wall = time.perf_counter() - started
-    summary = recorder.summary(wall_time=wall, extra={"controller": mode, "physics_rate": sim_spec.physics_rate})
+    summary = recorder.summary(
+        wall_time=wall,
+        requested_duration=sim_spec.duration,
+        incomplete=incomplete,
+        extra={"controller": mode, "physics_rate": sim_spec.physics_rate},
+    )
     return HeadlessResult(recorder, summary)
 
 
@@ -99,8 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-headless",
         description="Run a formation's closed loop in one process (no ROS) and write OUT as DESIGN.md §8: "
-        "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png. "
-        "Exit status: 0 every funnel held, 1 a funnel was violated, 2 invalid file or refused rate.",
+        "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png. " + EXIT_STATUS_HELP + ".",
     )
     p.add_argument("file", type=Path, help="formation file (YAML)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: out/<formation>-headless)")
@@ -207,10 +213,14 @@ def main(argv: list[str] | None = None) -> int:
     result = run_headless(
         spec, controller_mode=mode, progress=None if args.quiet else progress, stop_on_violation=args.stop_on_violation
     )
-    write_outputs(out, result.recorder, result.summary, plots=not args.no_plots)
+    try:
+        write_outputs(out, result.recorder, result.summary, plots=not args.no_plots)
+    except OSError as exc:
+        print(f"formation-headless: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr)
+        return ExitCode.INCOMPLETE
     print(format_summary(result.summary))
-    print(f"outputs in {out}/")
-    return 0 if result.summary["funnels_held"] else 1
+    print(f"outputs in {out}/ (exit status {result.summary['exit_status']})")
+    return result.summary["exit_status"]
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.errors import BagError
 from formation_bag.rerun import AgentRerun, rerun_all
 from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete
+from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
 from formation_sim.report import RunRecorder, format_summary, write_json, write_outputs
 
 VELOCITY_MARGIN_MODES = ("rerun", "none")
@@ -433,6 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@guarded("formation-analyze")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     started = time.perf_counter()

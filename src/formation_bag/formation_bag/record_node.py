@@ -51,7 +51,7 @@ from formation_bag.writer import STORAGES, SegmentedBagWriter, make_qos
 from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics, wire
 from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.outcome import ExitCode
+from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import load_formation
 from formation_sim.report import write_json
 
@@ -459,6 +459,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@guarded("formation-record")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -521,7 +522,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         try:
             node.spin(discovery_period=args.discovery_period, status_period=None if args.quiet else 5.0)
-        except OSError as exc:
+        except (OSError, BagError) as exc:
             print(f"formation-record: I/O error writing {args.out}: {exc}; recording stopped", file=sys.stderr)
             code = ExitCode.INCOMPLETE
         except Exception:

@@ -31,7 +31,7 @@ from formation_bag import messages as m
 from formation_bag.dataset import RunData, apply_overrides, load_run, spec_from_document
 from formation_bag.errors import BagError, OverrideError
 from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.outcome import ExitCode
+from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import FormationSpec, agent_view
 
 DEFAULT_TOLERANCE = 1e-12
@@ -206,6 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@guarded("formation-rerun")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:

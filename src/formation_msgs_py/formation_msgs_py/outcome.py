@@ -17,7 +17,12 @@ data is never a violation.
 from __future__ import annotations
 
 import enum
+import functools
+import sys
+import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 
 class Verdict(enum.StrEnum):
@@ -76,6 +81,23 @@ def decide(violated: bool, incomplete: Incomplete | None) -> Outcome:
     return Outcome(Verdict.PASS, ExitCode.PASS)
 
 
-def exit_code_of(summary: dict) -> int:
-    """The exit status a summary.json stands for (``verdict``, ``exit_status``)."""
-    return int(summary.get("exit_status", ExitCode.INCOMPLETE))
+def guarded(prog: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
+    """Decorate a command's ``main``: a crash exits 4 (internal error, traceback on stderr), never 1;
+    Ctrl-C outside the command's own handling exits 130."""
+
+    def wrap(main: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(main)
+        def guarded_main(*args: Any, **kwargs: Any) -> int:
+            try:
+                return int(main(*args, **kwargs))
+            except KeyboardInterrupt:
+                print(f"{prog}: INCOMPLETE: interrupted", file=sys.stderr, flush=True)
+                return ExitCode.INTERRUPTED
+            except Exception as exc:  # a crash: exit 4, never 1 (FAIL)
+                traceback.print_exc()
+                print(f"{prog}: INCOMPLETE: internal error: {exc!r}", file=sys.stderr, flush=True)
+                return ExitCode.INCOMPLETE
+
+        return guarded_main
+
+    return wrap

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from formation_msgs_py.errors import FormationError, FormationSpecError
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete
+from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
 from formation_msgs_py.spec import FormationSpec, load_formation, simulator_view
 from formation_sim.plant import PlantState
 from formation_sim.rates import rate_needs
@@ -171,6 +171,7 @@ def prepare_out_dir(out: Path, force: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
 
+@guarded("formation-headless")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide
+from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
 from formation_msgs_py.spec import FormationSpec
 from formation_sim import dds_env
 from formation_sim.headless import add_override_options, check_control_rate, prepare_out_dir
@@ -38,6 +38,10 @@ from formation_sim.supervisor import Child, LogFollower, Supervisor
 def _bin(name: str) -> Path:
     """A console script of this environment (``.venv/bin/NAME``)."""
     return Path(sys.executable).parent / name
+
+
+#: bytes kept free on OUT's file system for the final summary.json and processes.json
+RESERVE_BYTES = 2_000_000
 
 
 def expected_bag_bytes(spec: FormationSpec) -> int:
@@ -363,6 +367,7 @@ def _last_error(log: Path) -> str:
     return ""
 
 
+@guarded("formation-launch")
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
@@ -431,9 +436,13 @@ def main(argv: list[str] | None = None) -> int:
         f"{' in a private network namespace' if dds_env.in_netns() else ''}; logs in {out / 'logs'}/",
         flush=True,
     )
+    # room kept for the final summary and process table, should the disk fill up during the run
+    reserve = out / ".space_reserve"
+    reserve.write_bytes(b"\0" * RESERVE_BYTES)
     launcher = Launcher(spec, args, out, env)
     launcher.run()
     summary = launcher.summary()
+    reserve.unlink(missing_ok=True)
     code = int(summary.get("exit_status", ExitCode.INCOMPLETE))
     try:
         write_json(out / "logs" / "processes.json", launcher.sup.process_table(out))

@@ -42,7 +42,7 @@ from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics, wire
 from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete
+from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.deployment import Timing
 from formation_sim.headless import (
@@ -449,6 +449,12 @@ def make_executor(kind: str, context: Any) -> Any:
     return SingleThreadedExecutor(context=context)
 
 
+def _interrupted(runner: Runner | None) -> Incomplete:
+    t = runner.sim.t if runner is not None else 0.0
+    return Incomplete(ExitCode.INTERRUPTED, f"interrupted (SIGINT/SIGTERM) at t={t:.4f} s")
+
+
+@guarded("formation-sim")
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``formation-sim``."""
     raw = list(sys.argv if argv is None else [sys.argv[0], *argv])
@@ -503,8 +509,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
         incomplete = exc.incomplete
     except (KeyboardInterrupt, ExternalShutdownException, StopRequestedError):
-        t = runner.sim.t if runner is not None else 0.0
-        incomplete = Incomplete(ExitCode.INTERRUPTED, f"interrupted (SIGINT/SIGTERM) at t={t:.4f} s")
+        incomplete = _interrupted(runner)
+    except Exception:
+        if node is None or rclpy.ok(context=node.context):
+            raise
+        incomplete = _interrupted(runner)  # a publish or wait cut short by SIGINT/SIGTERM
     finally:
         wall = time.monotonic() - runner.started if runner is not None else 0.0
         if node is not None:

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import copy
+import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # process_hygiene, for every test directory
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config"
 PAPER = CONFIG / "paper_5agents.yaml"

@@ -179,6 +179,8 @@ from rclpy.node import Node  # noqa: E402
 
 from formation_msgs_py import conversions, qos, topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
+from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
+from formation_msgs_py.publisher_watch import PublisherWatch, expected_publishers  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
 
 _DIAG_LEVEL = {OK: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
@@ -195,6 +197,7 @@ class AgentNode(Node):
         self.declare_parameter("pose_wait", 0.005)
         self.declare_parameter("diagnostics_period", 0.1)
         self.declare_parameter("measurement_qos", "reliable")
+        self.declare_parameter("intruder_policy", "report")
         agent_id = self.get_parameter("agent_id").value
         agent_id = "" if agent_id is None else str(agent_id)
         path = str(self.get_parameter("formation_file").value)
@@ -211,21 +214,29 @@ class AgentNode(Node):
             measurement_timeout_ns=round(view.controller.measurement_timeout * _NS),
         )
         # hot path: CDR bytes in and out (formation_msgs_py.conversions), no message objects
+        self._pose_subs: dict[str, object] = {}
         self._wrench_codec = conversions.wrench_codec(view.agent_id)
         self._twist_codec = conversions.twist_codec(view.agent_id)
         self._pub = self.create_publisher(WrenchStamped, topics.wrench(view.agent_id), qos.CONTROL)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
         meas_qos = qos.measurements(str(self.get_parameter("measurement_qos").value))
-        self.create_subscription(TwistStamped, topics.velocity(view.agent_id), self._on_velocity, meas_qos, raw=True)
+        # the publishers of what this agent hears (and of its own wrench topic) are watched
+        expected = expected_publishers([view.agent_id], [(view.agent_id, j) for j in view.neighbours])
+        policy = str(self.get_parameter("intruder_policy").value)
+        self._watch = GraphWatch(self, PublisherWatch(expected, policy))  # type: ignore[arg-type]
+        self._vel_topic = topics.velocity(view.agent_id)
+        self._vel_sub = self.create_subscription(TwistStamped, self._vel_topic, self._on_velocity, meas_qos, raw=True)
         for j in view.neighbours:
             codec = conversions.relative_pose_codec(view.agent_id, j)
-            self.create_subscription(
+            topic = topics.relative_pose(view.agent_id, j)
+            sub = self.create_subscription(
                 TransformStamped,
-                topics.relative_pose(view.agent_id, j),
-                lambda data, j=j, codec=codec: self._on_pose(j, codec, data),
+                topic,
+                lambda data, j=j, codec=codec, topic=topic: self._on_pose(j, codec, topic, data),
                 meas_qos,
                 raw=True,
             )
+            self._pose_subs[topic] = sub
         self._clock = self.get_clock()
         self._jump_handle = self._clock.create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=True),
@@ -240,11 +251,15 @@ class AgentNode(Node):
 
     # callbacks: messages -> synchroniser
     def _on_velocity(self, data: bytes) -> None:
+        if not self._watch.accept(self._vel_topic, self._vel_sub):
+            return
         ns, v = self._twist_codec.decode(data)
         clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
         self.sync.on_velocity(ns, list(v), time.monotonic(), clock_ns)
 
-    def _on_pose(self, j: str, codec: conversions.StampedCodec, data: bytes) -> None:
+    def _on_pose(self, j: str, codec: conversions.StampedCodec, topic: str, data: bytes) -> None:
+        if not self._watch.accept(topic, self._pose_subs[topic]):
+            return
         ns, values = codec.decode(data)
         p, R = conversions.relative_pose_from_values(values)
         self.sync.on_pose(j, ns, p, R, time.monotonic())
@@ -352,6 +367,9 @@ parameters:
                        a neighbour still missing then is out of range: zero wrench + ERROR
   diagnostics_period   wall seconds between /diagnostics messages (default 0.1, minimum 0.1)
   measurement_qos      reliable (default) or best_effort: must match the simulator's --measurement-qos
+  intruder_policy      report (default): log any publisher other than the simulator on the agent's
+                       measurement topics (and other than itself on its wrench topic); refuse: also
+                       ignore such a topic's messages while the intruder is there (docs/security.md)
 environment:
   FORMATION_EXECUTOR   events (default) or single
   ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS: see docs/ros2.md

@@ -179,6 +179,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="reliable",
         help="QoS of relative poses and velocities; best-effort (realtime only) costs less CPU per message",
     )
+    p.add_argument(
+        "--intruder-policy",
+        choices=("report", "refuse"),
+        default="report",
+        help="a publisher the formation does not expect: report it (default) or also refuse its topic's "
+        "messages while it is there, in the simulator and every agent (docs/security.md)",
+    )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
@@ -188,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _sim_args(args: argparse.Namespace, out: Path, spec: FormationSpec) -> list[str]:
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", "--executor", args.executor]
-    cmd += ["--measurement-qos", args.measurement_qos]
+    cmd += ["--measurement-qos", args.measurement_qos, "--intruder-policy", args.intruder_policy]
     for opt in (
         "mode",
         "duration",
@@ -329,6 +336,8 @@ class Launcher:
                 "use_sim_time:=true",
                 "-p",
                 f"measurement_qos:={args.measurement_qos.replace('-', '_')}",
+                "-p",
+                f"intruder_policy:={args.intruder_policy}",
                 "-r",
                 f"__node:=formation_agent_{a.id}",
             ]

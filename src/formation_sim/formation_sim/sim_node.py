@@ -41,6 +41,8 @@ from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.graph_watch import GraphWatch
+from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.deployment import Timing
 from formation_sim.headless import (
@@ -69,7 +71,7 @@ class StopRequestedError(Exception):
 class SimNode(Node):
     """Publishers and subscriptions of the simulator; the stepping loops are :func:`run`."""
 
-    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable") -> None:
+    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable", intruder_policy: str = "report") -> None:
         super().__init__(topics.SIM_NODE_NAME)
         meas_qos = qos.measurements(measurement_qos)
         self.spec = spec
@@ -101,8 +103,17 @@ class SimNode(Node):
             )
             for i, a in enumerate(self.ids)
         ]
+        # every topic of the formation: intruders are reported (and counted in summary.json) here
+        self.wrench_topics = [topics.wrench(a) for a in self.ids]
+        self.watch = GraphWatch(
+            self,
+            PublisherWatch(expected_publishers(self.ids, self.links), intruder_policy),
+            on_intruder=lambda intruder: print(f"formation-sim: {describe(intruder)}", flush=True),
+        )
 
     def _on_wrench(self, i: int, data: bytes) -> None:
+        if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
+            return
         self.received += 1
         ns, u = self.wrench_codecs[i].decode(data)
         if ns < self.u_ns[i]:
@@ -385,6 +396,7 @@ class Runner:
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
         if self.faults:
             info["faults"] = self.faults
+        info["security"] = self.node.watch.watch.report()
         info.update(extra)
         return self.recorder.summary(wall_time=wall, extra=info)
 
@@ -417,6 +429,13 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("reliable", "best-effort"),
         default="reliable",
         help="QoS of relative poses and velocities (best-effort: realtime only; agents need -p measurement_qos)",
+    )
+    p.add_argument(
+        "--intruder-policy",
+        choices=POLICIES,
+        default="report",
+        help="a publisher the formation does not expect on its topics: report it (default), or also refuse the "
+        "wrenches of that topic while it is there (docs/security.md)",
     )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--progress-period", type=float, default=1.0, help="wall s between progress lines")
@@ -476,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
     code = EXIT_OK
     extra: dict[str, Any] = {}
     try:
-        node = SimNode(spec, args.measurement_qos)
+        node = SimNode(spec, args.measurement_qos, args.intruder_policy)
         executor = make_executor(args.executor, node.context)
         executor.add_node(node)
         runner = Runner(node, executor, spec, args)

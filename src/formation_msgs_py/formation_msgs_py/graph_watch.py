@@ -9,7 +9,7 @@ every taken message under the ``refuse`` policy.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -21,7 +21,7 @@ POLL_PERIOD = 0.2
 
 
 class GraphWatch:
-    """Polls the publishers of ``watch.expected``'s topics for ``node``."""
+    """Polls the publishers of ``watch.expected``'s topics (absolute names) for ``node``."""
 
     def __init__(
         self,
@@ -34,13 +34,12 @@ class GraphWatch:
         self.node = node
         self.watch = watch
         self.on_intruder = on_intruder
-        self.resolved: Mapping[str, str] = {t: node.resolve_topic_name(t) for t in watch.expected}
         self.timer = node.create_timer(period, self.poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def poll(self) -> None:
         now = time.monotonic()
-        for topic, resolved in self.resolved.items():
-            infos = self.node.get_publishers_info_by_topic(resolved)
+        for topic in self.watch.expected:
+            infos = self.node.get_publishers_info_by_topic(topic)
             pubs = [PublisherInfo(i.node_name, i.node_namespace, bytes(i.endpoint_gid).hex()) for i in infos]
             for intruder in self.watch.observe(topic, pubs, now):
                 self.node.get_logger().error(describe(intruder))

@@ -33,7 +33,7 @@ NAME_GRACE = 0.5
 
 @dataclass(frozen=True)
 class Expected:
-    """The node that alone may publish on a topic, and the agent the topic concerns."""
+    """The node (fully qualified name) that alone may publish on a topic, and the agent the topic concerns."""
 
     node: str
     agent: str
@@ -79,19 +79,20 @@ class Intruder:
 def expected_publishers(
     agent_ids: Sequence[str], links: Iterable[tuple[str, str]], *, clock: bool = True
 ) -> dict[str, Expected]:
-    """The expected publisher of every topic of a formation (or of one agent's subscriptions).
+    """The expected publisher of every topic (absolute name) of a formation, or of one agent's subscriptions.
 
     ``links`` are (observer, target) pairs of relative-pose topics; ``agent_ids`` get a velocity
     and a wrench topic each.
     """
+    sim = "/" + topics.SIM_NODE_NAME
     out: dict[str, Expected] = {}
     if clock:
-        out[topics.CLOCK] = Expected(topics.SIM_NODE_NAME, ALL_AGENTS)
+        out[topics.CLOCK] = Expected(sim, ALL_AGENTS)
     for a in agent_ids:
-        out[topics.velocity(a)] = Expected(topics.SIM_NODE_NAME, a)
-        out[topics.wrench(a)] = Expected(topics.agent_node_name(a), a)
+        out["/" + topics.velocity(a)] = Expected(sim, a)
+        out["/" + topics.wrench(a)] = Expected(topics.agent_node(a), a)
     for observer, target in links:
-        out[topics.relative_pose(observer, target)] = Expected(topics.SIM_NODE_NAME, observer)
+        out["/" + topics.relative_pose(observer, target)] = Expected(sim, observer)
     return out
 
 
@@ -117,7 +118,7 @@ class PublisherWatch:
         gids = {p.gid for p in publishers}
         if self.pinned.get(topic) not in gids:  # never pinned, or the pinned one left (a restart)
             self.pinned.pop(topic, None)
-            claimants = [p for p in publishers if p.node == exp.node and (topic, p.gid) not in self.intruders]
+            claimants = [p for p in publishers if p.qualified_node == exp.node and (topic, p.gid) not in self.intruders]
             if len(claimants) == 1:
                 self.pinned[topic] = claimants[0].gid
         pinned = self.pinned.get(topic)
@@ -138,7 +139,7 @@ class PublisherWatch:
                 if wall - first < NAME_GRACE:
                     continue
                 reason = "a publisher without a ROS node name"
-            elif p.node == exp.node:
+            elif p.qualified_node == exp.node:
                 reason = "second publisher with the expected node name"
             else:
                 reason = "unexpected node"

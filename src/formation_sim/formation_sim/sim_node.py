@@ -45,6 +45,7 @@ from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.deployment import Timing
+from formation_sim.display import DEFAULT_MARKER_RATE, DisplayPublisher, declare_simulator_parameters
 from formation_sim.headless import (
     add_override_options,
     check_control_rate,
@@ -70,6 +71,8 @@ class StopRequestedError(Exception):
 
 class SimNode(Node):
     """Publishers and subscriptions of the simulator; the stepping loops are :func:`run`."""
+
+    display: DisplayPublisher | None = None
 
     def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable", intruder_policy: str = "report") -> None:
         super().__init__(topics.SIM_NODE_NAME)
@@ -104,10 +107,10 @@ class SimNode(Node):
             for i, a in enumerate(self.ids)
         ]
         # every topic of the formation: intruders are reported (and counted in summary.json) here
-        self.wrench_topics = [topics.wrench(a) for a in self.ids]
+        self.wrench_topics = ["/" + topics.wrench(a) for a in self.ids]
         self.watch = GraphWatch(
             self,
-            PublisherWatch(expected_publishers(self.ids, self.links), intruder_policy),
+            PublisherWatch(expected_publishers(self.ids, self.links), intruder_policy),  # type: ignore[arg-type]
             on_intruder=lambda intruder: print(f"formation-sim: {describe(intruder)}", flush=True),
         )
 
@@ -254,6 +257,8 @@ class Runner:
             self.node.publish_clock(ns)
         if k % self.gt_every == 0:
             self.node.publish_ground_truth(t, self.sim)
+        if self.node.display is not None:  # markers at the display rate, with the latest wrenches
+            self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.u_val))
 
     def advance(self, u: np.ndarray) -> bool:
         """Integrate one control period; False (and a recorded fault) if the state blew up."""
@@ -423,6 +428,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
     p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")
+    p.add_argument(
+        "--marker-rate",
+        type=float,
+        default=DEFAULT_MARKER_RATE,
+        help="display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off; "
+        f"default {DEFAULT_MARKER_RATE:g}]; also the live parameter marker_rate",
+    )
     p.add_argument("--executor", choices=("events", "single"), default="events", help="rclpy executor")
     p.add_argument(
         "--measurement-qos",
@@ -496,6 +508,9 @@ def main(argv: list[str] | None = None) -> int:
     extra: dict[str, Any] = {}
     try:
         node = SimNode(spec, args.measurement_qos, args.intruder_policy)
+        settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
+        settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
+        node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
         executor = make_executor(args.executor, node.context)
         executor.add_node(node)
         runner = Runner(node, executor, spec, args)

@@ -11,7 +11,10 @@ Inputs are what the topics carry (DESIGN.md §3): for neighbour j, ``p_i_j_in_i 
 The output wrench is in the body frame [N, N·m].
 
 A normalised error outside its funnel (possible with a sampled controller) is clamped to
-(1 − saturation_margin) of its domain: the wrench stays finite and the level is ERROR.
+(1 − saturation_margin) of its domain: the wrench stays finite and the level is ERROR. The
+wrench is bounded by design: its force and torque norms are scaled down to the controller's
+``max_force`` / ``max_torque`` (finite, at most the actuators' limits), whatever the errors,
+so no measurement can make the controller command more than its actuators can give.
 """
 
 from __future__ import annotations
@@ -232,8 +235,7 @@ class AgentController:
                 saturated = True
                 x = keep if x > 0 else -keep
             u.append(-gamma / rho * (2.0 / (1.0 - x * x)) * log((1.0 + x) / (1.0 - x)))
-        if self._max_force is not None or self._max_torque is not None:
-            u = self._limit(u)
+        u = self._limit(u)
         message = ""
         if saturated or not all(math.isfinite(x) for x in u):
             level = ERROR
@@ -263,10 +265,8 @@ class AgentController:
         )
 
     def _limit(self, u: list[float]) -> list[float]:
-        u = list(u)
+        """Force and torque scaled down to their norm limits (direction kept)."""
         for lo, limit in ((0, self._max_force), (3, self._max_torque)):
-            if limit is None:
-                continue
             norm = math.sqrt(u[lo] ** 2 + u[lo + 1] ** 2 + u[lo + 2] ** 2)
             if norm > limit:
                 u[lo : lo + 3] = [x * limit / norm for x in u[lo : lo + 3]]

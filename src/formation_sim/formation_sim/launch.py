@@ -36,8 +36,16 @@ from formation_sim.supervisor import Child, LogFollower, Supervisor
 
 
 def _bin(name: str) -> Path:
-    """A console script of this environment (``.venv/bin/NAME``)."""
-    return Path(sys.executable).parent / name
+    """A console script: in a sourced colcon/ament install (``<prefix>/lib/<package>/NAME`` for a
+    prefix of AMENT_PREFIX_PATH, where ``ros2 run`` finds it), next to this interpreter (the
+    project's ``.venv/bin``), or on PATH; the ``.venv/bin`` path when none exists."""
+    for prefix in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)):
+        found = sorted(Path(prefix).glob(f"lib/*/{name}"))
+        if found:
+            return found[0]
+    here = Path(sys.executable).parent / name
+    which = shutil.which(name)
+    return Path(which) if which and not here.exists() else here
 
 
 #: bytes kept free on OUT's file system for the final summary.json and processes.json
@@ -113,6 +121,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help="realtime: stop INCOMPLETE (exit 4) when the simulator lags more than this many wall s (default 1)",
     )
+    p.add_argument(
+        "--intruder-policy",
+        choices=("report", "refuse"),
+        default="report",
+        help="a publisher the formation does not expect: report it (default) or also refuse its topic's "
+        "messages while it is there, in the simulator and every agent (docs/security.md)",
+    )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
@@ -122,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _sim_args(args: argparse.Namespace, out: Path, spec: FormationSpec) -> list[str]:
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", "--executor", args.executor]
-    cmd += ["--measurement-qos", args.measurement_qos]
+    cmd += ["--measurement-qos", args.measurement_qos, "--intruder-policy", args.intruder_policy]
     for opt in (
         "mode",
         "duration",
@@ -208,9 +223,11 @@ class Launcher:
                 "-p",
                 "use_sim_time:=true",
                 "-p",
-                f"measurement_qos:={args.measurement_qos.replace('-', '_')}",
-                "-r",
-                f"__node:=formation_agent_{a.id}",
+                f"measurement_qos:={args.measurement_qos}",
+                "-p",
+                f"executor:={args.executor}",
+                "-p",
+                f"intruder_policy:={args.intruder_policy}",
             ]
             self.sup.start(f"agent_{a.id}", "agent", cmd)
         return sim
@@ -230,6 +247,11 @@ class Launcher:
                 print("\r" + text.ljust(78) if self._tty else text, end="" if self._tty else "\n", flush=True)
             elif line.startswith("formation-sim: all ") and "matched" in line:
                 self.timing["stepping_from"] = time.monotonic()
+                print(line, flush=True)
+            elif line.startswith("formation-sim: stepping done"):
+                self.timing["stepping_done"] = time.monotonic()
+                if self._tty:
+                    print()
                 print(line, flush=True)
             elif line.startswith(("formation ", "PASS", "FAIL", "INCOMPLETE", "  ")):
                 continue  # the summary: printed at the end from summary.json
@@ -251,6 +273,7 @@ class Launcher:
                 self.note(f"{name}: stopping every process")
                 return
             if sim.poll() is not None:
+                self.relay()
                 return
             for c in self.sup.newly_dead():
                 msg = f"{c.describe_exit()} (log: {c.log})"
@@ -323,14 +346,17 @@ class Launcher:
                 funnels_held={"PASS": True, "FAIL": False}.get(result.verdict.value),
             )
         t = self.timing
+        done = t.get("stepping_done", t["stop_from"])
         summary["launch"] = {
             "ros_domain_id": int(self.sup.env["ROS_DOMAIN_ID"]),
             "discovery_range": self.sup.env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
             "network_namespace": dds_env.in_netns(),
             "processes": len(self.sup.children),
             "wall_start_s": t.get("stepping_from", t["stop_from"]) - t["start"],
-            "wall_stepping_s": t["stop_from"] - t.get("stepping_from", t["stop_from"]),
-            "wall_stop_s": t["stopped"] - t["stop_from"],
+            "wall_stepping_s": done - t.get("stepping_from", done),
+            # after the last step: the simulator writes OUT, then agents and recorder stop
+            "wall_stop_s": t["stopped"] - done,
+            "wall_sim_outputs_s": t["stop_from"] - done,
         }
         return summary
 
@@ -427,7 +453,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-launch: INCOMPLETE: nothing started: {problem}", file=sys.stderr)
         return ExitCode.INCOMPLETE
     env = dds_env.run_environment(dict(os.environ), log_dir=out / "logs" / "ros")
-    env["FORMATION_EXECUTOR"] = args.executor
     s = spec.simulation
     print(
         f"formation-launch: {spec.name}: simulator + {len(spec.agents)} agent processes"

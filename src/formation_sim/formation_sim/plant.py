@@ -5,6 +5,9 @@ Per agent, in the body frame (paper eq. system)::
     ṗ = R v_L,   Ṙ = R S(ω),   M v̇ + C(v) v + g(x) + w(x, v, t) = u
     M = diag(m I₃, J),  C(v) v = [m ω×v_L ; ω×Jω],  g(x) = −[m Rᵀ g_world ; 0]
 
+The actuators saturate: each agent's force and torque norms are scaled down to its
+``dynamics.max_force`` / ``max_torque`` before they enter the dynamics (:meth:`Plant.saturate`).
+
 Integration is RKMK4 (Runge-Kutta-Munthe-Kaas, order 4): R is advanced as R₀·exp(S(Θ)) with
 Θ̇ = dexp⁻¹_{−Θ}(ω), so it stays in SO(3) to rounding; p and v take the classical RK4 weights
 with the same stages. Units: m, s, kg, kg·m², N, N·m; p in the world frame, v and u in the
@@ -100,6 +103,7 @@ class Plant:
         self.mass = np.array([a.dynamics.mass for a in agents])
         self.inertia = np.array([a.dynamics.inertia for a in agents])
         self.inertia_inv = np.linalg.inv(self.inertia)
+        self._limits = [(a.dynamics.max_force, a.dynamics.max_torque) for a in agents]
         self.gravity = np.asarray(view.simulation.gravity, dtype=np.float64)
         self.has_gravity = bool(np.any(self.gravity != 0))
         self.disturbance = SignalBank([a.dynamics.disturbance for a in agents], rng)
@@ -123,6 +127,21 @@ class Plant:
             np.array([a.twist for a in view.agents], dtype=np.float64),
         )
 
+    def saturate(self, U: list[list[float]]) -> list[list[float]]:
+        """The wrenches (N rows of 6) the actuators apply: force and torque norms at most their limits."""
+        out = U
+        for i, (max_f, max_t) in enumerate(self._limits):
+            fx, fy, fz, tx, ty, tz = U[i]
+            f2 = fx * fx + fy * fy + fz * fz
+            t2 = tx * tx + ty * ty + tz * tz
+            if f2 > max_f * max_f or t2 > max_t * max_t:
+                if out is U:
+                    out = list(U)
+                kf = max_f / _sqrt(f2) if f2 > max_f * max_f else 1.0
+                kt = max_t / _sqrt(t2) if t2 > max_t * max_t else 1.0
+                out[i] = [kf * fx, kf * fy, kf * fz, kt * tx, kt * ty, kt * tz]
+        return out
+
     def measured_velocity(self, t: float, s: PlantState) -> np.ndarray:
         """ṽ = v + n(x, t): the noisy body twists the agents receive (N,6)."""
         if not self.noise.active:
@@ -133,7 +152,8 @@ class Plant:
         """v̇ (N,6) = M⁻¹(u − C(v)v − g(x) − w(x,v,t)), body frame."""
         P = s.p.tolist()
         Rf = [r[0] + r[1] + r[2] for r in s.R.tolist()]
-        _, acc = self._rates(t, P, Rf, s.v.tolist(), np.asarray(u, dtype=np.float64).tolist())
+        U = self.saturate(np.asarray(u, dtype=np.float64).tolist())
+        _, acc = self._rates(t, P, Rf, s.v.tolist(), U)
         return np.array(acc)
 
     def _rates(
@@ -186,9 +206,9 @@ class Plant:
 
             def wrench(ts: float, P: list, Rf: list, V: list) -> list:
                 st = PlantState(np.array(P), np.array(Rf).reshape(n, 3, 3), np.array(V))
-                return np.asarray(u(ts, st), dtype=np.float64).tolist()
+                return self.saturate(np.asarray(u(ts, st), dtype=np.float64).tolist())
         else:
-            U = np.asarray(u, dtype=np.float64).tolist()
+            U = self.saturate(np.asarray(u, dtype=np.float64).tolist())
 
             def wrench(ts: float, P: list, Rf: list, V: list) -> list:
                 return U

@@ -81,7 +81,7 @@ def test_recorder_sigkill_loses_at_most_the_last_segment(ros_procs, tmp_path: Pa
     """A recorder killed with SIGKILL leaves its closed segments readable and listed in metadata.yaml."""
     bag = tmp_path / "bag"
     segment = 0.5
-    rec = _recorder(ros_procs, bag, "--segment-seconds", str(segment))
+    rec = _recorder(ros_procs, bag, "--segment-seconds", str(segment), "--log-time", "receive")
     pub = ros_procs.start([*script("publisher.py"), "3000", "200"])
     deadline = time.monotonic() + 60
     while (
@@ -116,8 +116,11 @@ def test_replay_schedule_follows_the_log_times() -> None:
 
     start = 1_700_000_000 * m.NS_PER_S
     logs = [start + k * 10_000_000 for k in range(150)]
-    assert [send_time(5.0, lg, start, 1.0) for lg in logs] == [5.0 + k * 0.01 for k in range(150)]
-    assert send_time(5.0, start + 10_000_000, start, 2.0) == 5.005
+    # the same formula in two float orders: equal to 1e-12 s
+    assert [send_time(5.0, lg, start, 1.0) for lg in logs] == pytest.approx(
+        [5.0 + k * 0.01 for k in range(150)], abs=1e-12
+    )
+    assert send_time(5.0, start + 10_000_000, start, 2.0) == pytest.approx(5.005, abs=1e-12)
     assert send_time(0.0, start + 3 * m.NS_PER_S, start + m.NS_PER_S, 0.5) == 4.0
 
 

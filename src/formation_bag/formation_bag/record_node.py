@@ -55,6 +55,10 @@ from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import load_formation
 from formation_sim.report import write_json
 
+#: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time)
+STAMPED_TYPES = frozenset(
+    {"TwistStamped", "WrenchStamped", "TransformStamped", "PoseArray", "Clock", "DiagnosticArray"}
+)
 #: depth of the recorder's own subscription queues (it must never be the one that drops)
 SUB_DEPTH = 1000
 #: with --formation, the ground-truth subscription waits until every other subscription has matched
@@ -140,6 +144,7 @@ class Recorder(Node):
         self.latest: dict[str, int] = {}
         self.step_topics = step_topics or []
         self.first_step_stamp: int | None = None
+        self.sim_now = 0  # the latest stamp taken [ns]
         self.ack_ns = -1
         self.ack_pub = None
         if self.step_topics:
@@ -182,13 +187,18 @@ class Recorder(Node):
             return name in self.only
         return m.classify(name, self.namespace) is not None
 
+    def _in_loop(self, name: str) -> bool:
+        kind = m.classify(name, self.namespace)
+        return kind is not None and kind.kind in ("clock", "velocity", "relative_pose", "wrench")
+
     def check_deferred(self) -> None:
         """Subscribe to the ground truth once every other subscription has matched (or after a timeout)."""
         if self._deferred is None:
             return
         now = time.monotonic()
-        # /diagnostics is optional (agents publish it at ≤ 10 Hz, tools may not): not waited for
-        if all(sub.get_publisher_count() > 0 for name, sub, _, _ in self._active if name != topics.DIAGNOSTICS):
+        # only the topics of the closed loop are waited for: /diagnostics (≤ 10 Hz) and the display
+        # topics (markers, funnels: off with --marker-rate 0) are optional
+        if all(sub.get_publisher_count() > 0 for name, sub, _, _ in self._active if self._in_loop(name)):
             if self._matched_at is None:
                 self._matched_at = now
         else:
@@ -351,10 +361,17 @@ class Recorder(Node):
         received, seq, write = self.received, self.seq, self.writer.write
         sim_time, latest = self.sim_log_time, self.latest
         step_topic = name in self.step_topics
+        # messages that start with a stamp (header or Clock); others (markers, funnels, /tf) are
+        # logged at the latest simulation time seen
+        stamped = cls.__name__ in STAMPED_TYPES
         count = 0
         while (got := take(cls, True)) is not None:
             data, info = got
-            stamp = wire.stamp_of(data)
+            if stamped:
+                stamp = wire.stamp_of(data)
+                self.sim_now = max(self.sim_now, stamp)
+            else:
+                stamp = self.sim_now
             if step_topic:
                 if stamp > latest.get(name, -1):
                     latest[name] = stamp

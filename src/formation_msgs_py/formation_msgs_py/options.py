@@ -118,6 +118,11 @@ OPTIONS: tuple[Option, ...] = (
     Option("--measurement-qos", "QoS of relative poses and velocities; best-effort (realtime only) costs less CPU "
            "per message (agents need -p measurement_qos:=best_effort)", ROS, str, "reliable",
            ("reliable", "best-effort"), forward=True),
+    Option("--intruder-policy", "a publisher the formation does not expect on its topics: report it (default), or "
+           "also refuse that topic's messages while it is there, in the simulator and every agent (docs/security.md)",
+           ROS, str, "report", ("report", "refuse"), forward=True),
+    Option("--marker-rate", "display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off]; "
+           "also the live parameter marker_rate", frozenset({SIM}), nonnegative, 30.0),
     Option("--record", "record a bag into OUT/bag with formation-record (default: on; --no-record to skip). While "
            "recording, ground truth is published at every control step unless --ground-truth-rate is given, so "
            "that formation-analyze OUT/bag reproduces the run's summary", frozenset({LAUNCH}), "bool", True),
@@ -158,6 +163,8 @@ class RunOptions:
     clock_rate: float | None = None
     executor: str = "events"
     measurement_qos: str = "reliable"
+    intruder_policy: str = "report"
+    marker_rate: float = 30.0
     record: bool = True
     netns: str = "auto"
     allow_low_rate: bool = False

@@ -50,8 +50,16 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _bin(name: str) -> Path:
-    """A console script of this environment (``.venv/bin/NAME``)."""
-    return Path(sys.executable).parent / name
+    """A console script: in a sourced colcon/ament install (``<prefix>/lib/<package>/NAME`` for a
+    prefix of AMENT_PREFIX_PATH, where ``ros2 run`` finds it), next to this interpreter (the
+    project's ``.venv/bin``), or on PATH; the ``.venv/bin`` path when none exists."""
+    for prefix in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)):
+        found = sorted(Path(prefix).glob(f"lib/*/{name}"))
+        if found:
+            return found[0]
+    here = Path(sys.executable).parent / name
+    which = shutil.which(name)
+    return Path(which) if which and not here.exists() else here
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
@@ -278,9 +286,11 @@ class Launcher:
                 "-p",
                 "use_sim_time:=true",
                 "-p",
-                f"measurement_qos:={args.measurement_qos.replace('-', '_')}",
-                "-r",
-                f"__node:=formation_agent_{a.id}",
+                f"measurement_qos:={args.measurement_qos}",
+                "-p",
+                f"executor:={args.executor}",
+                "-p",
+                f"intruder_policy:={args.intruder_policy}",
             ]
             self.start(f"agent_{a.id}", "agent", cmd)
         while True:
@@ -400,7 +410,6 @@ def main(argv: list[str] | None = None) -> int:
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
     env["ROS_LOG_DIR"] = str(out / "logs" / "ros")
-    env["FORMATION_EXECUTOR"] = args.executor
     if in_netns:
         env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"  # multicast on the namespace's own loopback only
         # UDP on the namespace's loopback only: Fast DDS's shared-memory transport would use /dev/shm,

@@ -40,11 +40,14 @@ from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, options, qos, topics
 from formation_msgs_py.errors import FormationError
+from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import ExitCode
+from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim import inputs
 from formation_sim.deployment import Timing
+from formation_sim.display import DisplayPublisher, declare_simulator_parameters
 from formation_sim.preflight import preflight
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
@@ -65,7 +68,9 @@ class StopRequestedError(Exception):
 class SimNode(Node):
     """Publishers and subscriptions of the simulator; the stepping loops are :func:`run`."""
 
-    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable") -> None:
+    display: DisplayPublisher | None = None
+
+    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable", intruder_policy: str = "report") -> None:
         super().__init__(topics.SIM_NODE_NAME)
         meas_qos = qos.measurements(measurement_qos)
         self.spec = spec
@@ -105,8 +110,17 @@ class SimNode(Node):
             )
             for i, a in enumerate(self.ids)
         ]
+        # every topic of the formation: intruders are reported (and counted in summary.json) here
+        self.wrench_topics = ["/" + topics.wrench(a) for a in self.ids]
+        self.watch = GraphWatch(
+            self,
+            PublisherWatch(expected_publishers(self.ids, self.links), intruder_policy),  # type: ignore[arg-type]
+            on_intruder=lambda intruder: print(f"formation-sim: {describe(intruder)}", flush=True),
+        )
 
     def _on_wrench(self, i: int, data: bytes) -> None:
+        if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
+            return
         self.received += 1
         ns, u = self.wrench_codecs[i].decode(data)
         refused = self.wrench_check.check(i, ns, u, self.current_ns)
@@ -257,6 +271,8 @@ class Runner:
             self.node.publish_clock(ns)
         if k % self.gt_every == 0:
             self.node.publish_ground_truth(t, self.sim)
+        if self.node.display is not None:  # markers at the display rate, with the latest wrenches
+            self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.u_val))
 
     def advance(self, u: np.ndarray) -> bool:
         """Integrate one control period; False (and a recorded fault) if the state blew up."""
@@ -406,6 +422,7 @@ class Runner:
             info["refused_wrenches"] = refused
         if self.incomplete_reason:
             info["incomplete_reason"] = self.incomplete_reason
+        info["security"] = self.node.watch.watch.report()
         info.update(extra)
         return self.recorder.summary(wall_time=wall, extra=info)
 
@@ -453,7 +470,10 @@ def main(argv: list[str] | None = None) -> int:
     code = EXIT_OK
     extra: dict[str, Any] = {}
     try:
-        node = SimNode(spec, args.measurement_qos)
+        node = SimNode(spec, args.measurement_qos, args.intruder_policy)
+        settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
+        settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
+        node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
         executor = make_executor(args.executor, node.context)
         executor.add_node(node)
         runner = Runner(node, executor, spec, args)

@@ -82,6 +82,12 @@ def peers_of(
     return {n: Peer(n, hosts.get(n, LOOPBACK), port_base + k) for k, n in enumerate(names)}
 
 
+def single_host_port_start(domain_id: int) -> int:
+    """Where a single-host secure run looks for free ports: one block of 100 per ROS_DOMAIN_ID, below
+    Linux's ephemeral port range (32768…)."""
+    return 10000 + 100 * (domain_id % 200)
+
+
 def free_port_base(count: int, start: int, *, host: str = LOOPBACK, step: int = 100) -> int:
     """The first base from ``start`` (by ``step``) whose ``count`` TCP ports are all free on ``host``."""
     for base in range(start, 32768 - count, step):

@@ -511,10 +511,10 @@ def main(argv: list[str] | None = None) -> int:
         env["ROS_DOMAIN_ID"] = str(pick_domain_id())
     secure = None
     if args.secure:
-        from formation_deploy.secure_transport import SecureRun, SecureTransportError
+        from formation_deploy.secure_transport import SecureRun, SecureTransportError, single_host_port_start
 
         try:
-            port_start = 10000 + 100 * (int(env["ROS_DOMAIN_ID"]) % 200)
+            port_start = single_host_port_start(int(env["ROS_DOMAIN_ID"]))
             secure = SecureRun.prepare(spec.agent_ids, env, keys=args.keys, port_start=port_start)
         except (SecureTransportError, OSError) as exc:
             print(f"formation-launch: --secure: {exc}", file=sys.stderr)

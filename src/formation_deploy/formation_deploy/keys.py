@@ -1,4 +1,4 @@
-"""``formation-keys init|check DIR --formation FILE``: the formation's CA and one key pair per process.
+"""``formation-keys init|check|profile DIR --formation FILE``: the formation's CA and one key pair per process.
 
 Secure mode (docs/security.md) runs every process over TLS with mutual certificate verification
 against the formation's CA. ``init`` creates, with the ``cryptography`` library:
@@ -12,7 +12,9 @@ against the formation's CA. ``init`` creates, with the ``cryptography`` library:
 Private keys are written with mode 0600 (readable by their owner only). ``check`` verifies every
 certificate against the CA, that each key matches its certificate, the modes, and the expiry
 (exit 1 if one expires within ``--min-days``). Rotation: ``init`` a new directory and restart
-every process with it (a certificate of the old CA is refused by the new one).
+every process with it (a certificate of the old CA is refused by the new one). ``profile``
+writes one process's transport profile (formation_deploy.secure_transport) and prints the shell
+lines that select it; ``sim.sh`` and ``agent.sh --secure`` use it.
 
 Exit status: 0 valid, 1 a check failed, 2 invalid input (file, directory).
 """
@@ -212,20 +214,57 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--formation", type=Path, required=True, help="formation file (its agents get keys)")
     init.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"validity in days (default {DEFAULT_DAYS})")
     check.add_argument("--min-days", type=float, default=7.0, help="fail if a certificate expires sooner (default 7)")
+    profile = sub.add_parser(
+        "profile",
+        help="write one process's secure transport profile and print the shell lines that select it "
+        "(what sim.sh / agent.sh --secure eval)",
+    )
+    profile.add_argument("dir", type=Path, help="key directory")
+    profile.add_argument("name", help="process: simulator, agent_<id>, recorder or replay")
+    profile.add_argument("--formation", type=Path, required=True, help="formation file (ports follow its agents)")
+    profile.add_argument("--out", type=Path, required=True, help="directory for the profile and openssl.cnf")
+    profile.add_argument("--hosts", type=Path, help="YAML mapping process name -> host (default: all 127.0.0.1)")
+    profile.add_argument("--port-base", type=int, help="first port, the same on every host (default 7700)")
+    profile.add_argument("--listen", help="local address to listen on (default: this process's host)")
     return p
+
+
+def _profile(args: argparse.Namespace, agent_ids: Sequence[str]) -> str:
+    import yaml
+
+    from formation_deploy.secure_transport import DEFAULT_PORT_BASE, exports, peers_of, write_process_config
+
+    hosts: dict[str, str] = {}
+    if args.hosts is not None:
+        try:
+            loaded = yaml.safe_load(args.hosts.read_text(encoding="utf-8")) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise KeysError(f"{args.hosts}: not a readable YAML file ({exc})") from exc
+        if not isinstance(loaded, dict) or not all(isinstance(v, str) for v in loaded.values()):
+            raise KeysError(f"{args.hosts}: expected a mapping of process name to host, got {loaded!r}")
+        hosts = {str(k): v for k, v in loaded.items()}
+    peers = peers_of(agent_ids, port_base=args.port_base or DEFAULT_PORT_BASE, hosts=hosts)
+    if args.name not in peers:
+        raise KeysError(f"process {args.name!r} is not one of {', '.join(peers)}")
+    listen = args.listen or peers[args.name].host
+    return exports(write_process_config(args.name, peers, args.dir, args.out, listen=listen))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        names = process_names(load_formation(args.formation).agent_ids)
+        agent_ids = load_formation(args.formation).agent_ids
+        names = process_names(agent_ids)
+        if args.command == "profile":
+            print(_profile(args, agent_ids), end="")
+            return EXIT_OK
         if args.command == "init":
             init_keys(args.dir, names, days=args.days)
             print(f"formation-keys: CA and {len(names)} key pairs in {args.dir}/ ({', '.join(names)})")
             print(f"formation-keys: {key_path(args.dir, CA_NAME)} signs certificates only: keep it off the robots")
             return EXIT_OK
         problems = check_keys(args.dir, names, min_days=args.min_days)
-    except (FormationSpecError, KeysError) as exc:
+    except (FormationSpecError, KeysError, ValueError) as exc:
         print(f"formation-keys: {exc}", file=sys.stderr)
         return EXIT_INVALID
     for problem in problems:

@@ -161,16 +161,22 @@ def write_process_config(
         if not needed.is_file():
             raise SecureTransportError(f"{needed}: missing (formation-keys init {keys} --formation FILE)")
     directory.mkdir(parents=True, exist_ok=True)
-    profile = directory / f"{name}.xml"
-    profile.write_text(profile_xml(peers[name], peers, keys, listen=listen), encoding="utf-8")
-    conf = directory / "openssl.cnf"
-    conf.write_text(OPENSSL_CONF, encoding="utf-8")
+    # one file per process, replaced atomically: processes starting together never read a half-written one
+    profile = _write_atomic(directory / f"{name}.xml", profile_xml(peers[name], peers, keys, listen=listen))
+    conf = _write_atomic(directory / f"{name}.openssl.cnf", OPENSSL_CONF)
     return {
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT",
         "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile.resolve()),
         "OPENSSL_CONF": str(conf.resolve()),
     }
+
+
+def _write_atomic(path: Path, text: str) -> Path:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+    return path
 
 
 def secure_environment(base: Mapping[str, str], additions: Mapping[str, str]) -> dict[str, str]:

@@ -62,3 +62,17 @@ def test_outsiders_neither_see_nor_command_a_secure_run(ros_domain_id: int, tmp_
     u = np.load(tmp_path / "out" / "trajectory.npz")["u"]
     agent3 = load_formation(REPO / "config" / "realtime_5agents_100hz.yaml").agent_ids.index("3")
     assert not np.any(u[:, agent3, 0] == 50.0)  # the outsiders' command was never applied
+
+
+def test_agent_refuses_to_run_when_its_secure_profile_does_not_apply(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """A profile Fast DDS cannot parse (it falls back to UDP): the agent exits 2 and names the profile."""
+    broken = tmp_path / "agent_1.xml"
+    broken.write_text(
+        "<dds><profiles><participant profile_name='x' is_default_profile='true'><rtps><builtin>"
+        "<initialPeersList></initialPeersList></builtin></rtps></participant></profiles></dds>"
+    )
+    env = dict(ros_env, FORMATION_SECURE="1", FASTRTPS_DEFAULT_PROFILES_FILE=str(broken))
+    cmd = [str(BIN / "formation-agent"), "--ros-args", "-p", f"formation_file:={PAPER}", "-p", "agent_id:='1'"]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, start_new_session=True)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"the profile {broken} did not apply" in r.stderr

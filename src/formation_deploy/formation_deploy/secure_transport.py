@@ -30,6 +30,7 @@ from pathlib import Path
 from xml.sax.saxutils import escape
 
 from formation_deploy.keys import cert_path, key_path, process_names
+from formation_msgs_py.transport_check import SECURE_FLAG
 
 #: Default first port of a multi-host secure run (one port per process above it).
 DEFAULT_PORT_BASE = 7700
@@ -165,6 +166,7 @@ def write_process_config(
     profile = _write_atomic(directory / f"{name}.xml", profile_xml(peers[name], peers, keys, listen=listen))
     conf = _write_atomic(directory / f"{name}.openssl.cnf", OPENSSL_CONF)
     return {
+        SECURE_FLAG: "1",  # the nodes refuse to run if the profile did not apply (transport_check)
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT",
         "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile.resolve()),

@@ -44,6 +44,7 @@ from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
+from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 from formation_sim.deployment import Timing
 from formation_sim.display import DEFAULT_MARKER_RATE, DisplayPublisher, declare_simulator_parameters
 from formation_sim.headless import (
@@ -508,6 +509,7 @@ def main(argv: list[str] | None = None) -> int:
     extra: dict[str, Any] = {}
     try:
         node = SimNode(spec, args.measurement_qos, args.intruder_policy)
+        check_secure_transport()
         settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
         settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
         node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
@@ -527,6 +529,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
         extra["error"] = str(exc)
         code = EXIT_MISSING
+    except InsecureTransportError as exc:
+        print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
+        code = EXIT_INVALID
     except (KeyboardInterrupt, ExternalShutdownException, StopRequestedError):
         extra["interrupted"] = True
         code = EXIT_INTERRUPTED

@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "formation_msgs_py", "formation_agent", "numpy", "matplotlib"],
+    install_requires=["setuptools", "formation_msgs_py", "formation_agent", "formation_deploy", "numpy", "matplotlib"],
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",

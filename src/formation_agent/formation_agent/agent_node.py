@@ -227,6 +227,7 @@ from formation_msgs_py.errors import FormationSpecError  # noqa: E402
 from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
+from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport  # noqa: E402
 
 _DIAG_LEVEL = {OK: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
 NODE_NAME = topics.AGENT_NODE_NAME
@@ -503,7 +504,8 @@ def main(args: list[str] | None = None) -> int:
         try:
             node = AgentNode(resolve_agent_id(argv, None))
             executor = make_executor(node.executor_kind, node.context)
-        except (FormationSpecError, ParameterException, ValueError) as exc:
+            check_secure_transport()
+        except (FormationSpecError, ParameterException, ValueError, InsecureTransportError) as exc:
             print(f"formation-agent: {exc}", file=sys.stderr)
             return 2
         executor.add_node(node)

@@ -121,6 +121,10 @@ OPTIONS: tuple[Option, ...] = (
     Option("--intruder-policy", "a publisher the formation does not expect on its topics: report it (default), or "
            "also refuse that topic's messages while it is there, in the simulator and every agent (docs/security.md)",
            ROS, str, "report", ("report", "refuse"), forward=True),
+    Option("--secure", "every process over TCP with mutual TLS only (no UDP, no shared memory): a process without a "
+           "certificate of the run's CA can neither publish nor subscribe (docs/security.md)", frozenset({LAUNCH})),
+    Option("--keys", "with --secure: key directory of formation-keys init (default: a CA and keys for this run only)",
+           frozenset({LAUNCH}), Path),
     Option("--marker-rate", "display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off]; "
            "also the live parameter marker_rate", frozenset({SIM}), nonnegative, 30.0),
     Option("--record", "record a bag into OUT/bag with formation-record (default: on; --no-record to skip). While "
@@ -165,6 +169,8 @@ class RunOptions:
     measurement_qos: str = "reliable"
     intruder_policy: str = "report"
     marker_rate: float = 30.0
+    secure: bool = False
+    keys: Path | None = None
     record: bool = True
     netns: str = "auto"
     allow_low_rate: bool = False

@@ -47,6 +47,8 @@ EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_PROCESS, EXIT_INTERRUPTED = 0, 1, 2,
 NETNS_THRESHOLD = 30
 _IN_NETNS = "FORMATION_IN_NETNS"
 _PR_SET_PDEATHSIG = 1
+#: child name -> formation-keys process name, where they differ
+_KEY_NAMES = {"sim": "simulator"}
 
 
 def _bin(name: str) -> Path:
@@ -190,6 +192,8 @@ class Launcher:
         self.agent_died = False
         self._relay: threading.Thread | None = None
         self._tty = sys.stdout.isatty()
+        #: per-process environments (secure mode: each its own certificate and port), by key name
+        self.process_env: dict[str, dict[str, str]] = {}
 
     def start(self, name: str, role: str, cmd: list[str], *, pipe: bool = False) -> Child:
         log = self.logs / f"{name}.log"
@@ -199,7 +203,7 @@ class Launcher:
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE if pipe else fh,
             stderr=subprocess.STDOUT,
-            env=self.env,
+            env=self.process_env.get(_KEY_NAMES.get(name, name), self.env),
             start_new_session=True,
             preexec_fn=_die_with_parent,
         )
@@ -419,17 +423,36 @@ def main(argv: list[str] | None = None) -> int:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(pick_domain_id())
+    secure = None
+    if args.secure:
+        from formation_deploy.secure_transport import SecureRun, SecureTransportError, single_host_port_start
+
+        try:
+            port_start = single_host_port_start(int(env["ROS_DOMAIN_ID"]))
+            secure = SecureRun.prepare(spec.agent_ids, env, keys=args.keys, port_start=port_start)
+        except (SecureTransportError, OSError) as exc:
+            print(f"formation-launch: --secure: {exc}", file=sys.stderr)
+            return EXIT_INVALID
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
     s = spec.simulation
+    transport = f"secure: TLS over TCP ports {secure.describe()['ports']}" if secure else None
     print(
         f"formation-launch: {spec.name}: simulator + {len(spec.agents)} agent processes"
         f"{' + recorder' if args.record else ''}, {mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
-        f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
+        f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, "
+        f"{transport or 'discovery ' + env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
         f"{' in a private network namespace' if in_netns else ''}; logs in {out / 'logs'}/",
         flush=True,
     )
     launcher = Launcher(spec, args, out, env)
+    if secure is not None:
+        launcher.process_env = secure.environments
     started = time.monotonic()
-    code = launcher.run()
+    try:
+        code = launcher.run()
+    finally:
+        if secure is not None:
+            secure.close()
     launcher.write_process_table()
     summary_path = out / "summary.json"
     if launcher._tty:
@@ -440,6 +463,7 @@ def main(argv: list[str] | None = None) -> int:
             "ros_domain_id": int(env["ROS_DOMAIN_ID"]),
             "discovery_range": env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
             "network_namespace": in_netns,
+            "secure": secure.describe() if secure else None,
             "processes": len(launcher.children),
             "wall_time_total": time.monotonic() - started,
         }

@@ -45,6 +45,7 @@ from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import ExitCode
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
+from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 from formation_sim import inputs
 from formation_sim.deployment import Timing
 from formation_sim.display import DisplayPublisher, declare_simulator_parameters
@@ -471,6 +472,7 @@ def main(argv: list[str] | None = None) -> int:
     extra: dict[str, Any] = {}
     try:
         node = SimNode(spec, args.measurement_qos, args.intruder_policy)
+        check_secure_transport()
         settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
         settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
         node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
@@ -490,6 +492,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
         extra["error"] = str(exc)
         code = EXIT_MISSING
+    except InsecureTransportError as exc:
+        print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
+        code = EXIT_INVALID
     except (KeyboardInterrupt, ExternalShutdownException, StopRequestedError):
         extra["interrupted"] = True
         code = EXIT_INTERRUPTED

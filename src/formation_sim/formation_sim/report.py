@@ -254,6 +254,15 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
         plot_run(out_dir, recorder.spec, arrays)
 
 
+def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+    """Write OUT/animation.gif (:mod:`formation_sim.animation`) and print where and how long it took."""
+    from formation_sim.animation import write_animation
+
+    path, frames, wall = write_animation(out_dir, spec, arrays)
+    print(f"animation: {path} ({frames} frames, written in {wall:.1f} s)", flush=True)
+    return path
+
+
 def format_summary(summary: dict[str, Any]) -> str:
     """A short human-readable summary of a run (printed by every command)."""
     lines = [

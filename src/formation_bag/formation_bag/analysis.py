@@ -2,7 +2,7 @@
 
 From ``/formation/ground_truth`` it recomputes every e_k and ψ_k and checks every funnel with
 the same :class:`formation_sim.report.RunRecorder` the headless runner and the simulator use,
-so the outputs have the format of DESIGN.md §8 (summary.json, trajectory.npz, errors.png,
+so the outputs have the format of docs/outputs.md (summary.json, trajectory.npz, errors.png,
 orientation_errors.png, inputs.png). Per ground-truth sample (stamp t_k) it uses:
 
 - u: the wrench each agent published with stamp t_k; if the bag misses it (a recorder that matched
@@ -353,7 +353,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-analyze",
         description="Analyse a recorded run without ROS: recompute e_k and ψ_k from /formation/ground_truth, check "
-        "every funnel, write OUT as DESIGN.md §8 (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
+        "every funnel, write OUT as docs/outputs.md (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
         "inputs.png) plus errors.csv, inputs.csv, positions.csv, ages.json, ages.csv. Works on lockstep and "
         "realtime bags and on bags left by a killed recorder. Exit status: 0 every funnel held, 1 a funnel was "
         "violated, 2 bad input.",

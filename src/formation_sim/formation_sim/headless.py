@@ -98,7 +98,7 @@ def run_headless(
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-headless",
-        description="Run a formation's closed loop in one process (no ROS) and write OUT as DESIGN.md §8: "
+        description="Run a formation's closed loop in one process (no ROS) and write OUT as docs/outputs.md: "
         "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png. "
         "Exit status: 0 every funnel held, 1 a funnel was violated, 2 invalid file or refused rate.",
     )

@@ -156,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-launch",
         description="Run a formation through ROS 2: the simulator node and one process per agent "
-        "(and, unless --no-record, a bag recorder). Writes OUT as DESIGN.md §8 with one log per process in "
+        "(and, unless --no-record, a bag recorder). Writes OUT as docs/outputs.md with one log per process in "
         "OUT/logs. Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 a process died or an "
         "agent was missing, 130 interrupted.",
     )

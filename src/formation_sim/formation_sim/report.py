@@ -1,4 +1,4 @@
-"""Funnel checks on ground truth and the outputs every run leaves (DESIGN.md §8).
+"""Funnel checks on ground truth and the outputs every run leaves (docs/outputs.md).
 
 Headless runs, ROS 2 runs and bag analyses all fill a :class:`RunRecorder` with samples of
 the ground truth (and, where known, the agents' wrenches and velocity-funnel margins), then
@@ -196,7 +196,7 @@ class RunRecorder:
         return float(min(vals))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The decimated trajectory (DESIGN.md §8 trajectory.npz)."""
+        """The decimated trajectory (docs/outputs.md)."""
         return {k: np.array(v) for k, v in self._rows.items()}
 
     def summary(

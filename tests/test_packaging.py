@@ -47,6 +47,7 @@ DEPENDENCIES = {
     "yaml": ("python3-yaml", "PyYAML"),
     "matplotlib": ("python3-matplotlib", "matplotlib"),
     "PIL": ("python3-pil", "pillow"),
+    "cryptography": ("python3-cryptography", "cryptography"),
     "rosbags": ("python3-rosbags-pip", "rosbags"),
     "mcap": ("python3-mcap-pip", "mcap"),
     "mcap_ros2": ("python3-mcap-ros2-support-pip", "mcap-ros2-support"),

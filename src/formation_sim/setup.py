@@ -14,6 +14,7 @@ setup(
         "setuptools",
         "formation_msgs_py",
         "formation_agent",
+        "formation_deploy",
         "numpy",
         "matplotlib",
         "scipy",

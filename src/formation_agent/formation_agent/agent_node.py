@@ -207,17 +207,23 @@ from rclpy.node import Node  # noqa: E402
 
 from formation_msgs_py import conversions, parameters, qos, topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
+from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
+from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
+from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport  # noqa: E402
 
 _DIAG_LEVEL = {OK: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
-#: The node is /agent_<id>/formation_agent: the multi-robot convention of one namespace per robot.
-NODE_NAME = "formation_agent"
+NODE_NAME = topics.AGENT_NODE_NAME
 POSE_WAIT_DOC = (
     "wall seconds to wait for the neighbours' poses once the velocity is in; a neighbour still "
     "missing then is out of range: zero wrench and ERROR; live"
 )
 DIAG_DOC = "wall seconds between /diagnostics messages (>= 0.1); live"
 QOS_DOC = "QoS of the measurements: reliable or best-effort, as the simulator's --measurement-qos"
+POLICY_DOC = (
+    f"publishers other than the expected ones on this agent's topics: {' or '.join(POLICIES)} "
+    "(also ignore that topic's messages while they are there; docs/security.md)"
+)
 
 
 def _root(name: str) -> str:
@@ -242,6 +248,7 @@ class AgentNode(Node):
         self.diag_period = declare(self, "diagnostics_period", 0.1, DIAG_DOC, low=0.1, high=3600.0)
         self.measurement_qos = declare(self, "measurement_qos", "reliable", QOS_DOC, read_only=True)
         self.executor_kind = declare(self, "executor", "events", "rclpy executor: events or single", read_only=True)
+        policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
         gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
         self.sync = StepSynchroniser(
             AgentController(view),
@@ -257,14 +264,22 @@ class AgentNode(Node):
         self._pub = self.create_publisher(WrenchStamped, _root(topics.wrench(view.agent_id)), qos.CONTROL)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
         meas_qos = qos.measurements(self.measurement_qos)
-        velocity = _root(topics.velocity(view.agent_id))
-        self.create_subscription(TwistStamped, velocity, self._on_velocity, meas_qos, raw=True)
+        # the publishers of what this agent hears (and of its own wrench topic) are watched
+        expected = expected_publishers([view.agent_id], [(view.agent_id, j) for j in view.neighbours])
+        self._watch = GraphWatch(self, PublisherWatch(expected, policy))
+        self._velocity = _root(topics.velocity(view.agent_id))
+        self._subs = {
+            self._velocity: self.create_subscription(
+                TwistStamped, self._velocity, self._on_velocity, meas_qos, raw=True
+            )
+        }
         for j in view.neighbours:
             codec = conversions.relative_pose_codec(view.agent_id, j)
-            self.create_subscription(
+            topic = _root(topics.relative_pose(view.agent_id, j))
+            self._subs[topic] = self.create_subscription(
                 TransformStamped,
-                _root(topics.relative_pose(view.agent_id, j)),
-                lambda data, j=j, codec=codec: self._on_pose(j, codec, data),
+                topic,
+                lambda data, j=j, codec=codec, topic=topic: self._on_pose(j, codec, topic, data),
                 meas_qos,
                 raw=True,
             )
@@ -296,11 +311,15 @@ class AgentNode(Node):
 
     # callbacks: messages -> synchroniser
     def _on_velocity(self, data: bytes) -> None:
+        if not self._watch.accept(self._velocity, self._subs[self._velocity]):
+            return
         ns, v = self._twist_codec.decode(data)
         clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
         self.sync.on_velocity(ns, list(v), time.monotonic(), clock_ns)
 
-    def _on_pose(self, j: str, codec: conversions.StampedCodec, data: bytes) -> None:
+    def _on_pose(self, j: str, codec: conversions.StampedCodec, topic: str, data: bytes) -> None:
+        if not self._watch.accept(topic, self._subs[topic]):
+            return
         ns, values = codec.decode(data)
         p, R = conversions.relative_pose_from_values(values)
         self.sync.on_pose(j, ns, p, R, time.monotonic())
@@ -417,6 +436,9 @@ parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
   agent_id             the agent's id in the file                                      read-only
   measurement_qos      reliable (default) or best-effort, as the simulator's --measurement-qos  read-only
   executor             events (default) or single                                      read-only
+  intruder_policy      report (default) or refuse: a publisher other than the simulator on the
+                       agent's measurements (or other than itself on its wrench) is logged; refuse
+                       also ignores that topic's messages while it is there  read-only
   use_sim_time         default true (the simulator publishes /clock)
   pose_wait            wall s to wait for the neighbours' poses after the velocity (default 0.005);
                        a neighbour still missing then is out of range: zero wrench + ERROR     live
@@ -445,7 +467,8 @@ def main(args: list[str] | None = None) -> int:
         try:
             node = AgentNode(resolve_agent_id(argv, None))
             executor = make_executor(node.executor_kind, node.context)
-        except (FormationSpecError, ParameterException, ValueError) as exc:
+            check_secure_transport()
+        except (FormationSpecError, ParameterException, ValueError, InsecureTransportError) as exc:
             print(f"formation-agent: {exc}", file=sys.stderr)
             return 2
         executor.add_node(node)

@@ -42,6 +42,7 @@ from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import load_formation
+from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 
 #: depth of the recorder's own subscription queues (it must never be the one that drops)
 SUB_DEPTH = 1000
@@ -435,6 +436,7 @@ def main(argv: list[str] | None = None) -> int:
     code = 0
     try:
         node = Recorder(writer, known=known, only=only, namespace=args.namespace, decimate=decimate)
+        check_secure_transport()  # secure mode: refuse to record over a transport that fell back to UDP
         signal.signal(signal.SIGINT, node.request_stop)
         signal.signal(signal.SIGTERM, node.request_stop)
         print(f"formation-record: recording {node.topic_count} topics into {args.out}", flush=True)
@@ -446,6 +448,9 @@ def main(argv: list[str] | None = None) -> int:
             # a graph query or wait interrupted by SIGINT/SIGTERM (the context is shut down): a normal stop
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except InsecureTransportError as exc:
+        print(f"formation-record: {exc}", file=sys.stderr)
+        code = 2
     finally:
         if node is not None:
             try:

@@ -35,8 +35,11 @@ def wrench(agent_id: str) -> str:
     return f"agent_{agent_id}/wrench"
 
 
-def agent_node_name(agent_id: str) -> str:
-    return f"formation_agent_{agent_id}"
-
-
+#: Agent i's node is /agent_<i>/formation_agent: the multi-robot convention of one namespace per robot.
+AGENT_NODE_NAME = "formation_agent"
 SIM_NODE_NAME = "formation_sim"
+
+
+def agent_node(agent_id: str) -> str:
+    """Fully qualified name of agent i's node: ``/agent_<i>/formation_agent``."""
+    return f"/{agent_frame(agent_id)}/{AGENT_NODE_NAME}"

@@ -46,6 +46,8 @@ EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_PROCESS, EXIT_INTERRUPTED = 0, 1, 2,
 NETNS_THRESHOLD = 30
 _IN_NETNS = "FORMATION_IN_NETNS"
 _PR_SET_PDEATHSIG = 1
+#: child name -> formation-keys process name, where they differ
+_KEY_NAMES = {"sim": "simulator"}
 
 
 def _bin(name: str) -> Path:
@@ -187,6 +189,24 @@ def build_parser() -> argparse.ArgumentParser:
         default="reliable",
         help="QoS of relative poses and velocities; best-effort (realtime only) costs less CPU per message",
     )
+    p.add_argument(
+        "--intruder-policy",
+        choices=("report", "refuse"),
+        default="report",
+        help="a publisher the formation does not expect: report it (default) or also refuse its topic's "
+        "messages while it is there, in the simulator and every agent (docs/security.md)",
+    )
+    p.add_argument(
+        "--secure",
+        action="store_true",
+        help="every process over TCP with mutual TLS only (no UDP, no shared memory): a process without a "
+        "certificate of the run's CA can neither publish nor subscribe (docs/security.md)",
+    )
+    p.add_argument(
+        "--keys",
+        type=Path,
+        help="with --secure: key directory of formation-keys init (default: a CA and keys for this run only)",
+    )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument(
@@ -201,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _sim_args(args: argparse.Namespace, out: Path, spec: FormationSpec) -> list[str]:
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", "--executor", args.executor]
-    cmd += ["--measurement-qos", args.measurement_qos]
+    cmd += ["--measurement-qos", args.measurement_qos, "--intruder-policy", args.intruder_policy]
     for opt in (
         "mode",
         "duration",
@@ -245,6 +265,8 @@ class Launcher:
         self.agent_died = False
         self._relay: threading.Thread | None = None
         self._tty = sys.stdout.isatty()
+        #: per-process environments (secure mode: each its own certificate and port), by key name
+        self.process_env: dict[str, dict[str, str]] = {}
 
     def start(self, name: str, role: str, cmd: list[str], *, pipe: bool = False) -> Child:
         log = self.logs / f"{name}.log"
@@ -254,7 +276,7 @@ class Launcher:
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE if pipe else fh,
             stderr=subprocess.STDOUT,
-            env=self.env,
+            env=self.process_env.get(_KEY_NAMES.get(name, name), self.env),
             start_new_session=True,
             preexec_fn=_die_with_parent,
         )
@@ -344,6 +366,8 @@ class Launcher:
                 f"measurement_qos:={args.measurement_qos}",
                 "-p",
                 f"executor:={args.executor}",
+                "-p",
+                f"intruder_policy:={args.intruder_policy}",
             ]
             self.start(f"agent_{a.id}", "agent", cmd)
         while True:
@@ -491,17 +515,36 @@ def main(argv: list[str] | None = None) -> int:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(pick_domain_id())
+    secure = None
+    if args.secure:
+        from formation_deploy.secure_transport import SecureRun, SecureTransportError, single_host_port_start
+
+        try:
+            port_start = single_host_port_start(int(env["ROS_DOMAIN_ID"]))
+            secure = SecureRun.prepare(spec.agent_ids, env, keys=args.keys, port_start=port_start)
+        except (SecureTransportError, OSError) as exc:
+            print(f"formation-launch: --secure: {exc}", file=sys.stderr)
+            return EXIT_INVALID
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
     s = spec.simulation
+    transport = f"secure: TLS over TCP ports {secure.describe()['ports']}" if secure else None
     print(
         f"formation-launch: {spec.name}: simulator + {len(spec.agents)} agent processes"
         f"{' + recorder' if args.record else ''}, {mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
-        f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
+        f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, "
+        f"{transport or 'discovery ' + env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
         f"{' in a private network namespace' if in_netns else ''}; logs in {out / 'logs'}/",
         flush=True,
     )
     launcher = Launcher(spec, args, out, env)
+    if secure is not None:
+        launcher.process_env = secure.environments
     started = time.monotonic()
-    code = launcher.run()
+    try:
+        code = launcher.run()
+    finally:
+        if secure is not None:
+            secure.close()
     launcher.write_process_table()
     summary_path = out / "summary.json"
     if launcher._tty:
@@ -512,6 +555,7 @@ def main(argv: list[str] | None = None) -> int:
             "ros_domain_id": int(env["ROS_DOMAIN_ID"]),
             "discovery_range": env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
             "network_namespace": in_netns,
+            "secure": secure.describe() if secure else None,
             "processes": len(launcher.children),
             "wall_time_total": time.monotonic() - started,
         }

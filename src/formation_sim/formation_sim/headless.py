@@ -25,7 +25,7 @@ from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.inputs import non_finite_agents
 from formation_sim.plant import PlantState
 from formation_sim.preflight import preflight
-from formation_sim.report import RunRecorder, format_summary, write_outputs
+from formation_sim.report import RunRecorder, format_summary, report_animation, write_outputs
 from formation_sim.simulation import Measurements, Simulation
 from formation_sim.team import AgentTeam
 
@@ -88,7 +88,7 @@ def build_parser() -> OptionParser:
     return options.build_parser(
         options.HEADLESS,
         "formation-headless",
-        "Run a formation's closed loop in one process (no ROS) and write OUT as DESIGN.md §8: "
+        "Run a formation's closed loop in one process (no ROS) and write OUT as docs/outputs.md: "
         "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png. "
         "Exit status: 0 every funnel held, 1 a funnel was violated, 2 invalid file, option or refused rate.",
     )
@@ -120,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
         spec, controller_mode=mode, progress=None if opts.quiet else progress, stop_on_violation=opts.stop_on_violation
     )
     write_outputs(out, result.recorder, result.summary, plots=not opts.no_plots)
+    if opts.animate:
+        report_animation(out, spec, result.recorder.arrays())
     print(format_summary(result.summary))
     print(f"outputs in {out}/")
     return 0 if result.summary["funnels_held"] else 1

@@ -40,7 +40,7 @@ from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.preflight import preflight
-from formation_sim.report import format_summary
+from formation_sim.report import format_summary, report_animation
 
 EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_PROCESS, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 #: Above this many DDS participants, run in a private network namespace (Fast DDS LOCALHOST limit).
@@ -160,7 +160,7 @@ def build_parser() -> OptionParser:
         options.LAUNCH,
         "formation-launch",
         "Run a formation through ROS 2: the simulator node and one process per agent "
-        "(and, unless --no-record, a bag recorder). Writes OUT as DESIGN.md §8 with one log per process in "
+        "(and, unless --no-record, a bag recorder). Writes OUT as docs/outputs.md with one log per process in "
         "OUT/logs. Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 a process died or an "
         "agent was missing, 130 interrupted.",
     )
@@ -363,6 +363,7 @@ class Launcher:
                 "name": c.name,
                 "pid": c.proc.pid,
                 "role": c.role,
+                "executable": str(c.proc.args[0]),
                 "returncode": c.returncode,
                 "log": str(c.log.relative_to(self.out)),
                 **c.rusage,
@@ -473,6 +474,11 @@ def main(argv: list[str] | None = None) -> int:
             code = EXIT_VIOLATION
         if summary.get("faults"):
             print("faults: " + "; ".join(f"agent {a}: {m}" for a, m in summary["faults"].items()))
+        if args.animate and (out / "trajectory.npz").exists():
+            import numpy as np
+
+            with np.load(out / "trajectory.npz") as data:
+                report_animation(out, spec, dict(data))
     if launcher.stop_reason:
         print(f"formation-launch: stopped: {launcher.stop_reason}", file=sys.stderr)
     print(f"outputs in {out}/ (exit status {code})")

@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 import yaml
+
 from formation_deploy.compose import MARK, main
 
 REPO = Path(__file__).resolve().parents[2]

@@ -1,5 +1,5 @@
 """The judge of a run (funnel margins, first violation, settle times, faults, verdict) and the
-outputs every run leaves (DESIGN.md §8).
+outputs every run leaves (docs/outputs.md).
 
 :func:`judge` is a pure function over trajectory arrays (t, p, R and, where known, the agents'
 velocity-funnel margins); :class:`Judge` is the same check fed in time order, one sample or a
@@ -368,7 +368,7 @@ class RunRecorder:
         return self.judge.worst_margin()
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The decimated trajectory (DESIGN.md §8 trajectory.npz)."""
+        """The decimated trajectory (docs/outputs.md)."""
         return {k: np.array(v) for k, v in self._rows.items()}
 
     def outcome(self, requested_duration: float | None, incomplete: Incomplete | None = None) -> Outcome:
@@ -516,6 +516,15 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
             pass
         raise
     write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
+
+
+def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+    """Write OUT/animation.gif (:mod:`formation_sim.animation`) and print where and how long it took."""
+    from formation_sim.animation import write_animation
+
+    path, frames, wall = write_animation(out_dir, spec, arrays)
+    print(f"animation: {path} ({frames} frames, written in {wall:.1f} s)", flush=True)
+    return path
 
 
 def format_summary(summary: dict[str, Any]) -> str:

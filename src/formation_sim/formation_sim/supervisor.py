@@ -95,6 +95,10 @@ class Supervisor:
 
     env: dict[str, str]
     logs: Path
+    #: child name -> name of its own environment in ``process_env``, where they differ
+    key_names: dict[str, str] = field(default_factory=dict)
+    #: per-process environments (secure mode: each its own certificate and port), by key name
+    process_env: dict[str, dict[str, str]] = field(default_factory=dict)
     children: list[Child] = field(default_factory=list)
 
     def start(self, name: str, role: str, cmd: list[str]) -> Child:
@@ -105,7 +109,7 @@ class Supervisor:
                 stdin=subprocess.DEVNULL,
                 stdout=fh,
                 stderr=subprocess.STDOUT,
-                env=self.env,
+                env=self.process_env.get(self.key_names.get(name, name), self.env),
                 start_new_session=True,
                 preexec_fn=_die_with_parent,
             )
@@ -152,6 +156,7 @@ class Supervisor:
                 "name": c.name,
                 "pid": c.proc.pid,
                 "role": c.role,
+                "executable": str(c.proc.args[0]),
                 "returncode": c.returncode,
                 "log": str(c.log.relative_to(root)),
                 **c.rusage,

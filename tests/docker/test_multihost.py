@@ -119,18 +119,13 @@ needs_deployment = pytest.mark.skipif(
 )
 
 
+#: Options of formation-headless and sim.sh for the shortened scenario.
+SHORT = ("--duration", str(SHORT_DURATION), "--no-plots", "--quiet")
+
+
 def run_headless(out: Path) -> None:
     subprocess.run(
-        [
-            str(REPO / ".venv" / "bin" / "formation-headless"),
-            str(PAPER),
-            "--duration",
-            str(SHORT_DURATION),
-            "--no-plots",
-            "--quiet",
-            "--out",
-            str(out),
-        ],
+        [str(REPO / ".venv" / "bin" / "formation-headless"), str(PAPER), *SHORT, "--out", str(out)],
         check=True,
         timeout=300,
         capture_output=True,
@@ -159,17 +154,7 @@ def run_deployment(
     ]
     sim = processes.start(
         "sim",
-        [
-            str(SIM_SH),
-            str(PAPER),
-            "--duration",
-            str(SHORT_DURATION),
-            "--no-plots",
-            "--quiet",
-            "--out",
-            str(out),
-            *extra,
-        ],
+        [str(SIM_SH), str(PAPER), *SHORT, "--out", str(out), *extra],
         env=env,
         netns=netns["sim"],
     )

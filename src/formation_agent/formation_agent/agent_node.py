@@ -1,4 +1,4 @@
-"""The agent node: one process per agent (DESIGN.md §3).
+"""The agent node: one process per agent (docs/topics.md).
 
 ``formation-agent --ros-args -p formation_file:=FILE -p agent_id:=ID`` reads only
 ``agent_view(spec, ID)``, subscribes to exactly its own ``agent_<i>/velocity`` and the
@@ -227,7 +227,7 @@ POLICY_DOC = (
 
 
 def _root(name: str) -> str:
-    """A DESIGN topic name from the root: the node's own namespace /agent_<id> must not prefix it."""
+    """A topic name of docs/topics.md from the root: the node's own namespace /agent_<id> must not prefix it."""
     return "/" + name
 
 

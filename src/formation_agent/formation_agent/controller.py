@@ -1,12 +1,12 @@
 """One agent's prescribed-performance controller, from local measurements only.
 
-Implements the paper's Steps I-II (DESIGN.md §5) for agent i:
+Implements the paper's Steps I-II (docs/controller.md) for agent i:
 
 - per incident edge k = (k1, k2): e_k, ψ_k, e_Rk from the neighbour's relative pose;
 - the desired velocity v_i,des (eq. vel_i_des), α = −I for the tail, R_k2ᵀR_k1 for the head;
 - the wrench u_i = −γ_i ρ_v⁻¹ r_v(ξ_v) ε_v with e_v = ṽ_i − v_i,des.
 
-Inputs are what the topics carry (DESIGN.md §3): for neighbour j, ``p_i_j_in_i = R_iᵀ(p_j − p_i)``
+Inputs are what the topics carry (docs/topics.md): for neighbour j, ``p_i_j_in_i = R_iᵀ(p_j − p_i)``
 (m) and ``R_i_j = R_iᵀ R_j``; the agent's own noisy body twist ṽ_i [m/s, rad/s]; the time t (s).
 The output wrench is in the body frame [N, N·m].
 

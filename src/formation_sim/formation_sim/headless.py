@@ -22,7 +22,7 @@ from formation_msgs_py.errors import FormationError, FormationSpecError
 from formation_msgs_py.spec import FormationSpec, load_formation, simulator_view
 from formation_sim.plant import PlantState
 from formation_sim.rates import rate_needs
-from formation_sim.report import RunRecorder, format_summary, write_outputs
+from formation_sim.report import RunRecorder, format_summary, report_animation, write_outputs
 from formation_sim.simulation import Measurements, Simulation
 from formation_sim.team import AgentTeam
 
@@ -98,7 +98,7 @@ def run_headless(
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-headless",
-        description="Run a formation's closed loop in one process (no ROS) and write OUT as DESIGN.md §8: "
+        description="Run a formation's closed loop in one process (no ROS) and write OUT as docs/outputs.md: "
         "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png. "
         "Exit status: 0 every funnel held, 1 a funnel was violated, 2 invalid file or refused rate.",
     )
@@ -111,6 +111,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--stop-on-violation", action="store_true", help="stop at the first funnel violation")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument(
+        "--animate",
+        action="store_true",
+        help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for a 5 s run)",
+    )
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
@@ -208,6 +213,8 @@ def main(argv: list[str] | None = None) -> int:
         spec, controller_mode=mode, progress=None if args.quiet else progress, stop_on_violation=args.stop_on_violation
     )
     write_outputs(out, result.recorder, result.summary, plots=not args.no_plots)
+    if args.animate:
+        report_animation(out, spec, result.recorder.arrays())
     print(format_summary(result.summary))
     print(f"outputs in {out}/")
     return 0 if result.summary["funnels_held"] else 1

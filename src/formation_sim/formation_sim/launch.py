@@ -39,7 +39,7 @@ from typing import IO, Any
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.headless import add_override_options, check_control_rate, prepare_out_dir
-from formation_sim.report import format_summary
+from formation_sim.report import format_summary, report_animation
 
 EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_PROCESS, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 #: Above this many DDS participants, run in a private network namespace (Fast DDS LOCALHOST limit).
@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-launch",
         description="Run a formation through ROS 2: the simulator node and one process per agent "
-        "(and, unless --no-record, a bag recorder). Writes OUT as DESIGN.md §8 with one log per process in "
+        "(and, unless --no-record, a bag recorder). Writes OUT as docs/outputs.md with one log per process in "
         "OUT/logs. Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 a process died or an "
         "agent was missing, 130 interrupted.",
     )
@@ -209,6 +209,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument(
+        "--animate",
+        action="store_true",
+        help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for a 5 s run)",
+    )
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
@@ -431,6 +436,7 @@ class Launcher:
                 "name": c.name,
                 "pid": c.proc.pid,
                 "role": c.role,
+                "executable": str(c.proc.args[0]),
                 "returncode": c.returncode,
                 "log": str(c.log.relative_to(self.out)),
                 **c.rusage,
@@ -559,6 +565,11 @@ def main(argv: list[str] | None = None) -> int:
             code = EXIT_VIOLATION
         if summary.get("faults"):
             print("faults: " + "; ".join(f"agent {a}: {m}" for a, m in summary["faults"].items()))
+        if args.animate and (out / "trajectory.npz").exists():
+            import numpy as np
+
+            with np.load(out / "trajectory.npz") as data:
+                report_animation(out, spec, dict(data))
     if launcher.stop_reason:
         print(f"formation-launch: stopped: {launcher.stop_reason}", file=sys.stderr)
     print(f"outputs in {out}/ (exit status {code})")

@@ -1,7 +1,7 @@
 """The simulator node: ``formation-sim FILE [--mode lockstep|realtime] [--out DIR] …``.
 
 Plays the world with :class:`formation_sim.simulation.Simulation`, the code path of the
-headless runner (DESIGN.md §6). Per control step k it publishes what ``Simulation.sense()``
+headless runner (docs/ros2.md). Per control step k it publishes what ``Simulation.sense()``
 returns (relative poses of the tree pairs within sensing radius, noisy body twists), ``/clock``
 and the ground truth, and collects every agent's wrench.
 
@@ -19,7 +19,7 @@ and the ground truth, and collects every agent's wrench.
 
 Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
 ``formation/ground_truth`` are published at ``--clock-rate`` / ``--ground-truth-rate`` (default:
-the record rate, at most the control rate). The run's outputs (DESIGN.md §8) go to ``--out``.
+the record rate, at most the control rate). The run's outputs (docs/outputs.md) go to ``--out``.
 Exit status: 0 every funnel held, 1 a funnel was violated or a fault reported, 2 invalid file
 or settings, 3 an agent missing (discovery or step timeout), 130 interrupted.
 """
@@ -410,9 +410,9 @@ class Runner:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-sim",
-        description="The simulator node of a ROS 2 formation run (DESIGN.md §6): publishes /clock, relative "
+        description="The simulator node of a ROS 2 formation run (docs/ros2.md): publishes /clock, relative "
         "poses, velocities and ground truth, collects every agent's wrench, checks the funnels at every "
-        "control step and writes OUT (DESIGN.md §8). Agents are separate processes (formation-agent). "
+        "control step and writes OUT (docs/outputs.md). Agents are separate processes (formation-agent). "
         "Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 agent missing, 130 interrupted. "
         "ROS arguments may follow --ros-args.",
     )

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
 from rclpy.node import Node
 from ros_helpers import (
     BIN,
@@ -25,6 +24,7 @@ from ros_helpers import (
     processes_mentioning,
     read_log,
     remove_segments,
+    ros_context,
     wait_for_line,
 )
 
@@ -67,11 +67,7 @@ def test_agents_subscribe_to_exactly_their_contract(procs, ros_env: dict[str, st
     spec = load_formation(PAPER)
     for a in spec.agents:
         procs.agent(PAPER, a.id)
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    os.environ.update({k: ros_env[k] for k in saved})
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
+    with ros_context(ros_env) as context:
         node = Node("graph_query", context=context)
         names = {("formation_agent", f"/agent_{a.id}") for a in spec.agents}
         deadline = time.monotonic() + 60
@@ -89,13 +85,6 @@ def test_agents_subscribe_to_exactly_their_contract(procs, ros_env: dict[str, st
             assert pubs == {f"/agent_{a.id}/wrench", "/diagnostics", "/rosout", "/parameter_events"}, pubs
         assert node.get_subscriptions_info_by_topic("/formation/ground_truth") == []
         node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=context)
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 # -- how a launched run ends ----------------------------------------------------------------------

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -525,7 +526,10 @@ def main(argv: list[str] | None = None) -> int:
         wall = time.monotonic() - runner.started if runner is not None else 0.0
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RCLError:
+            pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
     if insecure:
         return ExitCode.INVALID
     if runner is None:

@@ -22,7 +22,7 @@ from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser
 from formation_msgs_py.outcome import ExitCode
 from formation_msgs_py.spec import FormationSpec, simulator_view
-from formation_sim.inputs import non_finite_agents
+from formation_sim.inputs import advance_checked
 from formation_sim.plant import PlantState
 from formation_sim.preflight import preflight
 from formation_sim.report import RunRecorder, format_summary, report_animation, write_outputs
@@ -62,6 +62,7 @@ def run_headless(
         meas = Measurements(t, -1, sim.sensors.measure(state.p, state.R), sim.plant.measured_velocity(t, state))
         return team.evaluate(meas, None)[0]
 
+    incomplete = ""
     for k in range(n_steps + 1):
         meas = sim.sense()
         u, margin_v, outputs = team.evaluate(meas, recorder)
@@ -70,17 +71,18 @@ def run_headless(
         team.note_errors(meas.t, outputs, recorder)
         if k == n_steps or (stop_on_violation and recorder.first_violation is not None):
             break
-        sim.advance(stage_wrench if mode == "continuous" else u)
-        bad = non_finite_agents(spec.agent_ids, sim.state.p, sim.state.R, sim.state.v)
-        if bad:
-            recorder.fault(sim.t, "plant", ", ".join(bad), "non-finite state")
+        incomplete = advance_checked(sim, stage_wrench if mode == "continuous" else u)
+        if incomplete:  # the run stops; the non-finite state is never recorded
             break
         now = time.perf_counter()
         if progress is not None and now - last_report > 1.0:
             progress(sim.t, sim.t / (now - started), recorder.worst_margin())
             last_report = now
     wall = time.perf_counter() - started
-    summary = recorder.summary(wall_time=wall, extra={"controller": mode, "physics_rate": sim_spec.physics_rate})
+    extra: dict[str, Any] = {"controller": mode, "physics_rate": sim_spec.physics_rate}
+    if incomplete:
+        extra["incomplete_reason"] = incomplete
+    summary = recorder.summary(wall_time=wall, extra=extra)
     return HeadlessResult(recorder, summary)
 
 
@@ -124,6 +126,9 @@ def main(argv: list[str] | None = None) -> int:
         report_animation(out, spec, result.recorder.arrays())
     print(format_summary(result.summary))
     print(f"outputs in {out}/")
+    if result.summary.get("incomplete_reason"):
+        print(f"formation-headless: INCOMPLETE: {result.summary['incomplete_reason']}", file=sys.stderr)
+        return ExitCode.INCOMPLETE
     return 0 if result.summary["funnels_held"] else 1
 
 

@@ -98,21 +98,23 @@ def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict
         for k, (name, (pose_values, velocity)) in enumerate(bad.items(), start=1):
             u = step(base + k * 1_000_000, pose_values, velocity)
             assert u == (0.0,) * 6, (name, u, read_log(agent))
+        # bytes that are no TransformStamped (anyone may publish raw CDR): dropped, counted, no crash
+        pose.publish(b"\x00\x01\x00\x00garbage")
         # from the future: dropped (it names no step to answer), counted
         assert step((2**31 - 1) * NS, good, v, wait=1.0, clock_ns=base + 9_000_000) is None
         u = step(base + 10_000_000, good, v)
         assert u is not None and any(u) and all(math.isfinite(x) for x in u)
         assert agent.poll() is None, read_log(agent)
     log = read_log(agent)
-    for kind in ("bad_quaternion", "non_finite", "out_of_range", "future_stamp"):
+    for kind in ("bad_quaternion", "non_finite", "out_of_range", "future_stamp", "malformed"):
         assert f"refused ({kind}, " in log, log
     assert "Traceback" not in log
 
 
 def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_env, tmp_path: Path) -> None:
-    """The acceptance run: NaN pose, zero quaternion, 1e6 m translation into agent 1; a NaN wrench and a
-    future-stamped wrench into the simulator. It runs its whole duration, reports each injection by agent
-    and kind, and no applied wrench exceeds the actuator limits."""
+    """The acceptance run: NaN pose, zero quaternion, 1e6 m translation into agent 1; a NaN wrench, a
+    future-stamped wrench and bytes that are no wrench into the simulator. It runs its whole duration,
+    reports each injection by agent and kind, and no applied wrench exceeds the actuator limits."""
     spec = load_formation(REALTIME)
     for a in spec.agents:
         procs.agent(REALTIME, a.id)
@@ -157,6 +159,7 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
                 pose.publish(pose_codec.encode(ns, (1e6, 0.0, 0.0, *IDENTITY_Q)))
                 wrench.publish(wrench_codec.encode(ns, (math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)))
                 wrench.publish(wrench_codec.encode((2**31 - 1) * NS, (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)))
+                wrench.publish(b"\x00\x01\x00\x00garbage")
                 time.sleep(0.3)
             code = sim.wait(timeout=120)
             time.sleep(0.5)  # the last /diagnostics of the agents
@@ -169,7 +172,7 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
     summary = json.loads((out / "summary.json").read_text())
     assert summary["duration"] == 4.0, summary
     rw = summary["refused_wrenches"]["1"]
-    assert rw["non_finite"]["count"] >= 1 and rw["future_step"]["count"] >= 1, rw
+    assert min(rw[k]["count"] for k in ("non_finite", "future_step", "malformed")) >= 1, rw
     assert set(summary["refused_wrenches"]) == {"1"}, summary["refused_wrenches"]
     assert {"non_finite", "bad_quaternion", "out_of_range"} <= set(refused.get("1", {})), refused
     assert all(n >= 1 for n in refused["1"].values()), refused

@@ -182,3 +182,32 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
         assert np.linalg.norm(u[:, i, :3], axis=1).max() <= a.dynamics.max_force * (1 + 1e-9)
         assert np.linalg.norm(u[:, i, 3:], axis=1).max() <= a.dynamics.max_torque * (1 + 1e-9)
         assert summary["agents"][a.id]["peak_force"] <= a.dynamics.max_force * (1 + 1e-9)
+
+
+def test_lockstep_run_is_not_stalled_by_a_future_stamped_wrench(procs, ros_env, tmp_path: Path) -> None:
+    """Lockstep: wrenches stamped 2³¹−1 s and NaN wrenches for agent 2 all through the run (once, one such
+    wrench stalled the run and blamed the healthy agent): the run completes and reports them for agent 2."""
+    spec = load_formation(REALTIME)
+    for a in spec.agents:
+        procs.agent(REALTIME, a.id)
+    out = tmp_path / "out"
+    sim = procs.sim(REALTIME, out, "--mode", "lockstep", "--duration", "1", "--physics-rate", "100")
+    with injector_node(ros_env) as (node, executor):
+        latest = [0]
+        node.create_subscription(
+            Clock, topics.CLOCK, lambda m: latest.__setitem__(0, m.clock.sec * NS + m.clock.nanosec), qos.CLOCK
+        )
+        wrench = node.create_publisher(WrenchStamped, topics.wrench("2"), qos.CONTROL)
+        codec = conversions.wrench_codec("2")
+        deadline = time.monotonic() + 180
+        while sim.poll() is None:
+            assert time.monotonic() < deadline, read_log(sim)
+            executor.spin_once(timeout_sec=0.02)
+            wrench.publish(codec.encode((2**31 - 1) * NS, (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)))
+            wrench.publish(codec.encode(latest[0], (math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)))
+    log = read_log(sim)
+    assert sim.returncode in (0, 1), log
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["duration"] == 1.0 and summary["steps"] == 100, summary
+    assert summary["refused_wrenches"]["2"]["future_step"]["count"] >= 1, summary["refused_wrenches"]
+    assert set(summary["refused_wrenches"]) == {"2"}

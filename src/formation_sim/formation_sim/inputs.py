@@ -13,8 +13,9 @@ sim time) from agent i is refused, counted per agent and kind, and never integra
   held for the rest of a run), or, in lockstep, is earlier than the current step (``past_step``:
   that step has been integrated already).
 
-A refused value for the current step counts as that agent's answer with a zero wrench (a lockstep
-run goes on; the fault is in the report); a refused stamp is no answer at all.
+A refused value for a step not yet answered counts as that agent's answer with a zero wrench (a
+lockstep run goes on; the fault is in the report); for a step already answered it changes
+nothing; a refused stamp is no answer at all.
 
 A plant state that is no longer finite (:func:`advance_checked`) ends the run as INCOMPLETE with
 the agents named; it is never recorded, so no NaN reaches summary.json.

@@ -22,7 +22,7 @@ from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
 from formation_msgs_py.spec import FormationSpec, simulator_view
-from formation_sim.inputs import non_finite_agents
+from formation_sim.inputs import advance_checked
 from formation_sim.plant import PlantState
 from formation_sim.preflight import preflight
 from formation_sim.report import RunRecorder, format_summary, report_animation, write_outputs
@@ -71,13 +71,9 @@ def run_headless(
         team.note_errors(meas.t, outputs, recorder)
         if k == n_steps or (stop_on_violation and recorder.first_violation is not None):
             break
-        sim.advance(stage_wrench if mode == "continuous" else u)
-        bad = non_finite_agents(spec.agent_ids, sim.state.p, sim.state.R, sim.state.v)
-        if bad:
-            recorder.fault(sim.t, "plant", ", ".join(bad), "non-finite state")
-            incomplete = Incomplete(
-                ExitCode.INCOMPLETE, f"plant state of agent(s) {', '.join(bad)} not finite at t={sim.t:.6f} s"
-            )
+        reason = advance_checked(sim, stage_wrench if mode == "continuous" else u)
+        if reason:  # the run stops; the non-finite state is never recorded
+            incomplete = Incomplete(ExitCode.INCOMPLETE, reason)
             break
         now = time.perf_counter()
         if progress is not None and now - last_report > 1.0:

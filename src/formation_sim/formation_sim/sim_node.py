@@ -27,6 +27,7 @@ the stop is fast). The node never needs its stdout to finish.
 
 from __future__ import annotations
 
+import struct
 import sys
 import time
 from pathlib import Path
@@ -135,15 +136,18 @@ class SimNode(Node):
         if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
             return
         self.received += 1
-        ns, u = self.wrench_codecs[i].decode(data)
-        refused = self.wrench_check.check(i, ns, u, self.current_ns)
+        try:
+            ns, u = self.wrench_codecs[i].decode(data)
+            refused = self.wrench_check.check(i, ns, u, self.current_ns)
+        except struct.error:
+            refused = self.wrench_check.malformed(i, self.current_ns)
         if refused is not None:
             if (self.ids[i], refused) not in self._refusals_printed:
                 self._refusals_printed.add((self.ids[i], refused))
                 reason = self.wrench_check.log[(self.ids[i], refused)].reason
                 print(f"formation-sim: agent {self.ids[i]}: wrench refused ({refused}): {reason}", flush=True)
-            if refused in inputs.STAMP_KINDS:
-                return  # answers no step
+            if refused in inputs.DROPPED_KINDS or ns == self.u_ns[i]:
+                return  # answers no step, or the step has its answer already: nothing changes
             u = (0.0,) * 6  # a refused value answers its step with zero: never integrated
         if self.wrenches.accept(i, ns, u):
             sent = self.pub_wall.get(ns)
@@ -287,21 +291,10 @@ class Runner:
             self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.wrenches.value))
 
     def advance(self, u: np.ndarray) -> None:
-        """Integrate one control period (raises RunStoppedError if the state blew up)."""
-        sim = self.sim
-        try:
-            sim.advance(u)
-        except (ValueError, OverflowError, FloatingPointError, ZeroDivisionError) as exc:
-            raise RunStoppedError(
-                Incomplete(ExitCode.INCOMPLETE, f"plant integration failed at t={sim.t:.6f} s: {exc}")
-            ) from None
-        bad = inputs.non_finite_agents(self.spec.agent_ids, sim.state.p, sim.state.R, sim.state.v)
-        if bad:
-            raise RunStoppedError(
-                Incomplete(
-                    ExitCode.INCOMPLETE, f"non-finite plant state of agent(s) {', '.join(bad)} at t={sim.t:.6f} s"
-                )
-            )
+        """Integrate one control period (raises RunStoppedError, agents named, if the state blew up)."""
+        reason = inputs.advance_checked(self.sim, u)
+        if reason:
+            raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, reason))
 
     # lockstep --------------------------------------------------------------------------------
     def run_lockstep(self) -> None:

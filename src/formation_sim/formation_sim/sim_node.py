@@ -146,7 +146,7 @@ class SimNode(Node):
                 self._refusals_printed.add((self.ids[i], refused))
                 reason = self.wrench_check.log[(self.ids[i], refused)].reason
                 print(f"formation-sim: agent {self.ids[i]}: wrench refused ({refused}): {reason}", flush=True)
-            if refused in inputs.DROPPED_KINDS or ns == self.u_ns[i]:
+            if refused in inputs.DROPPED_KINDS or ns == self.wrenches.stamp[i]:
                 return  # answers no step, or the step has its answer already: nothing changes
             u = (0.0,) * 6  # a refused value answers its step with zero: never integrated
         if self.wrenches.accept(i, ns, u):

@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "PyYAML"],
+    install_requires=["setuptools", "numpy", "numba", "scipy", "PyYAML"],
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",

@@ -1,11 +1,12 @@
 """SO(3) helpers for the controller, the plant and the formation files.
 
-Conventions: ``hat(w) @ x == cross(w, x)``; ``vee`` is its inverse on skew matrices;
-rotation vectors are axis * angle in radians; quaternions are (x, y, z, w), scalar last,
-the order of geometry_msgs and of scipy's default; :func:`quaternion_from_matrix` and
+Conventions: ``vee`` gives the 3-vector of a skew matrix (S(w) x = w × x); rotation vectors
+are axis * angle in radians; quaternions are (x, y, z, w), scalar last, the order of
+geometry_msgs and of scipy's default; :func:`quaternion_from_matrix` and
 :func:`matrix_from_quaternion` are the only quaternion conversions of the project (pure
-Python: they run per message). The plant's functions (``exp_so3``, ``dexpinv_so3``, ``cross``)
-are vectorised numpy; parsing uses scipy's ``Rotation``.
+Python: they run per message). The maps of the controller, the plant and the measurement
+model (``exp_so3``, ``dexpinv_so3`` and 3×3 products) are compiled kernels on one 3-vector or
+3×3 matrix; parsing uses scipy's ``Rotation``.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from formation_msgs_py.compiled import kernel
 from formation_msgs_py.errors import RotationError
 
 FloatArray = NDArray[np.float64]
@@ -24,92 +26,85 @@ FloatArray = NDArray[np.float64]
 ROTATION_TOLERANCE = 1e-6
 
 
-def hat(w: ArrayLike) -> FloatArray:
-    """Skew matrix S(w) of a 3-vector (or a stack (..., 3) -> (..., 3, 3))."""
-    w = np.asarray(w, dtype=np.float64)
-    S = np.zeros((*w.shape[:-1], 3, 3))
-    S[..., 0, 1] = -w[..., 2]
-    S[..., 0, 2] = w[..., 1]
-    S[..., 1, 0] = w[..., 2]
-    S[..., 1, 2] = -w[..., 0]
-    S[..., 2, 0] = -w[..., 1]
-    S[..., 2, 1] = w[..., 0]
-    return S
-
-
 def vee(S: ArrayLike) -> FloatArray:
     """S⁻¹: the 3-vector of a skew matrix (or a stack)."""
     S = np.asarray(S, dtype=np.float64)
     return np.stack([S[..., 2, 1], S[..., 0, 2], S[..., 1, 0]], axis=-1)
 
 
-def vee_antisym(A: FloatArray) -> FloatArray:
-    """S⁻¹(A − Aᵀ) for a 3×3 matrix A (not necessarily skew)."""
-    return np.array([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]])
+@kernel
+def matmul3(A, B):
+    """A @ B for 3×3 arrays (explicit loops: compiled, far cheaper than a BLAS call)."""
+    C = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+    return C
 
 
-#: Levi-Civita tensor: cross(a, b)_i = EPS[i, j, k] a_j b_k, and hat(w)_ij = −EPS[i, j, k] w_k.
-EPS = np.zeros((3, 3, 3))
-EPS[0, 1, 2] = EPS[1, 2, 0] = EPS[2, 0, 1] = 1.0
-EPS[0, 2, 1] = EPS[2, 1, 0] = EPS[1, 0, 2] = -1.0
-_HAT = -np.transpose(EPS, (2, 0, 1)).copy()  # hat(w) = einsum("kij,...k->...ij", _HAT, w)
+@kernel
+def matvec3(A, x):
+    """A @ x for a 3×3 array and a 3-vector."""
+    return np.array(
+        [
+            A[0, 0] * x[0] + A[0, 1] * x[1] + A[0, 2] * x[2],
+            A[1, 0] * x[0] + A[1, 1] * x[1] + A[1, 2] * x[2],
+            A[2, 0] * x[0] + A[2, 1] * x[1] + A[2, 2] * x[2],
+        ]
+    )
 
 
-def cross(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Row-wise cross product of stacks (..., 3); one einsum, far cheaper than np.cross."""
-    return np.einsum("ijk,...j,...k->...i", EPS, a, b)
+@kernel
+def cross3(a, b):
+    """a × b for 3-vectors."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
-def exp_so3(theta: ArrayLike) -> FloatArray:
-    """exp(S(θ)) by Rodrigues' formula, for θ of shape (..., 3); exact to rounding near 0.
+@kernel
+def exp_so3(theta):
+    """exp(S(θ)) of a rotation vector θ (3,) [rad], by Rodrigues' formula; series near 0.
 
     R = cos θ·I + (sin θ/θ)·S(θ) + ((1 − cos θ)/θ²)·θθᵀ.
     """
-    theta = np.asarray(theta, dtype=np.float64)
-    angle2 = np.einsum("...i,...i->...", theta, theta)
-    if np.min(angle2, initial=1.0) < 1e-8:
-        # Taylor series near 0, where the closed forms lose digits.
-        small = angle2 < 1e-8
-        safe2 = np.where(small, 1.0, angle2)
-        safe = np.sqrt(safe2)
-        a = np.where(small, 1.0 - angle2 / 6.0 + angle2 * angle2 / 120.0, np.sin(safe) / safe)
-        b = np.where(small, 0.5 - angle2 / 24.0 + angle2 * angle2 / 720.0, (1.0 - np.cos(safe)) / safe2)
-        c = np.where(small, 1.0 - angle2 / 2.0 + angle2 * angle2 / 24.0, np.cos(safe))
+    tx, ty, tz = theta[0], theta[1], theta[2]
+    a2 = tx * tx + ty * ty + tz * tz
+    if a2 < 1e-8:  # the closed forms lose digits near 0
+        A = 1.0 - a2 / 6.0 + a2 * a2 / 120.0
+        B = 0.5 - a2 / 24.0 + a2 * a2 / 720.0
+        C = 1.0 - a2 / 2.0 + a2 * a2 / 24.0
     else:
-        angle = np.sqrt(angle2)
-        a = np.sin(angle) / angle
-        c = np.cos(angle)
-        b = (1.0 - c) / angle2
-    R = np.einsum("...,...i,...j->...ij", b, theta, theta)
-    R += np.einsum("kij,...k->...ij", _HAT, a[..., None] * theta)
-    R[..., 0, 0] += c
-    R[..., 1, 1] += c
-    R[..., 2, 2] += c
-    return R
+        a = np.sqrt(a2)
+        A = np.sin(a) / a
+        C = np.cos(a)
+        B = (1.0 - C) / a2
+    return np.array(
+        [
+            [C + B * tx * tx, B * tx * ty - A * tz, B * tx * tz + A * ty],
+            [B * ty * tx + A * tz, C + B * ty * ty, B * ty * tz - A * tx],
+            [B * tz * tx - A * ty, B * tz * ty + A * tx, C + B * tz * tz],
+        ]
+    )
+
+
+@kernel
+def dexpinv_so3(theta, omega):
+    """Θ̇ such that R0·exp(S(Θ)) moves with body rate ω: Θ̇ = dexp⁻¹_{−Θ}(ω) (RKMK chart).
+
+    dexp⁻¹_{−Θ}(ω) = ω + ½ Θ×ω + c·Θ×(Θ×ω), c = (1 − (θ/2)cot(θ/2))/θ² (series near 0).
+    """
+    a2 = theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2]
+    if a2 < 1e-6:
+        c = 1.0 / 12.0 + a2 / 720.0
+    else:
+        half = 0.5 * np.sqrt(a2)
+        c = (1.0 - half / np.tan(half)) / a2
+    txw = cross3(theta, omega)
+    return omega + 0.5 * txw + c * cross3(theta, txw)
 
 
 def log_so3(R: ArrayLike) -> FloatArray:
     """Rotation vector of R (angle in [0, π]); robust near 0 and π (uses scipy)."""
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
-
-
-def dexpinv_so3(theta: FloatArray, omega: FloatArray) -> FloatArray:
-    """Θ̇ such that R0·exp(S(Θ)) moves with body rate ω: Θ̇ = dexp⁻¹_{−Θ}(ω).
-
-    Exact closed form, vectorised over a leading axis; used by the RKMK integrator.
-    """
-    angle2 = np.einsum("...i,...i->...", theta, theta)
-    if np.min(angle2, initial=1.0) < 1e-6:
-        small = angle2 < 1e-6
-        safe2 = np.where(small, 1.0, angle2)
-        half = 0.5 * np.sqrt(safe2)
-        # c = (1 − (θ/2) cot(θ/2)) / θ², series 1/12 + θ²/720 near 0
-        c = np.where(small, 1.0 / 12.0 + angle2 / 720.0, (1.0 - half / np.tan(half)) / safe2)
-    else:
-        half = 0.5 * np.sqrt(angle2)
-        c = (1.0 - half / np.tan(half)) / angle2
-    txw = cross(theta, omega)
-    return omega + 0.5 * txw + c[..., None] * cross(theta, txw)
 
 
 def is_rotation(R: ArrayLike, tol: float = ROTATION_TOLERANCE) -> bool:

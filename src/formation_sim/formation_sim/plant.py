@@ -1,4 +1,4 @@
-"""Newton-Euler plant of N rigid bodies and its structure-preserving integrator.
+"""Newton-Euler plant of N rigid bodies and its structure-preserving integrator (compiled kernels).
 
 Per agent, in the body frame (paper eq. system)::
 
@@ -7,29 +7,22 @@ Per agent, in the body frame (paper eq. system)::
 
 Integration is RKMK4 (Runge-Kutta-Munthe-Kaas, order 4): R is advanced as R₀·exp(S(Θ)) with
 Θ̇ = dexp⁻¹_{−Θ}(ω), so it stays in SO(3) to rounding; p and v take the classical RK4 weights
-with the same stages. Units: m, s, kg, kg·m², N, N·m; p in the world frame, v and u in the
-body frame.
-
-The step is written with Python floats, agent by agent: for 3-vectors numpy's per-call
-overhead costs several times the arithmetic, and the simulator runs this at up to 20 kHz. The
-public state (:class:`PlantState`) stays numpy.
+with the same stages (:func:`rkmk4_stage`, :func:`rkmk4_combine`; :func:`rkmk4_step` with the
+wrench held, the run core with the controller evaluated at every stage). Units: m, s, kg,
+kg·m², N, N·m; p in the world frame, v and u in the body frame.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
+from formation_msgs_py.compiled import kernel
+from formation_msgs_py.so3 import cross3, dexpinv_so3, exp_so3, matmul3, matvec3
 from formation_msgs_py.spec import SimulatorView
-from formation_sim.signals import SignalBank
-
-#: u(t, state) for a controller evaluated at every integrator stage.
-WrenchFunction = Callable[[float, "PlantState"], np.ndarray]
-
-_sin, _cos, _sqrt, _tan = math.sin, math.cos, math.sqrt, math.tan
+from formation_sim.signals import NONE, SignalParams, signal_params, signal_value, signals_at
 
 
 @dataclass
@@ -44,77 +37,118 @@ class PlantState:
         return PlantState(self.p.copy(), self.R.copy(), self.v.copy())
 
 
-def _exp(tx: float, ty: float, tz: float) -> tuple[float, ...]:
-    """exp(S(θ)) row-major: cos·I + (sin θ/θ)·S(θ) + ((1 − cos)/θ²)·θθᵀ (series near 0)."""
-    a2 = tx * tx + ty * ty + tz * tz
-    if a2 < 1e-8:
-        A = 1.0 - a2 / 6.0 + a2 * a2 / 120.0
-        B = 0.5 - a2 / 24.0 + a2 * a2 / 720.0
-        C = 1.0 - a2 / 2.0 + a2 * a2 / 24.0
-    else:
-        a = _sqrt(a2)
-        A = _sin(a) / a
-        C = _cos(a)
-        B = (1.0 - C) / a2
-    return (
-        C + B * tx * tx, B * tx * ty - A * tz, B * tx * tz + A * ty,
-        B * ty * tx + A * tz, C + B * ty * ty, B * ty * tz - A * tx,
-        B * tz * tx - A * ty, B * tz * ty + A * tx, C + B * tz * tz,
-    )  # fmt: skip
+class PlantParams(NamedTuple):
+    """The true dynamics (what only the simulator knows), arrays over agents."""
+
+    mass: np.ndarray  # (N,) [kg]
+    inertia: np.ndarray  # (N, 3, 3) [kg·m²]
+    inertia_inv: np.ndarray  # (N, 3, 3)
+    gravity: np.ndarray  # (3,) world frame [m/s²]
+    disturbance: SignalParams
+    noise: SignalParams
 
 
-def _dexpinv(tx: float, ty: float, tz: float, wx: float, wy: float, wz: float) -> tuple[float, float, float]:
-    """dexp⁻¹_{−Θ}(ω) = ω + ½ Θ×ω + c·Θ×(Θ×ω), c = (1 − (θ/2)cot(θ/2))/θ²."""
-    a2 = tx * tx + ty * ty + tz * tz
-    if a2 < 1e-6:
-        c = 1.0 / 12.0 + a2 / 720.0
-    else:
-        half = 0.5 * _sqrt(a2)
-        c = (1.0 - half / _tan(half)) / a2
-    cx, cy, cz = ty * wz - tz * wy, tz * wx - tx * wz, tx * wy - ty * wx
-    return (
-        wx + 0.5 * cx + c * (ty * cz - tz * cy),
-        wy + 0.5 * cy + c * (tz * cx - tx * cz),
-        wz + 0.5 * cz + c * (tx * cy - ty * cx),
-    )
+@kernel
+def body_rates(t, p, R, v, u, plant):
+    """(ṗ (N,3), v̇ (N,6)): ṗ = R v_L and v̇ = M⁻¹(u − C(v)v − g(x) − w(x, v, t)) (eq. system)."""
+    n = p.shape[0]
+    p_dot = np.empty((n, 3))
+    v_dot = np.empty((n, 6))
+    ref_first = np.abs(p[0]).sum()
+    for i in range(n):
+        f = u[i].copy()
+        if plant.disturbance.kind[i] != NONE:
+            trace = R[i, 0, 0] + R[i, 1, 1] + R[i, 2, 2]
+            f = f - signal_value(plant.disturbance, i, t, ref_first, np.abs(p[i]).sum(), trace, v[i])
+        lin, ang = v[i, :3], v[i, 3:]
+        p_dot[i] = matvec3(R[i], lin)
+        # m v̇_L = f − m ω×v_L + m Rᵀ g_world
+        v_dot[i, :3] = f[:3] / plant.mass[i] - cross3(ang, lin) + matvec3(R[i].T, plant.gravity)
+        # J ω̇ = τ − ω×Jω
+        v_dot[i, 3:] = matvec3(plant.inertia_inv[i], f[3:] - cross3(ang, matvec3(plant.inertia[i], ang)))
+    return p_dot, v_dot
 
 
-def _rot(R0: list[list[float]], E: tuple[float, ...]) -> tuple[float, ...]:
-    """R0 @ E for R0 nested rows and E row-major (9 floats)."""
-    (a, b, c), (d, e, f), (g, h, i) = R0
-    e0, e1, e2, e3, e4, e5, e6, e7, e8 = E
-    return (
-        a * e0 + b * e3 + c * e6, a * e1 + b * e4 + c * e7, a * e2 + b * e5 + c * e8,
-        d * e0 + e * e3 + f * e6, d * e1 + e * e4 + f * e7, d * e2 + e * e5 + f * e8,
-        g * e0 + h * e3 + i * e6, g * e1 + h * e4 + i * e7, g * e2 + h * e5 + i * e8,
-    )  # fmt: skip
+@kernel
+def rkmk4_stage(c, p0, R0, v0, p_dot, v_dot, theta_dot):
+    """The stage state at offset c [s]: (Θ, p, R, v) with Θ = c·Θ̇, R = R₀ exp(S(Θ))."""
+    theta = c * theta_dot
+    R = np.empty_like(R0)
+    for i in range(R0.shape[0]):
+        R[i] = matmul3(R0[i], exp_so3(theta[i]))
+    return theta, p0 + c * p_dot, R, v0 + c * v_dot
+
+
+@kernel
+def chart_rates(theta, v):
+    """Θ̇ = dexp⁻¹_{−Θ}(ω) of every agent (N,3)."""
+    out = np.empty_like(theta)
+    for i in range(theta.shape[0]):
+        out[i] = dexpinv_so3(theta[i], v[i, 3:])
+    return out
+
+
+@kernel
+def rkmk4_combine(h, p0, R0, v0, p_dots, v_dots, theta_dots):
+    """The step's end from the four stages' rates (classical weights 1, 2, 2, 1)."""
+    w6 = h / 6.0
+    p = p0 + w6 * (p_dots[0] + 2 * p_dots[1] + 2 * p_dots[2] + p_dots[3])
+    v = v0 + w6 * (v_dots[0] + 2 * v_dots[1] + 2 * v_dots[2] + v_dots[3])
+    theta = w6 * (theta_dots[0] + 2 * theta_dots[1] + 2 * theta_dots[2] + theta_dots[3])
+    R = np.empty_like(R0)
+    for i in range(R0.shape[0]):
+        R[i] = matmul3(R0[i], exp_so3(theta[i]))
+    return p, R, v
+
+
+@kernel
+def rkmk4_step(t, p, R, v, u, h, plant):
+    """One RKMK4 step of length h [s] with the wrench u (N,6) held: the new (p, R, v)."""
+    half = 0.5 * h
+    pd1, vd1 = body_rates(t, p, R, v, u, plant)
+    K1 = np.ascontiguousarray(v[:, 3:])
+    th2, p2, R2, v2 = rkmk4_stage(half, p, R, v, pd1, vd1, K1)
+    pd2, vd2 = body_rates(t + half, p2, R2, v2, u, plant)
+    K2 = chart_rates(th2, v2)
+    th3, p3, R3, v3 = rkmk4_stage(half, p, R, v, pd2, vd2, K2)
+    pd3, vd3 = body_rates(t + half, p3, R3, v3, u, plant)
+    K3 = chart_rates(th3, v3)
+    th4, p4, R4, v4 = rkmk4_stage(h, p, R, v, pd3, vd3, K3)
+    pd4, vd4 = body_rates(t + h, p4, R4, v4, u, plant)
+    K4 = chart_rates(th4, v4)
+    return rkmk4_combine(h, p, R, v, (pd1, pd2, pd3, pd4), (vd1, vd2, vd3, vd4), (K1, K2, K3, K4))
+
+
+@kernel
+def measured_velocity(t, p, R, v, noise):
+    """ṽ = v + n(x, t): the noisy body twists the agents receive (N,6)."""
+    return v + signals_at(noise, t, p, R, v)
 
 
 class Plant:
-    """The true dynamics of every agent of a formation (what only the simulator knows)."""
+    """The true dynamics of every agent of a formation, with its integrator."""
 
     def __init__(self, view: SimulatorView, rng: np.random.Generator | None = None) -> None:
         rng = rng if rng is not None else np.random.default_rng(view.simulation.seed)
         agents = view.agents
         self.n = len(agents)
-        self.mass = np.array([a.dynamics.mass for a in agents])
-        self.inertia = np.array([a.dynamics.inertia for a in agents])
-        self.inertia_inv = np.linalg.inv(self.inertia)
-        self.gravity = np.asarray(view.simulation.gravity, dtype=np.float64)
-        self.has_gravity = bool(np.any(self.gravity != 0))
-        self.disturbance = SignalBank([a.dynamics.disturbance for a in agents], rng)
-        self.noise = SignalBank([a.dynamics.velocity_noise for a in agents], rng)
-        # per agent, as floats: m, J (9), J⁻¹ (9), disturbance evaluator
-        self._agents = [
-            (
-                float(self.mass[i]),
-                tuple(self.inertia[i].ravel().tolist()),
-                tuple(self.inertia_inv[i].ravel().tolist()),
-                self.disturbance.signals[i],
-            )
-            for i in range(self.n)
-        ]
-        self._g = tuple(self.gravity.tolist())
+        inertia = np.array([a.dynamics.inertia for a in agents], dtype=np.float64).reshape(self.n, 3, 3)
+        self.params = PlantParams(
+            np.array([a.dynamics.mass for a in agents], dtype=np.float64),
+            inertia,
+            np.linalg.inv(inertia),
+            np.asarray(view.simulation.gravity, dtype=np.float64),
+            signal_params([a.dynamics.disturbance for a in agents], rng),
+            signal_params([a.dynamics.velocity_noise for a in agents], rng),
+        )
+
+    @property
+    def mass(self) -> np.ndarray:
+        return self.params.mass
+
+    @property
+    def inertia(self) -> np.ndarray:
+        return self.params.inertia
 
     def initial_state(self, view: SimulatorView) -> PlantState:
         return PlantState(
@@ -124,103 +158,18 @@ class Plant:
         )
 
     def measured_velocity(self, t: float, s: PlantState) -> np.ndarray:
-        """ṽ = v + n(x, t): the noisy body twists the agents receive (N,6)."""
-        if not self.noise.active:
-            return s.v.copy()
-        return s.v + self.noise.evaluate(t, s.p, s.R, s.v)
+        """ṽ = v + n(x, t) (N,6)."""
+        return measured_velocity(float(t), s.p, s.R, s.v, self.params.noise)
+
+    def disturbance(self, t: float, s: PlantState) -> np.ndarray:
+        """w(x, v, t) (N,6)."""
+        return signals_at(self.params.disturbance, float(t), s.p, s.R, s.v)
 
     def acceleration(self, t: float, s: PlantState, u: np.ndarray) -> np.ndarray:
         """v̇ (N,6) = M⁻¹(u − C(v)v − g(x) − w(x,v,t)), body frame."""
-        P = s.p.tolist()
-        Rf = [r[0] + r[1] + r[2] for r in s.R.tolist()]
-        _, acc = self._rates(t, P, Rf, s.v.tolist(), np.asarray(u, dtype=np.float64).tolist())
-        return np.array(acc)
+        return body_rates(float(t), s.p, s.R, s.v, np.asarray(u, dtype=np.float64), self.params)[1]
 
-    def _rates(
-        self, t: float, P: list[list[float]], Rf: list, V: list[list[float]], U: list[list[float]]
-    ) -> tuple[list[tuple[float, float, float]], list[tuple[float, ...]]]:
-        """(ṗ, v̇) of every agent; Rf holds row-major 9-sequences."""
-        p1 = P[0]
-        ref_first = abs(p1[0]) + abs(p1[1]) + abs(p1[2])
-        gx, gy, gz = self._g
-        gravity = self.has_gravity
-        pdots = []
-        accs = []
-        for i, (m, J, Ji, dist) in enumerate(self._agents):
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = Rf[i]
-            v = V[i]
-            vx, vy, vz, wx, wy, wz = v
-            fx, fy, fz, tx, ty, tz = U[i]
-            if dist is not None:
-                pi = P[i]
-                w = dist(t, ref_first, abs(pi[0]) + abs(pi[1]) + abs(pi[2]), r00 + r11 + r22, v)
-                fx, fy, fz, tx, ty, tz = fx - w[0], fy - w[1], fz - w[2], tx - w[3], ty - w[4], tz - w[5]
-            pdots.append(
-                (r00 * vx + r01 * vy + r02 * vz, r10 * vx + r11 * vy + r12 * vz, r20 * vx + r21 * vy + r22 * vz)
-            )
-            ax = fx / m - (wy * vz - wz * vy)
-            ay = fy / m - (wz * vx - wx * vz)
-            az = fz / m - (wx * vy - wy * vx)
-            if gravity:  # Rᵀ g_world
-                ax += r00 * gx + r10 * gy + r20 * gz
-                ay += r01 * gx + r11 * gy + r21 * gz
-                az += r02 * gx + r12 * gy + r22 * gz
-            j0, j1, j2, j3, j4, j5, j6, j7, j8 = J
-            hx, hy, hz = j0 * wx + j1 * wy + j2 * wz, j3 * wx + j4 * wy + j5 * wz, j6 * wx + j7 * wy + j8 * wz
-            tx -= wy * hz - wz * hy
-            ty -= wz * hx - wx * hz
-            tz -= wx * hy - wy * hx
-            k0, k1, k2, k3, k4, k5, k6, k7, k8 = Ji
-            accs.append(
-                (ax, ay, az, k0 * tx + k1 * ty + k2 * tz, k3 * tx + k4 * ty + k5 * tz, k6 * tx + k7 * ty + k8 * tz)
-            )
-        return pdots, accs
-
-    def step(self, t: float, s: PlantState, u: np.ndarray | WrenchFunction, h: float) -> PlantState:
-        """One RKMK4 step of length h (s). ``u`` is held (N,6) or evaluated per stage."""
-        P0 = s.p.tolist()
-        R0 = s.R.tolist()
-        V0 = s.v.tolist()
-        n = self.n
-        if callable(u):
-
-            def wrench(ts: float, P: list, Rf: list, V: list) -> list:
-                st = PlantState(np.array(P), np.array(Rf).reshape(n, 3, 3), np.array(V))
-                return np.asarray(u(ts, st), dtype=np.float64).tolist()
-        else:
-            U = np.asarray(u, dtype=np.float64).tolist()
-
-            def wrench(ts: float, P: list, Rf: list, V: list) -> list:
-                return U
-
-        Rf0 = [r[0] + r[1] + r[2] for r in R0]
-        p1, a1 = self._rates(t, P0, Rf0, V0, wrench(t, P0, Rf0, V0))
-        K1 = [v[3:] for v in V0]
-
-        def stage(c: float, pd, ac, K):
-            th = [(c * k[0], c * k[1], c * k[2]) for k in K]
-            P = [[p[0] + c * d[0], p[1] + c * d[1], p[2] + c * d[2]] for p, d in zip(P0, pd)]
-            Rs = [_rot(R0[i], _exp(*th[i])) for i in range(n)]
-            V = [[x + c * y for x, y in zip(v, a)] for v, a in zip(V0, ac)]
-            return th, P, Rs, V
-
-        half = 0.5 * h
-        th2, P2, R2, V2 = stage(half, p1, a1, K1)
-        p2, a2 = self._rates(t + half, P2, R2, V2, wrench(t + half, P2, R2, V2))
-        K2 = [_dexpinv(*th2[i], *V2[i][3:]) for i in range(n)]
-        th3, P3, R3, V3 = stage(half, p2, a2, K2)
-        p3, a3 = self._rates(t + half, P3, R3, V3, wrench(t + half, P3, R3, V3))
-        K3 = [_dexpinv(*th3[i], *V3[i][3:]) for i in range(n)]
-        th4, P4, R4, V4 = stage(h, p3, a3, K3)
-        p4, a4 = self._rates(t + h, P4, R4, V4, wrench(t + h, P4, R4, V4))
-        K4 = [_dexpinv(*th4[i], *V4[i][3:]) for i in range(n)]
-        w6 = h / 6.0
-        P_new = []
-        R_new = []
-        V_new = []
-        for i in range(n):
-            P_new.append([P0[i][c] + w6 * (p1[i][c] + 2 * p2[i][c] + 2 * p3[i][c] + p4[i][c]) for c in range(3)])
-            V_new.append([V0[i][c] + w6 * (a1[i][c] + 2 * a2[i][c] + 2 * a3[i][c] + a4[i][c]) for c in range(6)])
-            k1, k2, k3, k4 = K1[i], K2[i], K3[i], K4[i]
-            R_new.append(_rot(R0[i], _exp(*(w6 * (k1[c] + 2 * k2[c] + 2 * k3[c] + k4[c]) for c in range(3)))))
-        return PlantState(np.array(P_new), np.array(R_new).reshape(n, 3, 3), np.array(V_new))
+    def step(self, t: float, s: PlantState, u: np.ndarray, h: float) -> PlantState:
+        """One RKMK4 step of length h (s) with the wrenches u (N,6) held."""
+        p, R, v = rkmk4_step(float(t), s.p, s.R, s.v, np.asarray(u, dtype=np.float64), float(h), self.params)
+        return PlantState(p, R, v)

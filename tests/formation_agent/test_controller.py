@@ -228,3 +228,33 @@ def test_rho_v0_is_set_at_the_first_step(spec) -> None:
     out = ctrl.compute(0.0, measurements(spec, p, R, "2"), v)
     np.testing.assert_allclose(ctrl.rho_v0, 2 * np.abs(v - np.array(out.v_des)) + 1, rtol=1e-15)
     np.testing.assert_allclose(out.xi_v, (v - np.array(out.v_des)) / np.array(ctrl.rho_v0), rtol=1e-12)
+
+
+def test_wrench_is_bounded_by_the_controller_limits(spec) -> None:
+    """A 1e6 m relative translation saturates every funnel, yet the wrench stays within 100 N / 100 N·m."""
+    p, R = world(spec)
+    meas = measurements(spec, p, R, "1")
+    far = {j: (np.array([1e6, 0.0, 0.0]), Rj) for j, (_, Rj) in meas.items()}
+    ctrl = AgentController(agent_view(spec, "1"))
+    ctrl.compute(0.0, meas, np.zeros(6))  # the first step sets the velocity funnel from e_v(0)
+    out = ctrl.compute(1e-4, far, np.array([1e3, 0, 0, 0, 0, 1e3]))
+    assert out.level == ERROR
+    force, torque = np.linalg.norm(out.wrench[:3]), np.linalg.norm(out.wrench[3:])
+    assert force <= 100.0 * (1 + 1e-12) and torque <= 100.0 * (1 + 1e-12)
+    assert force == pytest.approx(100.0, rel=1e-12)  # saturated, not zeroed
+
+
+def test_controller_limits_default_to_the_actuators_and_never_exceed_them(paper_path: Path) -> None:
+    """controller.max_force: null takes dynamics.max_force; a larger value is an error naming both."""
+    import yaml
+
+    from formation_msgs_py.errors import FormationSpecError
+    from formation_msgs_py.spec import formation_from_dict
+
+    doc = yaml.safe_load(paper_path.read_text())
+    doc["agents"][0]["dynamics"]["max_force"] = 40.0
+    spec = formation_from_dict(doc)
+    assert spec.agents[0].controller.max_force == 40.0 and spec.agents[1].controller.max_force == 100.0
+    doc["agents"][0]["controller"] = {"max_force": 50.0}
+    with pytest.raises(FormationSpecError, match=r"agents\[0\]\.controller\.max_force: 50 exceeds .*max_force 40"):
+        formation_from_dict(doc)

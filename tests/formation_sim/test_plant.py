@@ -133,3 +133,24 @@ def test_measurements_respect_the_sensing_radius(paper_path: Path) -> None:
     p[3] = p[2] + [4.5, 0, 0]  # agent 4 leaves the 4 m sensing radius of agent 3
     meas = model.measure(p, R)
     assert set(meas["3"]) == {"1", "5"} and "3" not in meas["4"]
+
+
+def test_plant_saturates_the_actuators() -> None:
+    """A 1e8 N / 1e8 N·m command is applied at the actuator limits (100 N, 100 N·m), direction kept."""
+    plant, s = tumbling_body()
+    u = np.zeros((2, 6))
+    u[0] = [1e8, 0.0, 0.0, 0.0, 0.0, -1e8]
+    applied = plant.saturate(u)
+    assert applied[0] == pytest.approx([100.0, 0, 0, 0, 0, -100.0], abs=1e-12)
+    assert applied[1] == pytest.approx(np.zeros(6), abs=0.0)
+    # the integrator applies the same: one step with 1e8 N equals one step with 100 N
+    s_big = plant.step(0.0, s, u, 1e-3)
+    s_lim = plant.step(0.0, s, applied, 1e-3)
+    assert np.array_equal(s_big.v, s_lim.v) and np.array_equal(s_big.p, s_lim.p)
+
+
+def test_plant_leaves_a_wrench_within_limits_untouched() -> None:
+    """Below the limits the applied wrench is bit-identical (the presets never saturate)."""
+    plant, _ = tumbling_body()
+    u = [[3.0, -4.0, 0.5, 0.1, 0.2, 0.3], [0.0] * 6]
+    assert np.array_equal(plant.saturate(np.array(u)), u)

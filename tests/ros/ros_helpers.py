@@ -97,7 +97,7 @@ def processes_mentioning(text: str) -> list[int]:
 
 
 def children_by_node(parent: int) -> dict[str, int]:
-    """{node name: pid} of the agent processes started by ``parent`` (``-r __node:=NAME``, from /proc)."""
+    """{agent_<id>: pid} of the agent processes started by ``parent`` (``-p agent_id:=ID``, from /proc)."""
     found = {}
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
@@ -110,6 +110,6 @@ def children_by_node(parent: int) -> dict[str, int]:
         if int(stat.rsplit(")", 1)[1].split()[1]) != parent:
             continue
         for arg in cmd:
-            if arg.startswith(b"__node:="):
-                found[arg.split(b":=", 1)[1].decode()] = int(d.name)
+            if arg.startswith(b"agent_id:="):
+                found["agent_" + arg.split(b":=", 1)[1].decode().strip("'\"")] = int(d.name)
     return found

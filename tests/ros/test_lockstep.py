@@ -101,7 +101,7 @@ def test_launcher_stops_everything_when_an_agent_dies(ros_env: dict[str, str], t
             assert time.monotonic() < deadline and proc.poll() is None
             time.sleep(0.1)
         pids = children_by_node(proc.pid)
-        os.kill(pids["formation_agent_2"], signal.SIGKILL)
+        os.kill(pids["agent_2"], signal.SIGKILL)
         stdout, _ = proc.communicate(timeout=60)
         assert proc.returncode == 3, stdout
         assert "agent_2 exited" in stdout

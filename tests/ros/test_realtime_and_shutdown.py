@@ -53,9 +53,9 @@ def test_agents_subscribe_to_exactly_their_contract(procs, ros_env: dict[str, st
     rclpy.init(context=context)
     try:
         node = Node("graph_query", context=context)
-        names = {f"formation_agent_{a.id}" for a in spec.agents}
+        names = {("formation_agent", f"/agent_{a.id}") for a in spec.agents}
         deadline = time.monotonic() + 60
-        while not names <= {n for n, _ in node.get_node_names_and_namespaces()}:
+        while not names <= set(node.get_node_names_and_namespaces()):
             assert time.monotonic() < deadline, node.get_node_names_and_namespaces()
             time.sleep(0.2)
         time.sleep(1.5)  # endpoints are announced after the participant
@@ -63,9 +63,9 @@ def test_agents_subscribe_to_exactly_their_contract(procs, ros_env: dict[str, st
             view = agent_view(spec, a.id)
             expected = {f"/agent_{a.id}/velocity", "/clock"}
             expected |= {f"/agent_{a.id}/relative_pose/agent_{j}" for j in view.neighbours}
-            subs = {t for t, _ in node.get_subscriber_names_and_types_by_node(f"formation_agent_{a.id}", "/")}
+            subs = {t for t, _ in node.get_subscriber_names_and_types_by_node("formation_agent", f"/agent_{a.id}")}
             assert subs == expected, (a.id, subs)
-            pubs = {t for t, _ in node.get_publisher_names_and_types_by_node(f"formation_agent_{a.id}", "/")}
+            pubs = {t for t, _ in node.get_publisher_names_and_types_by_node("formation_agent", f"/agent_{a.id}")}
             assert pubs == {f"/agent_{a.id}/wrench", "/diagnostics", "/rosout", "/parameter_events"}, pubs
         assert node.get_subscriptions_info_by_topic("/formation/ground_truth") == []
         node.destroy_node()

@@ -21,10 +21,12 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController, ControlOutput
+from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.spec import AgentView
 
 #: Bounded memory of poses per neighbour (stamps); more only happens when the agent lags.
@@ -103,6 +105,15 @@ class StepSynchroniser:
         self.last_ns = None
         self.resets += 1
 
+    def set_gains(self, **gains: float) -> None:
+        """Controller gains (``agents[].controller`` names) from the next step on; ρ_v0 and t0 are kept."""
+        old = self.controller
+        if not gains:
+            return
+        new = AgentController(replace(old.view, controller=replace(old.view.controller, **gains)))
+        new.rho_v0, new.t0 = old.rho_v0, old.t0
+        self.controller = new
+
     def on_pose(self, j: str, ns: int, p: list[float], R: list[list[float]], now: float) -> None:
         mem = self.poses[j]
         mem[ns] = (p, R)
@@ -165,64 +176,109 @@ class StepSynchroniser:
     _clock_ns: int = 0
 
 
+#: Gains that a running agent applies from its next step: {parameter name: description}.
+LIVE_GAINS = {
+    "delta": "gain δ_i of the desired velocity (> 0); live: applies from the next step",
+    "gamma": "gain γ_i of the wrench (> 0); live: applies from the next step",
+}
+
+
+def live_gains(agent_id: str, values: Mapping[str, Any]) -> dict[str, float]:
+    """``values`` checked as the formation file's ``agents[].controller`` section is checked.
+
+    Raises FormationSpecError naming the field and the value (e.g. ``gamma: -1.0 must be > 0``).
+    """
+    controller = next(f for f in AGENT_FIELDS if f.name == "controller")
+    fields = tuple(f for f in controller.children if f.name in LIVE_GAINS and f.name in values)
+    return parse_mapping(dict(values), fields, f"agents[{agent_id}].controller")
+
+
 # --- ROS wrapper ------------------------------------------------------------------------------
 
 import rclpy  # noqa: E402  (the synchroniser above stays importable and testable without rclpy)
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped  # noqa: E402
-from rcl_interfaces.msg import ParameterDescriptor  # noqa: E402
+from rcl_interfaces.msg import SetParametersResult  # noqa: E402
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump  # noqa: E402
 from rclpy.duration import Duration  # noqa: E402
 from rclpy.exceptions import ParameterException  # noqa: E402
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from formation_msgs_py import conversions, qos, topics  # noqa: E402
+from formation_msgs_py import conversions, parameters, qos, topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
+from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
+from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
 
 _DIAG_LEVEL = {OK: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
+NODE_NAME = topics.AGENT_NODE_NAME
+POSE_WAIT_DOC = (
+    "wall seconds to wait for the neighbours' poses once the velocity is in; a neighbour still "
+    "missing then is out of range: zero wrench and ERROR; live"
+)
+DIAG_DOC = "wall seconds between /diagnostics messages (>= 0.1); live"
+QOS_DOC = "QoS of the measurements: reliable or best-effort, as the simulator's --measurement-qos"
+POLICY_DOC = (
+    f"publishers other than the expected ones on this agent's topics: {' or '.join(POLICIES)} "
+    "(also ignore that topic's messages while they are there; docs/security.md)"
+)
+
+
+def _root(name: str) -> str:
+    """A DESIGN topic name from the root: the node's own namespace /agent_<id> must not prefix it."""
+    return "/" + name
 
 
 class AgentNode(Node):
     """Thin ROS wrapper around :class:`StepSynchroniser` for one agent."""
 
-    def __init__(self, node_name: str = "formation_agent") -> None:
-        super().__init__(node_name)
-        any_type = ParameterDescriptor(dynamic_typing=True, description="agent id (a number is read as text)")
-        self.declare_parameter("agent_id", "", any_type)
-        self.declare_parameter("formation_file", "")
-        self.declare_parameter("pose_wait", 0.005)
-        self.declare_parameter("diagnostics_period", 0.1)
-        self.declare_parameter("measurement_qos", "reliable")
-        agent_id = self.get_parameter("agent_id").value
-        agent_id = "" if agent_id is None else str(agent_id)
-        path = str(self.get_parameter("formation_file").value)
-        if not agent_id or not path:
-            raise FormationSpecError("", "parameters agent_id and formation_file are required")
+    def __init__(self, agent_id: str, context=None) -> None:
+        super().__init__(NODE_NAME, namespace="/" + topics.agent_frame(agent_id), context=context)
+        declare = parameters.declare
+        declare(self, "agent_id", agent_id, "the agent's id in the formation file", read_only=True, any_type=True)
+        path = declare(self, "formation_file", "", "formation file (YAML); the agent reads its view", read_only=True)
+        if not path:
+            raise FormationSpecError("formation_file", "parameter formation_file is required")
         view: AgentView = agent_view(load_formation(path), agent_id)
         self.view = view
         self.agent_id = view.agent_id
-        self.diag_period = max(0.1, float(self.get_parameter("diagnostics_period").value))
+        pose_wait = declare(self, "pose_wait", 0.005, POSE_WAIT_DOC, low=0.0, high=1.0)
+        self.diag_period = declare(self, "diagnostics_period", 0.1, DIAG_DOC, low=0.1, high=3600.0)
+        self.measurement_qos = declare(self, "measurement_qos", "reliable", QOS_DOC, read_only=True)
+        self.executor_kind = declare(self, "executor", "events", "rclpy executor: events or single", read_only=True)
+        policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
+        gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
         self.sync = StepSynchroniser(
             AgentController(view),
             self._publish_wrench,
-            pose_wait=float(self.get_parameter("pose_wait").value),
+            pose_wait=float(pose_wait),
             measurement_timeout_ns=round(view.controller.measurement_timeout * _NS),
         )
+        self.sync.set_gains(**live_gains(self.agent_id, gains))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         # hot path: CDR bytes in and out (formation_msgs_py.conversions), no message objects
         self._wrench_codec = conversions.wrench_codec(view.agent_id)
         self._twist_codec = conversions.twist_codec(view.agent_id)
-        self._pub = self.create_publisher(WrenchStamped, topics.wrench(view.agent_id), qos.CONTROL)
+        self._pub = self.create_publisher(WrenchStamped, _root(topics.wrench(view.agent_id)), qos.CONTROL)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
-        meas_qos = qos.measurements(str(self.get_parameter("measurement_qos").value))
-        self.create_subscription(TwistStamped, topics.velocity(view.agent_id), self._on_velocity, meas_qos, raw=True)
+        meas_qos = qos.measurements(self.measurement_qos)
+        # the publishers of what this agent hears (and of its own wrench topic) are watched
+        expected = expected_publishers([view.agent_id], [(view.agent_id, j) for j in view.neighbours])
+        self._watch = GraphWatch(self, PublisherWatch(expected, policy))
+        self._velocity = _root(topics.velocity(view.agent_id))
+        self._subs = {
+            self._velocity: self.create_subscription(
+                TwistStamped, self._velocity, self._on_velocity, meas_qos, raw=True
+            )
+        }
         for j in view.neighbours:
             codec = conversions.relative_pose_codec(view.agent_id, j)
-            self.create_subscription(
+            topic = _root(topics.relative_pose(view.agent_id, j))
+            self._subs[topic] = self.create_subscription(
                 TransformStamped,
-                topics.relative_pose(view.agent_id, j),
-                lambda data, j=j, codec=codec: self._on_pose(j, codec, data),
+                topic,
+                lambda data, j=j, codec=codec, topic=topic: self._on_pose(j, codec, topic, data),
                 meas_qos,
                 raw=True,
             )
@@ -238,13 +294,31 @@ class AgentNode(Node):
             f"use_sim_time={self._use_sim_time}; pose_wait={self.sync.pose_wait * 1e3:.1f} ms"
         )
 
+    def _on_set_parameters(self, params: list) -> SetParametersResult:
+        """Apply live parameters; refuse the whole set, with the reason, if one value is invalid."""
+        values = {p.name: p.value for p in params}
+        try:
+            gains = live_gains(self.agent_id, {k: v for k, v in values.items() if k in LIVE_GAINS})
+        except FormationSpecError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.sync.set_gains(**gains)
+        if "pose_wait" in values:
+            self.sync.pose_wait = float(values["pose_wait"])
+        if "diagnostics_period" in values:
+            self.diag_period = float(values["diagnostics_period"])
+        return SetParametersResult(successful=True)
+
     # callbacks: messages -> synchroniser
     def _on_velocity(self, data: bytes) -> None:
+        if not self._watch.accept(self._velocity, self._subs[self._velocity]):
+            return
         ns, v = self._twist_codec.decode(data)
         clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
         self.sync.on_velocity(ns, list(v), time.monotonic(), clock_ns)
 
-    def _on_pose(self, j: str, codec: conversions.StampedCodec, data: bytes) -> None:
+    def _on_pose(self, j: str, codec: conversions.StampedCodec, topic: str, data: bytes) -> None:
+        if not self._watch.accept(topic, self._subs[topic]):
+            return
         ns, values = codec.decode(data)
         p, R = conversions.relative_pose_from_values(values)
         self.sync.on_pose(j, ns, p, R, time.monotonic())
@@ -329,54 +403,72 @@ def _cli_sets(args: Sequence[str], name: str) -> bool:
     return any(a.startswith(f"{name}:=") for a in args)
 
 
-def _node_name(args: Sequence[str]) -> str:
-    """``formation_agent_<id>`` from ``-p agent_id:=<id>`` on the command line (else the plain name)."""
-    for a in args:
+def resolve_agent_id(argv: Sequence[str], context) -> str:
+    """The agent id: ``-p agent_id:=ID`` on the command line, else the ``agent_id`` parameter a
+    parameters file gives the node (``/**`` or its own section; a ``-r __ns:=/agent_<ID>`` remap
+    selects the per-agent section), else the ``<ID>`` of such a namespace remap."""
+    for a in argv:
         if a.startswith("agent_id:="):
-            ident = a.split(":=", 1)[1].strip("'\"")
-            if ident.replace("_", "").isalnum():
-                return topics.agent_node_name(ident)
-    return "formation_agent"
+            return a.split(":=", 1)[1].strip("'\"")
+    probe = Node(NODE_NAME, context=context, start_parameter_services=False)
+    try:
+        value = parameters.declare(probe, "agent_id", "", "the agent's id in the formation file", any_type=True)
+        namespace = probe.get_namespace()
+    finally:
+        probe.destroy_node()
+    if value not in (None, ""):
+        return str(value)
+    prefix = "/" + topics.agent_frame("")
+    if namespace.startswith(prefix) and namespace.count("/") == 1:
+        return namespace[len(prefix) :]
+    raise FormationSpecError("agent_id", "is required: -p agent_id:=ID, a parameters file or -r __ns:=/agent_ID")
 
 
 USAGE = """usage: formation-agent --ros-args -p formation_file:=FILE -p agent_id:=ID [-p NAME:=VALUE ...]
+       formation-agent --ros-args --params-file PARAMS.yaml [-p agent_id:=ID | -r __ns:=/agent_ID]
 
-One agent of a formation (DESIGN.md §3): subscribes to agent_<ID>/velocity and the relative poses
-of its tree neighbours, publishes agent_<ID>/wrench and /diagnostics.
+One agent of a formation: node /agent_<ID>/formation_agent; subscribes to /agent_<ID>/velocity and
+the relative poses of its tree neighbours, publishes /agent_<ID>/wrench and /diagnostics.
 
-parameters:
-  formation_file       formation file (YAML); only the agent's own view of it is used
-  agent_id             the agent's id in the file
+parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
+  formation_file       formation file (YAML); only the agent's own view of it is used   read-only
+  agent_id             the agent's id in the file                                      read-only
+  measurement_qos      reliable (default) or best-effort, as the simulator's --measurement-qos  read-only
+  executor             events (default) or single                                      read-only
+  intruder_policy      report (default) or refuse: a publisher other than the simulator on the
+                       agent's measurements (or other than itself on its wrench) is logged; refuse
+                       also ignores that topic's messages while it is there  read-only
   use_sim_time         default true (the simulator publishes /clock)
-  pose_wait            wall seconds to wait for neighbours' poses after the velocity (default 0.005);
-                       a neighbour still missing then is out of range: zero wrench + ERROR
-  diagnostics_period   wall seconds between /diagnostics messages (default 0.1, minimum 0.1)
-  measurement_qos      reliable (default) or best_effort: must match the simulator's --measurement-qos
-environment:
-  FORMATION_EXECUTOR   events (default) or single
-  ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS: see docs/ros2.md
+  pose_wait            wall s to wait for the neighbours' poses after the velocity (default 0.005);
+                       a neighbour still missing then is out of range: zero wrench + ERROR     live
+  diagnostics_period   wall s between /diagnostics messages (default 0.1, minimum 0.1)         live
+  delta, gamma         the controller's gains (default: the formation file's); checked like the
+                       file (> 0); applied from the next step                                  live
+A parameters file may hold every agent: a /** section for what they share and one
+/agent_<ID>/formation_agent section per agent (docs/ros2.md, "Parameters").
+environment: ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS: see docs/ros2.md
 """
 
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``formation-agent``; exit 2 on a bad file or parameter."""
-    import os
-
     argv = list(sys.argv if args is None else args)
     if any(a in ("-h", "--help") for a in argv[1:]):
         print(USAGE)
         return 0
     if not _cli_sets(argv, "use_sim_time"):
         argv += ["--ros-args", "-p", "use_sim_time:=true"]
+    if "best-effort" in argv or "measurement_qos:=best_effort" in argv:
+        argv = [a.replace("measurement_qos:=best_effort", "measurement_qos:=best-effort") for a in argv]
     rclpy.init(args=argv)
     node = None
     try:
         try:
-            node = AgentNode(_node_name(argv))
+            node = AgentNode(resolve_agent_id(argv, None))
+            executor = make_executor(node.executor_kind, node.context)
         except (FormationSpecError, ParameterException, ValueError) as exc:
             print(f"formation-agent: {exc}", file=sys.stderr)
             return 2
-        executor = make_executor(os.environ.get("FORMATION_EXECUTOR", "events"), node.context)
         executor.add_node(node)
         node.spin(executor)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -19,7 +19,10 @@ Inputs are what the topics carry (DESIGN.md §3): for neighbour j, ``p_i_j_in_i 
 [m] and ``R_i_j = R_iᵀ R_j``; the agent's own noisy body twist ṽ_i [m/s, rad/s]; the time t [s].
 The wrench is in the body frame [N, N·m]. A normalised error outside its funnel (possible with a
 sampled controller) is clamped to (1 − saturation_margin) of its domain: the wrench stays finite
-and the level is ERROR.
+and the level is ERROR. The wrench is bounded by design: its force and torque norms are scaled
+down to the controller's ``max_force`` / ``max_torque`` (finite, at most the actuators' limits),
+whatever the errors, so no measurement can make the controller command more than its actuators
+can give.
 """
 
 from __future__ import annotations

@@ -27,6 +27,8 @@ WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
 POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 CLOCK = "rosgraph_msgs/msg/Clock"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+FLOAT64_MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
 
 
 @cache
@@ -87,6 +89,8 @@ def formation_topics(agent_ids: Sequence[str], edges: Sequence[tuple[str, str]],
         topics.CLOCK: CLOCK,
         absolute(topics.GROUND_TRUTH, namespace): POSE_ARRAY,
         topics.DIAGNOSTICS: DIAGNOSTIC_ARRAY,
+        absolute(topics.MARKERS, namespace): MARKER_ARRAY,  # for viewers; not analysed
+        absolute(topics.FUNNELS, namespace): FLOAT64_MULTI_ARRAY,  # for plots; not analysed
     }
     for a in agent_ids:
         out[absolute(topics.velocity(a), namespace)] = TWIST_STAMPED

@@ -78,7 +78,7 @@ def write_run_bag(
     started = time.perf_counter()
     with SegmentedBagWriter(bag, storage=storage, segment_seconds=segment_seconds, custom_data=custom) as w:
         for name, msgtype in m.formation_topics(ids, edges).items():
-            if msgtype != m.DIAGNOSTIC_ARRAY:
+            if msgtype not in (m.DIAGNOSTIC_ARRAY, m.MARKER_ARRAY, m.FLOAT64_MULTI_ARRAY):  # not synthesised
                 w.add_topic(name, msgtype, (make_qos(depth=1 if name == topics.CLOCK else 10),))
         step_ns = round(wall_step * m.NS_PER_S)
         space_ns = max(1, round(message_spacing * m.NS_PER_S))

@@ -10,6 +10,8 @@
   time-source subscription).
 - ``GROUND_TRUTH``: reliable, keep last 100 (recorders may lag a little).
 - ``DIAGNOSTICS``: reliable, keep last 10 (the ROS default).
+- ``DISPLAY``: markers, funnel plots and TF for viewers: reliable, keep last 10 (the ROS default;
+  published at a display rate of tens of Hz, so a late viewer loses nothing it would draw).
 """
 
 from __future__ import annotations
@@ -52,6 +54,12 @@ GROUND_TRUTH = QoSProfile(
     durability=DurabilityPolicy.VOLATILE,
 )
 DIAGNOSTICS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+DISPLAY = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=10,
     reliability=ReliabilityPolicy.RELIABLE,

@@ -27,6 +27,11 @@ class _Required:
 
 REQUIRED: Any = _Required()
 AGENT_ID_PATTERN = re.compile(r"^[A-Za-z0-9_]+$")
+#: Default actuator limits (N, N·m): above 5x the largest peak force (19.2 N) and torque (12.8 N·m)
+#: of the presets in config/ (headless, BENCHMARKS.md), so that no preset ever saturates, yet a
+#: runaway command stays bounded.
+ACTUATOR_MAX_FORCE = 100.0
+ACTUATOR_MAX_TORQUE = 100.0
 
 
 @dataclass(frozen=True)
@@ -114,8 +119,22 @@ AGENT_FIELDS: tuple[Field, ...] = (
                 "a normalised error outside its funnel is clamped to (1 − margin) of it: finite, saturated wrench",
                 sign="positive",
             ),
-            Field("max_force", "optional_float", None, "optional norm limit of the force", "N", sign="positive"),
-            Field("max_torque", "optional_float", None, "optional norm limit of the torque", "N·m", sign="positive"),
+            Field(
+                "max_force",
+                "optional_float",
+                None,
+                "norm limit of the commanded force (null: the actuators' dynamics.max_force; at most that)",
+                "N",
+                sign="positive",
+            ),
+            Field(
+                "max_torque",
+                "optional_float",
+                None,
+                "norm limit of the commanded torque (null: the actuators' dynamics.max_torque; at most that)",
+                "N·m",
+                sign="positive",
+            ),
             Field(
                 "measurement_timeout",
                 "float",
@@ -134,6 +153,22 @@ AGENT_FIELDS: tuple[Field, ...] = (
         children=(
             Field("mass", "float", REQUIRED, "mass m_i", "kg", sign="positive"),
             Field("inertia", "inertia", REQUIRED, "body-frame inertia: 3 diagonal entries or a 3x3 matrix", "kg·m²"),
+            Field(
+                "max_force",
+                "float",
+                ACTUATOR_MAX_FORCE,
+                "actuator limit: the plant saturates the force norm to it; the simulator refuses a larger command",
+                "N",
+                sign="positive",
+            ),
+            Field(
+                "max_torque",
+                "float",
+                ACTUATOR_MAX_TORQUE,
+                "actuator limit: the plant saturates the torque norm to it; the simulator refuses a larger command",
+                "N·m",
+                sign="positive",
+            ),
             Field(
                 "disturbance",
                 "variant",

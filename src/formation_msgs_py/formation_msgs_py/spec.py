@@ -53,8 +53,9 @@ class ControllerGains:
     gamma: float
     velocity_funnel: VelocityFunnel
     saturation_margin: float
-    max_force: float | None
-    max_torque: float | None
+    #: norm limits of the commanded force (N) and torque (N·m): never above the actuators'
+    max_force: float
+    max_torque: float
     measurement_timeout: float
 
 
@@ -72,6 +73,9 @@ class Dynamics:
 
     mass: float
     inertia: np.ndarray
+    #: actuator limits: the plant saturates the force (N) and torque (N·m) norms to them
+    max_force: float
+    max_torque: float
     disturbance: SignalModel
     velocity_noise: SignalModel
 
@@ -460,6 +464,19 @@ def _make_agent(index: int, a: Mapping[str, Any], path: str) -> AgentSpec:
             f"{c['saturation_margin']!r} must be below 0.5",
             c["saturation_margin"],
         )
+    d = a["dynamics"]
+    limits = {}
+    for key in ("max_force", "max_torque"):
+        if c[key] is None:
+            limits[key] = d[key]
+        elif c[key] > d[key]:
+            raise FormationSpecError(
+                f"{path}.controller.{key}",
+                f"{c[key]:g} exceeds the actuators' dynamics.{key} {d[key]:g}: the simulator would refuse it",
+                c[key],
+            )
+        else:
+            limits[key] = c[key]
     gains = ControllerGains(
         delta=c["delta"],
         gamma=c["gamma"],
@@ -467,11 +484,10 @@ def _make_agent(index: int, a: Mapping[str, Any], path: str) -> AgentSpec:
             rho_0, vf["auto_scale"], vf["auto_offset"], tuple(vf["rho_inf"]), tuple(vf["decay"])
         ),
         saturation_margin=c["saturation_margin"],
-        max_force=c["max_force"],
-        max_torque=c["max_torque"],
+        max_force=limits["max_force"],
+        max_torque=limits["max_torque"],
         measurement_timeout=c["measurement_timeout"],
     )
-    d = a["dynamics"]
     J = np.array(d["inertia"], dtype=np.float64)
     if not np.allclose(J, J.T, atol=1e-12):
         raise FormationSpecError(f"{path}.dynamics.inertia", f"{J.tolist()} is not symmetric", d["inertia"])
@@ -485,6 +501,8 @@ def _make_agent(index: int, a: Mapping[str, Any], path: str) -> AgentSpec:
     dyn = Dynamics(
         mass=d["mass"],
         inertia=J,
+        max_force=d["max_force"],
+        max_torque=d["max_torque"],
         disturbance=SignalModel(d["disturbance"]["model"], {k: v for k, v in d["disturbance"].items() if k != "model"}),
         velocity_noise=SignalModel(
             d["velocity_noise"]["model"], {k: v for k, v in d["velocity_noise"].items() if k != "model"}

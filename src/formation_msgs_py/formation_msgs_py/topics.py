@@ -8,6 +8,9 @@ from __future__ import annotations
 
 CLOCK = "/clock"  # ROS fixes /clock at the root, whatever the namespace
 GROUND_TRUTH = "formation/ground_truth"
+MARKERS = "formation/markers"  # visualization_msgs/MarkerArray for viewers; no agent subscribes
+FUNNELS = "formation/funnels"  # std_msgs/Float64MultiArray: e, ψ and their bounds per edge, for plots
+TF = "/tf"  # tf2_msgs/TFMessage world -> agent_<id>, where tf2_msgs is installed
 DIAGNOSTICS = "/diagnostics"  # the ROS convention: one global diagnostics topic
 WORLD_FRAME = "world"
 
@@ -32,8 +35,11 @@ def wrench(agent_id: str) -> str:
     return f"agent_{agent_id}/wrench"
 
 
-def agent_node_name(agent_id: str) -> str:
-    return f"formation_agent_{agent_id}"
-
-
+#: Agent i's node is /agent_<i>/formation_agent: the multi-robot convention of one namespace per robot.
+AGENT_NODE_NAME = "formation_agent"
 SIM_NODE_NAME = "formation_sim"
+
+
+def agent_node(agent_id: str) -> str:
+    """Fully qualified name of agent i's node: ``/agent_<i>/formation_agent``."""
+    return f"/{agent_frame(agent_id)}/{AGENT_NODE_NAME}"

@@ -49,8 +49,16 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _bin(name: str) -> Path:
-    """A console script of this environment (``.venv/bin/NAME``)."""
-    return Path(sys.executable).parent / name
+    """A console script: in a sourced colcon/ament install (``<prefix>/lib/<package>/NAME`` for a
+    prefix of AMENT_PREFIX_PATH, where ``ros2 run`` finds it), next to this interpreter (the
+    project's ``.venv/bin``), or on PATH; the ``.venv/bin`` path when none exists."""
+    for prefix in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)):
+        found = sorted(Path(prefix).glob(f"lib/*/{name}"))
+        if found:
+            return found[0]
+    here = Path(sys.executable).parent / name
+    which = shutil.which(name)
+    return Path(which) if which and not here.exists() else here
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
@@ -179,6 +187,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="reliable",
         help="QoS of relative poses and velocities; best-effort (realtime only) costs less CPU per message",
     )
+    p.add_argument(
+        "--intruder-policy",
+        choices=("report", "refuse"),
+        default="report",
+        help="a publisher the formation does not expect: report it (default) or also refuse its topic's "
+        "messages while it is there, in the simulator and every agent (docs/security.md)",
+    )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
@@ -188,7 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _sim_args(args: argparse.Namespace, out: Path, spec: FormationSpec) -> list[str]:
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", "--executor", args.executor]
-    cmd += ["--measurement-qos", args.measurement_qos]
+    cmd += ["--measurement-qos", args.measurement_qos, "--intruder-policy", args.intruder_policy]
     for opt in (
         "mode",
         "duration",
@@ -328,9 +343,11 @@ class Launcher:
                 "-p",
                 "use_sim_time:=true",
                 "-p",
-                f"measurement_qos:={args.measurement_qos.replace('-', '_')}",
-                "-r",
-                f"__node:=formation_agent_{a.id}",
+                f"measurement_qos:={args.measurement_qos}",
+                "-p",
+                f"executor:={args.executor}",
+                "-p",
+                f"intruder_policy:={args.intruder_policy}",
             ]
             self.start(f"agent_{a.id}", "agent", cmd)
         while True:
@@ -468,7 +485,6 @@ def main(argv: list[str] | None = None) -> int:
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
     env["ROS_LOG_DIR"] = str(out / "logs" / "ros")
-    env["FORMATION_EXECUTOR"] = args.executor
     if in_netns:
         env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"  # multicast on the namespace's own loopback only
         # UDP on the namespace's loopback only: Fast DDS's shared-memory transport would use /dev/shm,

@@ -116,19 +116,19 @@ def continuous_step(loop, t, p, R, v, h):
     """One RKMK4 step (as :func:`formation_sim.plant.rkmk4_step`) with the controller at every stage."""
     half = 0.5 * h
     sense_and_control(loop, t, p, R, v)
-    pd1, vd1 = body_rates(t, p, R, v, loop.out.u.copy(), loop.plant)
+    pd1, vd1 = body_rates(t, p, R, v, saturate(loop.out.u, loop.plant), loop.plant)
     K1 = np.ascontiguousarray(v[:, 3:])
     th2, p2, R2, v2 = rkmk4_stage(half, p, R, v, pd1, vd1, K1)
     sense_and_control(loop, t + half, p2, R2, v2)
-    pd2, vd2 = body_rates(t + half, p2, R2, v2, loop.out.u.copy(), loop.plant)
+    pd2, vd2 = body_rates(t + half, p2, R2, v2, saturate(loop.out.u, loop.plant), loop.plant)
     K2 = chart_rates(th2, v2)
     th3, p3, R3, v3 = rkmk4_stage(half, p, R, v, pd2, vd2, K2)
     sense_and_control(loop, t + half, p3, R3, v3)
-    pd3, vd3 = body_rates(t + half, p3, R3, v3, loop.out.u.copy(), loop.plant)
+    pd3, vd3 = body_rates(t + half, p3, R3, v3, saturate(loop.out.u, loop.plant), loop.plant)
     K3 = chart_rates(th3, v3)
     th4, p4, R4, v4 = rkmk4_stage(h, p, R, v, pd3, vd3, K3)
     sense_and_control(loop, t + h, p4, R4, v4)
-    pd4, vd4 = body_rates(t + h, p4, R4, v4, loop.out.u.copy(), loop.plant)
+    pd4, vd4 = body_rates(t + h, p4, R4, v4, saturate(loop.out.u, loop.plant), loop.plant)
     K4 = chart_rates(th4, v4)
     return rkmk4_combine(h, p, R, v, (pd1, pd2, pd3, pd4), (vd1, vd2, vd3, vd4), (K1, K2, K3, K4))
 

@@ -5,6 +5,9 @@ Per agent, in the body frame (paper eq. system)::
     ṗ = R v_L,   Ṙ = R S(ω),   M v̇ + C(v) v + g(x) + w(x, v, t) = u
     M = diag(m I₃, J),  C(v) v = [m ω×v_L ; ω×Jω],  g(x) = −[m Rᵀ g_world ; 0]
 
+The actuators saturate: each agent's force and torque norms are scaled down to its
+``dynamics.max_force`` / ``max_torque`` before they enter the dynamics (:func:`saturate`).
+
 Integration is RKMK4 (Runge-Kutta-Munthe-Kaas, order 4): R is advanced as R₀·exp(S(Θ)) with
 Θ̇ = dexp⁻¹_{−Θ}(ω), so it stays in SO(3) to rounding; p and v take the classical RK4 weights
 with the same stages (:func:`rkmk4_stage`, :func:`rkmk4_combine`; :func:`rkmk4_step` with the
@@ -44,8 +47,25 @@ class PlantParams(NamedTuple):
     inertia: np.ndarray  # (N, 3, 3) [kg·m²]
     inertia_inv: np.ndarray  # (N, 3, 3)
     gravity: np.ndarray  # (3,) world frame [m/s²]
+    max_force: np.ndarray  # (N,) actuator limit on ‖force‖ [N]
+    max_torque: np.ndarray  # (N,) actuator limit on ‖torque‖ [N·m]
     disturbance: SignalParams
     noise: SignalParams
+
+
+@kernel
+def saturate(u, plant):
+    """The wrenches (N,6) the actuators apply: force and torque norms at most their limits, directions kept.
+
+    A wrench within the limits is returned unchanged (bit for bit).
+    """
+    out = u.copy()
+    for i in range(u.shape[0]):
+        for lo, limit in ((0, plant.max_force[i]), (3, plant.max_torque[i])):
+            norm2 = u[i, lo] ** 2 + u[i, lo + 1] ** 2 + u[i, lo + 2] ** 2
+            if norm2 > limit * limit:
+                out[i, lo : lo + 3] = limit / np.sqrt(norm2) * u[i, lo : lo + 3]
+    return out
 
 
 @kernel
@@ -103,8 +123,9 @@ def rkmk4_combine(h, p0, R0, v0, p_dots, v_dots, theta_dots):
 
 @kernel
 def rkmk4_step(t, p, R, v, u, h, plant):
-    """One RKMK4 step of length h [s] with the wrench u (N,6) held: the new (p, R, v)."""
+    """One RKMK4 step of length h [s] with the commanded wrench u (N,6) held: the new (p, R, v)."""
     half = 0.5 * h
+    u = saturate(u, plant)
     pd1, vd1 = body_rates(t, p, R, v, u, plant)
     K1 = np.ascontiguousarray(v[:, 3:])
     th2, p2, R2, v2 = rkmk4_stage(half, p, R, v, pd1, vd1, K1)
@@ -138,6 +159,8 @@ class Plant:
             inertia,
             np.linalg.inv(inertia),
             np.asarray(view.simulation.gravity, dtype=np.float64),
+            np.array([a.dynamics.max_force for a in agents], dtype=np.float64),
+            np.array([a.dynamics.max_torque for a in agents], dtype=np.float64),
             signal_params([a.dynamics.disturbance for a in agents], rng),
             signal_params([a.dynamics.velocity_noise for a in agents], rng),
         )
@@ -165,9 +188,13 @@ class Plant:
         """w(x, v, t) (N,6)."""
         return signals_at(self.params.disturbance, float(t), s.p, s.R, s.v)
 
+    def saturate(self, u: np.ndarray) -> np.ndarray:
+        """The wrenches (N,6) the actuators apply for the commanded ``u``."""
+        return saturate(np.asarray(u, dtype=np.float64), self.params)
+
     def acceleration(self, t: float, s: PlantState, u: np.ndarray) -> np.ndarray:
-        """v̇ (N,6) = M⁻¹(u − C(v)v − g(x) − w(x,v,t)), body frame."""
-        return body_rates(float(t), s.p, s.R, s.v, np.asarray(u, dtype=np.float64), self.params)[1]
+        """v̇ (N,6) = M⁻¹(sat(u) − C(v)v − g(x) − w(x,v,t)), body frame."""
+        return body_rates(float(t), s.p, s.R, s.v, self.saturate(u), self.params)[1]
 
     def step(self, t: float, s: PlantState, u: np.ndarray, h: float) -> PlantState:
         """One RKMK4 step of length h (s) with the wrenches u (N,6) held."""

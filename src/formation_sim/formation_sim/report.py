@@ -306,87 +306,15 @@ class RunRecorder:
 
 
 def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> None:
-    """Write summary.json, trajectory.npz and (unless ``plots`` is false) the three figures."""
+    """Write summary.json, trajectory.npz and (unless ``plots`` is false) the figures (:mod:`formation_sim.figures`)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     arrays = recorder.arrays()
     np.savez(out_dir / "trajectory.npz", **arrays)
     if plots:
+        from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
+
         plot_run(out_dir, recorder.spec, arrays)
-
-
-def _grid(n: int) -> tuple[int, int]:
-    cols = min(n, 4)
-    return math.ceil(n / cols), cols
-
-
-def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> list[Path]:
-    """errors.png, orientation_errors.png and inputs.png, like the paper's three figures."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    t = arrays["t"]
-    edges = spec.edges
-    paths = []
-    rows, cols = _grid(len(edges))
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.6 * rows), squeeze=False, sharex=True)
-    for k, e in enumerate(edges):
-        ax = axes[k // cols][k % cols]
-        ax.plot(t, arrays["e"][:, k], color="C0", label="$e_k$")
-        ax.plot(t, e.c_con * arrays["rho_e"][:, k], "r--", lw=1, label=r"$C_{con}\rho_{e}$")
-        ax.plot(t, -e.c_col * arrays["rho_e"][:, k], "r--", lw=1, label=r"$-C_{col}\rho_{e}$")
-        ax.set_title(f"edge {e.tail}-{e.head}", fontsize=9)
-        ax.set_ylim(-1.2 * e.c_col, 1.2 * e.c_con)
-        ax.grid(alpha=0.3)
-    for k in range(len(edges), rows * cols):
-        axes[k // cols][k % cols].axis("off")
-    axes[0][0].legend(fontsize=7)
-    fig.supxlabel("t [s]")
-    fig.supylabel("distance error e [m²]")
-    fig.tight_layout()
-    paths.append(out_dir / "errors.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.6 * rows), squeeze=False, sharex=True)
-    for k, e in enumerate(edges):
-        ax = axes[k // cols][k % cols]
-        ax.plot(t, arrays["psi"][:, k], color="C0", label=r"$\psi_k$")
-        ax.plot(t, arrays["rho_psi"][:, k], "r--", lw=1, label=r"$\rho_\psi$")
-        ax.set_title(f"edge {e.tail}-{e.head}", fontsize=9)
-        ax.set_ylim(-0.05, 2.05)
-        ax.grid(alpha=0.3)
-    for k in range(len(edges), rows * cols):
-        axes[k // cols][k % cols].axis("off")
-    axes[0][0].legend(fontsize=7)
-    fig.supxlabel("t [s]")
-    fig.supylabel(r"orientation error $\psi$")
-    fig.tight_layout()
-    paths.append(out_dir / "orientation_errors.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-
-    n = len(spec.agents)
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
-    for i, a in enumerate(spec.agents):
-        axes[0].plot(t, np.linalg.norm(arrays["u"][:, i, :3], axis=1), lw=1, label=f"agent {a.id}")
-        axes[1].plot(t, np.linalg.norm(arrays["u"][:, i, 3:], axis=1), lw=1)
-    axes[0].set_ylabel("‖force‖ [N]")
-    axes[1].set_ylabel("‖torque‖ [N·m]")
-    axes[1].set_xlabel("t [s]")
-    if n <= 10:
-        axes[0].legend(fontsize=7, ncol=min(n, 5))
-    for ax in axes:
-        ax.set_yscale("symlog", linthresh=1.0)
-        ax.grid(alpha=0.3)
-    fig.suptitle(f"control inputs u_i ({spec.name})")
-    fig.tight_layout()
-    paths.append(out_dir / "inputs.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-    return paths
 
 
 def format_summary(summary: dict[str, Any]) -> str:

@@ -41,8 +41,11 @@ from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.graph_watch import GraphWatch
+from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.deployment import Timing
+from formation_sim.display import DEFAULT_MARKER_RATE, DisplayPublisher, declare_simulator_parameters
 from formation_sim.headless import (
     add_override_options,
     check_control_rate,
@@ -69,7 +72,9 @@ class StopRequestedError(Exception):
 class SimNode(Node):
     """Publishers and subscriptions of the simulator; the stepping loops are :func:`run`."""
 
-    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable") -> None:
+    display: DisplayPublisher | None = None
+
+    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable", intruder_policy: str = "report") -> None:
         super().__init__(topics.SIM_NODE_NAME)
         meas_qos = qos.measurements(measurement_qos)
         self.spec = spec
@@ -101,8 +106,17 @@ class SimNode(Node):
             )
             for i, a in enumerate(self.ids)
         ]
+        # every topic of the formation: intruders are reported (and counted in summary.json) here
+        self.wrench_topics = ["/" + topics.wrench(a) for a in self.ids]
+        self.watch = GraphWatch(
+            self,
+            PublisherWatch(expected_publishers(self.ids, self.links), intruder_policy),  # type: ignore[arg-type]
+            on_intruder=lambda intruder: print(f"formation-sim: {describe(intruder)}", flush=True),
+        )
 
     def _on_wrench(self, i: int, data: bytes) -> None:
+        if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
+            return
         self.received += 1
         ns, u = self.wrench_codecs[i].decode(data)
         if ns < self.u_ns[i]:
@@ -243,6 +257,8 @@ class Runner:
             self.node.publish_clock(ns)
         if k % self.gt_every == 0:
             self.node.publish_ground_truth(t, self.sim)
+        if self.node.display is not None:  # markers at the display rate, with the latest wrenches
+            self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.u_val))
 
     def advance(self, u: np.ndarray) -> bool:
         """Integrate one control period; False (and a recorded fault) if the state blew up."""
@@ -385,6 +401,7 @@ class Runner:
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
         if self.faults:
             info["faults"] = self.faults
+        info["security"] = self.node.watch.watch.report()
         info.update(extra)
         return self.recorder.summary(wall_time=wall, extra=info)
 
@@ -411,12 +428,26 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
     p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")
+    p.add_argument(
+        "--marker-rate",
+        type=float,
+        default=DEFAULT_MARKER_RATE,
+        help="display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off; "
+        f"default {DEFAULT_MARKER_RATE:g}]; also the live parameter marker_rate",
+    )
     p.add_argument("--executor", choices=("events", "single"), default="events", help="rclpy executor")
     p.add_argument(
         "--measurement-qos",
         choices=("reliable", "best-effort"),
         default="reliable",
         help="QoS of relative poses and velocities (best-effort: realtime only; agents need -p measurement_qos)",
+    )
+    p.add_argument(
+        "--intruder-policy",
+        choices=POLICIES,
+        default="report",
+        help="a publisher the formation does not expect on its topics: report it (default), or also refuse the "
+        "wrenches of that topic while it is there (docs/security.md)",
     )
     p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
     p.add_argument("--progress-period", type=float, default=1.0, help="wall s between progress lines")
@@ -476,7 +507,10 @@ def main(argv: list[str] | None = None) -> int:
     code = EXIT_OK
     extra: dict[str, Any] = {}
     try:
-        node = SimNode(spec, args.measurement_qos)
+        node = SimNode(spec, args.measurement_qos, args.intruder_policy)
+        settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
+        settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
+        node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
         executor = make_executor(args.executor, node.context)
         executor.add_node(node)
         runner = Runner(node, executor, spec, args)

@@ -1,6 +1,6 @@
 """Freeze the controller's outputs on seeded random configurations (provenance of controller_reference.npz).
 
-Run once with the hand-unrolled controller of commit a93bff2 (before the controller was rewritten as
+Run once with the hand-unrolled controller of commit a2d582a (before the controller was rewritten as
 the paper's steps): ``.venv/bin/python tests/formation_agent/data/make_reference.py``. The test
 ``test_controller_reference.py`` replays the same configurations through today's controller.
 """

@@ -1,0 +1,53 @@
+"""The rclpy side of :mod:`formation_msgs_py.publisher_watch`: poll the ROS graph, log intruders.
+
+A node creates one :class:`GraphWatch` for the topics it subscribes to (the simulator: every
+topic of the formation). It polls ``get_publishers_info_by_topic`` on a steady-clock timer (wall
+time, also under ``use_sim_time``), logs each new intruder once, and answers :meth:`accept` for
+every taken message under the ``refuse`` policy.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+
+from formation_msgs_py.publisher_watch import Intruder, PublisherInfo, PublisherWatch, describe
+
+#: Graph poll period [wall s]: an intruder is reported within this plus the discovery latency.
+POLL_PERIOD = 0.2
+
+
+class GraphWatch:
+    """Polls the publishers of ``watch.expected``'s topics (absolute names) for ``node``."""
+
+    def __init__(
+        self,
+        node: Node,
+        watch: PublisherWatch,
+        *,
+        period: float = POLL_PERIOD,
+        on_intruder: Callable[[Intruder], None] | None = None,
+    ) -> None:
+        self.node = node
+        self.watch = watch
+        self.on_intruder = on_intruder
+        self.timer = node.create_timer(period, self.poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def poll(self) -> None:
+        now = time.monotonic()
+        for topic in self.watch.expected:
+            infos = self.node.get_publishers_info_by_topic(topic)
+            pubs = [PublisherInfo(i.node_name, i.node_namespace, bytes(i.endpoint_gid).hex()) for i in infos]
+            for intruder in self.watch.observe(topic, pubs, now):
+                self.node.get_logger().error(describe(intruder))
+                if self.on_intruder is not None:
+                    self.on_intruder(intruder)
+
+    def accept(self, topic: str, subscription) -> bool:
+        """Whether to apply a message just taken from ``subscription`` of ``topic`` (see PublisherWatch.accept)."""
+        if self.watch.policy == "report":
+            return True
+        return self.watch.accept(topic, subscription.get_publisher_count())

@@ -1,0 +1,185 @@
+"""Who may publish what (DESIGN.md §3, §10), and the watch that reports everyone else (no ROS import).
+
+The formation expects exactly one publisher per topic: the simulator for ``/clock``, relative
+poses and velocities, agent i for ``agent_<i>/wrench``. A node feeds the watch what the ROS graph
+says (topic, node name, endpoint GID); the watch pins the expected publisher by its GID the
+first time exactly one publisher of the expected node name is seen, and reports every other
+publisher once, as an :class:`Intruder`, with its node name and GID.
+
+Policy ``report`` only reports. Policy ``refuse`` also refuses every message of a topic while it
+has a publisher other than the pinned one: rclpy 7.1.6 does not give the publisher GID of a
+taken message (its message info holds timestamps and sequence numbers only), so the message of
+an intruder cannot be told from the expected one's and the topic as a whole is refused: a fail-safe
+(the formation sees a missing measurement or wrench) instead of a command from an outsider.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+from formation_msgs_py import topics
+
+Policy = Literal["report", "refuse"]
+POLICIES: tuple[Policy, ...] = ("report", "refuse")
+#: Who a topic concerns, for ``/clock`` (every agent uses it).
+ALL_AGENTS = "all"
+#: The node name the rmw gives an endpoint until its participant's ROS node information arrives.
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+#: Wall seconds to wait for an endpoint's node name before reporting it as nameless (a raw DDS writer).
+NAME_GRACE = 0.5
+
+
+@dataclass(frozen=True)
+class Expected:
+    """The node (fully qualified name) that alone may publish on a topic, and the agent the topic concerns."""
+
+    node: str
+    agent: str
+
+
+@dataclass(frozen=True)
+class PublisherInfo:
+    """One publisher endpoint as the ROS graph reports it."""
+
+    node: str  # node name without namespace
+    namespace: str
+    gid: str  # endpoint GID, hex
+
+    @property
+    def qualified_node(self) -> str:
+        return f"{self.namespace.rstrip('/')}/{self.node}"
+
+
+@dataclass
+class Intruder:
+    """A publisher the formation does not expect; wall times from the watching node's clock [s]."""
+
+    topic: str
+    agent: str
+    node: str
+    gid: str
+    first_seen: float
+    last_seen: float
+    reason: str
+
+    def as_dict(self) -> dict[str, str | float]:
+        return {
+            "topic": self.topic,
+            "agent": self.agent,
+            "node": self.node,
+            "gid": self.gid,
+            "first_seen": self.first_seen,
+            "last_seen": self.last_seen,
+            "reason": self.reason,
+        }
+
+
+def expected_publishers(
+    agent_ids: Sequence[str], links: Iterable[tuple[str, str]], *, clock: bool = True
+) -> dict[str, Expected]:
+    """The expected publisher of every topic (absolute name) of a formation, or of one agent's subscriptions.
+
+    ``links`` are (observer, target) pairs of relative-pose topics; ``agent_ids`` get a velocity
+    and a wrench topic each.
+    """
+    sim = "/" + topics.SIM_NODE_NAME
+    out: dict[str, Expected] = {}
+    if clock:
+        out[topics.CLOCK] = Expected(sim, ALL_AGENTS)
+    for a in agent_ids:
+        out["/" + topics.velocity(a)] = Expected(sim, a)
+        out["/" + topics.wrench(a)] = Expected(topics.agent_node(a), a)
+    for observer, target in links:
+        out["/" + topics.relative_pose(observer, target)] = Expected(sim, observer)
+    return out
+
+
+@dataclass
+class PublisherWatch:
+    """Classifies the publishers of the watched topics; counts intruders and refused messages."""
+
+    expected: Mapping[str, Expected]
+    policy: Policy = "report"
+    pinned: dict[str, str] = field(default_factory=dict)
+    intruders: dict[tuple[str, str], Intruder] = field(default_factory=dict)
+    refused: dict[str, int] = field(default_factory=dict)
+    _present: dict[str, set[str]] = field(default_factory=dict)
+    _nameless_since: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.policy not in POLICIES:
+            raise ValueError(f"intruder policy {self.policy!r} is not one of {', '.join(POLICIES)}")
+
+    def observe(self, topic: str, publishers: Sequence[PublisherInfo], wall: float) -> list[Intruder]:
+        """Record the publishers of ``topic`` seen at ``wall``; return the intruders seen for the first time."""
+        exp = self.expected[topic]
+        gids = {p.gid for p in publishers}
+        if self.pinned.get(topic) not in gids:  # never pinned, or the pinned one left (a restart)
+            self.pinned.pop(topic, None)
+            claimants = [p for p in publishers if p.qualified_node == exp.node and (topic, p.gid) not in self.intruders]
+            if len(claimants) == 1:
+                self.pinned[topic] = claimants[0].gid
+        pinned = self.pinned.get(topic)
+        new: list[Intruder] = []
+        present: set[str] = set()
+        for p in publishers:
+            if p.gid == pinned:
+                continue
+            present.add(p.gid)  # refused (under "refuse") from its first sighting, named or not
+            key = (topic, p.gid)
+            known = self.intruders.get(key)
+            if known is not None:
+                known.last_seen = wall
+                continue
+            first = wall
+            if p.node == UNKNOWN_NODE:  # maybe the expected node, whose name has not arrived yet
+                first = self._nameless_since.setdefault(key, wall)
+                if wall - first < NAME_GRACE:
+                    continue
+                reason = "a publisher without a ROS node name"
+            elif p.qualified_node == exp.node:
+                reason = "second publisher with the expected node name"
+            else:
+                reason = "unexpected node"
+            first = self._nameless_since.pop(key, first)
+            intruder = Intruder(topic, exp.agent, p.qualified_node, p.gid, first, wall, reason)
+            self.intruders[key] = intruder
+            new.append(intruder)
+        self._present[topic] = present
+        return new
+
+    def accept(self, topic: str, publisher_count: int) -> bool:
+        """Whether to apply a message of ``topic`` taken now, given its matched publisher count.
+
+        Under ``refuse``, a message is applied only while the topic's one matched publisher is the
+        pinned one: a topic with an intruder present, without a pinned publisher yet, or with more
+        matched publishers than the one expected (one the graph poll has not classified yet) is refused.
+        """
+        if self.policy == "report":
+            return True
+        if self._present.get(topic) or topic not in self.pinned or publisher_count > 1:
+            self.refused[topic] = self.refused.get(topic, 0) + 1
+            return False
+        return True
+
+    def report(self) -> dict[str, object]:
+        """For summary.json: the policy, every intruder, counts per agent and refused messages per topic."""
+        per_agent: dict[str, int] = {}
+        for intruder in self.intruders.values():
+            per_agent[intruder.agent] = per_agent.get(intruder.agent, 0) + 1
+        return {
+            "policy": self.policy,
+            "intruders": [i.as_dict() for i in self.intruders.values()],
+            "intruders_per_agent": per_agent,
+            "refused_messages": dict(self.refused),
+        }
+
+
+def describe(intruder: Intruder) -> str:
+    """One log line for an intruder."""
+    return (
+        f"intruder on {intruder.topic} (agent {intruder.agent}): node {intruder.node}, gid {intruder.gid} "
+        f"({intruder.reason})"
+    )

@@ -1,0 +1,150 @@
+"""The simulator's display topics: markers, funnel values and (where installed) TF.
+
+At ``marker_rate`` Hz of simulation time (default 30; 0 turns it off) the simulator publishes
+
+- ``/formation/markers`` (visualization_msgs/MarkerArray, frame ``world``): the scene of
+  :mod:`formation_sim.markers`;
+- ``/formation/funnels`` (std_msgs/Float64MultiArray): per edge k, in file order, the five values
+  ``e_k, −C_col·ρ_e, C_con·ρ_e, ψ_k, ρ_ψ`` at ``data[5k … 5k+4]`` (for plots: Foxglove, PlotJuggler);
+- ``/tf`` (tf2_msgs/TFMessage) ``world → agent_<id>``, only where tf2_msgs is importable: an apt
+  install of ROS 2 has it, the PyPI wheels of ``ros2_ws/requirements.txt`` do not.
+
+Nothing here is read by an agent (DESIGN.md §3 of the design contract, docs/topics.md).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+from geometry_msgs.msg import Point, TransformStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
+from visualization_msgs.msg import Marker, MarkerArray
+
+from formation_msgs_py import conversions, parameters, qos, topics
+from formation_msgs_py.so3 import quaternion_from_matrix
+from formation_msgs_py.spec import FormationSpec
+from formation_sim.markers import FormationScene, Shape
+
+FUNNEL_FIELDS = ("e", "e_lower", "e_upper", "psi", "rho_psi")
+DEFAULT_MARKER_RATE = 30.0
+
+
+def _tf_message_class() -> type | None:
+    """tf2_msgs/TFMessage where installed (apt), else None (the PyPI wheels have no tf2_msgs)."""
+    try:
+        return importlib.import_module("tf2_msgs.msg").TFMessage
+    except ImportError:
+        return None
+
+
+def _marker(shape: Shape, stamp, frame: str) -> Marker:
+    m = Marker()
+    m.header.stamp = stamp
+    m.header.frame_id = frame
+    m.ns = shape.ns
+    m.id = shape.id
+    m.type = shape.type
+    m.action = Marker.ADD
+    pose = m.pose
+    pose.position.x, pose.position.y, pose.position.z = shape.position
+    o = pose.orientation
+    o.x, o.y, o.z, o.w = shape.orientation
+    m.scale.x, m.scale.y, m.scale.z = shape.scale
+    m.color = ColorRGBA(r=shape.color[0], g=shape.color[1], b=shape.color[2], a=shape.color[3])
+    m.points = [Point(x=x, y=y, z=z) for x, y, z in shape.points]
+    m.colors = [ColorRGBA(r=r, g=g, b=b, a=a) for r, g, b, a in shape.colors]
+    m.text = shape.text
+    return m
+
+
+class DisplayPublisher:
+    """Publishes the display topics of ``spec`` on ``node`` every 1/``rate`` s of simulation time."""
+
+    def __init__(self, node: Node, spec: FormationSpec, rate: float = DEFAULT_MARKER_RATE) -> None:
+        self.scene = FormationScene(spec)
+        self.frames = [topics.agent_frame(a) for a in spec.agent_ids]
+        self.markers_pub = node.create_publisher(MarkerArray, topics.MARKERS, qos.DISPLAY)
+        self.funnels_pub = node.create_publisher(Float64MultiArray, topics.FUNNELS, qos.DISPLAY)
+        tf_class = _tf_message_class()
+        self.tf_class = tf_class
+        self.tf_pub = None if tf_class is None else node.create_publisher(tf_class, topics.TF, qos.DISPLAY)
+        self._layout_edges = [e.name for e in spec.edges]
+        self.rate = 0.0
+        self.next_t = 0.0
+        self.set_rate(rate)
+
+    def set_rate(self, rate: float) -> None:
+        """Display rate [Hz, simulation time]; 0 stops publishing."""
+        self.rate = float(rate)
+
+    def due(self, t: float) -> bool:
+        return self.rate > 0.0 and t >= self.next_t - 1e-12
+
+    def publish(self, t: float, p: np.ndarray, R: np.ndarray, u: np.ndarray | None) -> None:
+        """Publish the scene at simulation time t [s] if a display instant is due."""
+        if not self.due(t):
+            return
+        self.next_t = (np.floor(t * self.rate + 1e-6) + 1.0) / self.rate  # on the grid k/rate: no drift
+        stamp = conversions.stamp_from_seconds(t)
+        frame = topics.WORLD_FRAME
+        self.markers_pub.publish(MarkerArray(markers=[_marker(s, stamp, frame) for s in self.scene.shapes(t, p, R, u)]))
+        f = self.scene.funnels(t, p, R)
+        values = np.stack([f[name] for name in FUNNEL_FIELDS], axis=1)
+        k = len(self._layout_edges)
+        msg = Float64MultiArray(data=values.ravel().tolist())
+        msg.layout.dim = [
+            MultiArrayDimension(label="edge " + ",".join(self._layout_edges), size=k, stride=5 * k),
+            MultiArrayDimension(label=",".join(FUNNEL_FIELDS), size=5, stride=5),
+        ]
+        self.funnels_pub.publish(msg)
+        if self.tf_pub is not None:
+            transforms = []
+            for i, child in enumerate(self.frames):
+                tf = TransformStamped()
+                tf.header.stamp = stamp
+                tf.header.frame_id = frame
+                tf.child_frame_id = child
+                tr = tf.transform.translation
+                tr.x, tr.y, tr.z = (float(x) for x in p[i])
+                q = tf.transform.rotation
+                q.x, q.y, q.z, q.w = quaternion_from_matrix(R[i])
+                transforms.append(tf)
+            self.tf_pub.publish(self.tf_class(transforms=transforms))
+
+
+def declare_simulator_parameters(
+    node: Node, spec: FormationSpec, settings: dict[str, str | float], marker_rate: float
+) -> DisplayPublisher:
+    """The simulator's parameters and its display publisher.
+
+    ``settings`` (formation_file, mode, control_rate, …) are declared read-only: they show what
+    the command line chose and cannot change a running simulation. ``marker_rate`` is live.
+    """
+    for name, value in settings.items():
+        parameters.declare(node, name, value, SETTING_DOCS.get(name, name), read_only=True)
+    rate = parameters.declare(node, "marker_rate", float(marker_rate), MARKER_RATE_DOC, low=0.0, high=1000.0)
+    display = DisplayPublisher(node, spec, rate)
+
+    def on_set(params: list) -> SetParametersResult:
+        for prm in params:
+            if prm.name == "marker_rate":
+                display.set_rate(prm.value)
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(on_set)
+    return display
+
+
+MARKER_RATE_DOC = (
+    "display rate [Hz of simulation time] of /formation/markers, /formation/funnels and /tf; 0: off; live"
+)
+SETTING_DOCS = {
+    "formation_file": "formation file (YAML), from the command line",
+    "mode": "lockstep or realtime (--mode)",
+    "control_rate": "control rate [Hz] (--control-rate or simulation.control_rate)",
+    "measurement_qos": "reliable or best-effort (--measurement-qos)",
+    "executor": "rclpy executor: events or single (--executor)",
+}

@@ -1,0 +1,168 @@
+"""The run's figures, like the paper's (errors in their funnels, control inputs), from trajectory.npz.
+
+- ``errors.png``: per edge k, e_k [m²] with its two bounds C_con·ρ_e (upper, dashed) and
+  −C_col·ρ_e (lower, dash-dotted); an inset zooms on the last 40 % of the run, where the steady
+  band (ρ_e∞-wide) is visible;
+- ``orientation_errors.png``: per edge, ψ_k with its bound ρ_ψ, and the same zoomed inset;
+- ``inputs.png``: per agent, the body-frame force (f_x, f_y, f_z) [N] and torque (τ_x, τ_y, τ_z) [N·m];
+- ``velocity_errors.png``: per agent, e_v = v_i − v_i,des per channel inside ±ρ_v. The agents'
+  own e_v uses their noisy velocity; here it is recomputed from the recorded ground truth (the
+  same controller on noise-free relative poses and velocity), so it differs by the noise.
+
+Each panel has its own legend. Arrays as in trajectory.npz (agents and edges in file order).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from formation_agent.controller import AgentController
+from formation_msgs_py import funnels
+from formation_msgs_py.spec import FormationSpec, agent_view
+
+VELOCITY_LABELS = ("$v_x$", "$v_y$", "$v_z$", r"$\omega_x$", r"$\omega_y$", r"$\omega_z$")
+COMPONENT_COLOURS = ("C0", "C1", "C2")
+ZOOM_FROM = 0.6  # the insets show t from 60 % of the run to its end
+
+
+def _grid(n: int, max_cols: int = 4) -> tuple[int, int]:
+    cols = min(n, max_cols)
+    return math.ceil(n / cols), cols
+
+
+def _panels(plt, n: int, width: float = 4.2, height: float = 3.0):
+    rows, cols = _grid(n)
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False)
+    flat = [axes[k // cols][k % cols] for k in range(rows * cols)]
+    for ax in flat[n:]:
+        ax.axis("off")
+    return fig, flat[:n]
+
+
+def _zoom_inset(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> None:
+    """An inset of the last part of the run, y-limits fitted to what is drawn there."""
+    if len(t) < 10:
+        return
+    sel = t >= t[0] + ZOOM_FROM * (t[-1] - t[0])
+    ins = ax.inset_axes([0.45, 0.45, 0.52, 0.5])
+    lo, hi = np.inf, -np.inf
+    for y, style in series:
+        ins.plot(t[sel], y[sel], **style)
+        lo, hi = min(lo, float(np.min(y[sel]))), max(hi, float(np.max(y[sel])))
+    pad = 0.1 * (hi - lo) if hi > lo else 0.1
+    ins.set_ylim(lo - pad, hi + pad)
+    ins.set_xlim(t[sel][0], t[sel][-1])
+    ins.tick_params(labelsize=6)
+    ins.grid(alpha=0.3)
+    ins.set_title("zoom: steady band", fontsize=6, pad=2)
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> list[Path]:
+    """errors.png, orientation_errors.png, inputs.png and velocity_errors.png in ``out_dir``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = arrays["t"]
+    paths = []
+    upper = {"color": "C3", "ls": "--", "lw": 1.0}
+    lower = {"color": "C2", "ls": "-.", "lw": 1.0}
+    fig, axes = _panels(plt, len(spec.edges))
+    for k, (e, ax) in enumerate(zip(spec.edges, axes)):
+        series = [
+            (arrays["e"][:, k], {"color": "C0", "lw": 1.3, "label": f"$e_{{{e.tail}{e.head}}}$"}),
+            (e.c_con * arrays["rho_e"][:, k], {**upper, "label": r"$C_{con}\,\rho_e$ (connectivity)"}),
+            (-e.c_col * arrays["rho_e"][:, k], {**lower, "label": r"$-C_{col}\,\rho_e$ (collision)"}),
+        ]
+        for y, style in series:
+            ax.plot(t, y, **style)
+        ax.set_title(f"edge {e.tail}-{e.head}: distance error", fontsize=9)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("e [m²]")
+        ax.legend(fontsize=7, loc="lower left")
+        ax.grid(alpha=0.3)
+        _zoom_inset(ax, t, [(y, {k2: v for k2, v in s.items() if k2 != "label"}) for y, s in series])
+    paths.append(_save(fig, out_dir / "errors.png"))
+    plt.close(fig)
+
+    fig, axes = _panels(plt, len(spec.edges))
+    for k, (e, ax) in enumerate(zip(spec.edges, axes)):
+        series = [
+            (arrays["psi"][:, k], {"color": "C0", "lw": 1.3, "label": rf"$\psi_{{{e.tail}{e.head}}}$"}),
+            (arrays["rho_psi"][:, k], {**upper, "label": r"$\rho_\psi$"}),
+        ]
+        for y, style in series:
+            ax.plot(t, y, **style)
+        ax.set_title(f"edge {e.tail}-{e.head}: orientation error", fontsize=9)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel(r"$\psi$")
+        ax.set_ylim(-0.05, 2.05)
+        ax.legend(fontsize=7, loc="lower left")
+        ax.grid(alpha=0.3)
+        _zoom_inset(ax, t, [(y, {k2: v for k2, v in s.items() if k2 != "label"}) for y, s in series])
+    paths.append(_save(fig, out_dir / "orientation_errors.png"))
+    plt.close(fig)
+
+    u = arrays["u"]
+    fig, axes = _panels(plt, len(spec.agents))
+    for i, (a, ax) in enumerate(zip(spec.agents, axes)):
+        for c, axis in enumerate("xyz"):
+            ax.plot(t, u[:, i, c], color=COMPONENT_COLOURS[c], lw=1.0, label=f"$f_{axis}$ [N]")
+            ax.plot(t, u[:, i, 3 + c], color=COMPONENT_COLOURS[c], lw=1.0, ls="--", label=rf"$\tau_{axis}$ [N·m]")
+        ax.set_title(f"agent {a.id}: body wrench $u_{{{a.id}}}$", fontsize=9)
+        ax.set_xlabel("t [s]")
+        ax.legend(fontsize=6, ncol=2, loc="upper right")
+        ax.grid(alpha=0.3)
+    paths.append(_save(fig, out_dir / "inputs.png"))
+    plt.close(fig)
+
+    e_v, rho_v = velocity_errors(spec, arrays)
+    n = len(spec.agents)
+    fig, axes = plt.subplots(n, 2, figsize=(9.0, 2.3 * n), squeeze=False, sharex=True)
+    for i, a in enumerate(spec.agents):
+        for half, (ax, unit) in enumerate(zip(axes[i], ("m/s", "rad/s"))):
+            for c in range(3 * half, 3 * half + 3):
+                colour = COMPONENT_COLOURS[c % 3]
+                ax.plot(t, e_v[:, i, c], color=colour, lw=1.0, label=f"$e$ {VELOCITY_LABELS[c]}")
+                ax.plot(t, rho_v[:, i, c], color=colour, lw=0.8, ls="--", label=r"$\pm\rho_v$")
+                ax.plot(t, -rho_v[:, i, c], color=colour, lw=0.8, ls="--")
+            ax.set_title(f"agent {a.id}: {'linear' if half == 0 else 'angular'} velocity error", fontsize=9)
+            ax.set_ylabel(unit)
+            ax.legend(fontsize=6, ncol=3, loc="upper right")
+            ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("t [s]")
+    paths.append(_save(fig, out_dir / "velocity_errors.png"))
+    plt.close(fig)
+    return paths
+
+
+def velocity_errors(spec: FormationSpec, arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(e_v, ρ_v), each (T,N,6): the controller on the recorded ground truth (noise-free)."""
+    t, p, R, v = arrays["t"], arrays["p"], arrays["R"], arrays["v"]
+    index = {a.id: a.index for a in spec.agents}
+    e_v = np.zeros(v.shape)
+    rho_v = np.zeros(v.shape)
+    for a in spec.agents:
+        ctrl = AgentController(agent_view(spec, a.id))
+        i = index[a.id]
+        vf = ctrl.view.controller.velocity_funnel
+        others = [index[j] for j in ctrl.view.neighbours]
+        for s in range(len(t)):
+            R_i = R[s, i]
+            rel = {j: (R_i.T @ (p[s, n] - p[s, i]), R_i.T @ R[s, n]) for j, n in zip(ctrl.view.neighbours, others)}
+            out = ctrl.compute(float(t[s]), rel, v[s, i])
+            rho = funnels.exp_decay(np.array(ctrl.rho_v0), np.array(vf.rho_inf), np.array(vf.decay), t[s] - ctrl.t0)
+            rho_v[s, i] = rho
+            e_v[s, i] = np.array(out.xi_v) * rho
+    return e_v, rho_v

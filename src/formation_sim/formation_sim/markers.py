@@ -1,0 +1,150 @@
+"""What a 3D viewer shows of a formation, without ROS: markers as plain data.
+
+The simulator node turns :class:`Shape` lists into ``visualization_msgs/MarkerArray`` on
+``/formation/markers`` (frame ``world``); the animation draws the same scene with matplotlib.
+One scene per display instant:
+
+- each agent: an oriented box (its body frame ``agent_<id>``: long side along x, short along z),
+  the frame's axes (x red, y green, z blue, length r_i) and its id;
+- each tree edge: a line coloured by the worst of its distance and orientation margins
+  (green 1 … yellow 0.5 … red 0, magenta outside), and a translucent ghost of the head where it
+  would sit at the desired distance d_k along the current direction;
+- each agent's wrench: force (orange) and torque (purple) arrows in the world frame, length
+  ``arrow_scale·ln(1 + |u|)`` m (logarithmic: peaks of 10³ N and steady values of 10⁻² N are
+  both visible).
+
+Positions in m (world frame), orientations as quaternions (x, y, z, w) of R_world_body.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from formation_msgs_py import funnels
+from formation_msgs_py.so3 import quaternion_from_matrix
+from formation_msgs_py.spec import FormationSpec
+
+# visualization_msgs/Marker type codes (a ROS message constant, repeated here to stay ROS-free)
+ARROW, CUBE, SPHERE, LINE_LIST, TEXT_VIEW_FACING = 0, 1, 2, 5, 9
+
+Vec3 = tuple[float, float, float]
+Rgba = tuple[float, float, float, float]
+
+AXIS_COLOURS: tuple[Rgba, Rgba, Rgba] = ((0.9, 0.1, 0.1, 1.0), (0.1, 0.8, 0.1, 1.0), (0.1, 0.3, 0.95, 1.0))
+BODY_COLOUR: Rgba = (0.55, 0.6, 0.7, 0.9)
+FORCE_COLOUR: Rgba = (1.0, 0.55, 0.0, 1.0)
+TORQUE_COLOUR: Rgba = (0.6, 0.2, 0.85, 1.0)
+GHOST_ALPHA = 0.25
+
+
+@dataclass(frozen=True)
+class Shape:
+    """One ``visualization_msgs/Marker`` (ADD), by namespace and id."""
+
+    ns: str
+    id: int
+    type: int
+    position: Vec3 = (0.0, 0.0, 0.0)
+    orientation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    scale: Vec3 = (1.0, 1.0, 1.0)
+    color: Rgba = (1.0, 1.0, 1.0, 1.0)
+    points: tuple[Vec3, ...] = ()
+    colors: tuple[Rgba, ...] = ()
+    text: str = ""
+
+
+def margin_colour(margin: float) -> Rgba:
+    """Green at margin ≥ 1, yellow at 0.5, red at 0, magenta below 0 (outside the funnel)."""
+    if not np.isfinite(margin) or margin < 0.0:
+        return (1.0, 0.0, 1.0, 1.0)
+    m = min(margin, 1.0)
+    if m >= 0.5:
+        return (float(2.0 * (1.0 - m)), 0.8, 0.0, 1.0)
+    return (1.0, float(1.6 * m), 0.0, 1.0)
+
+
+def arrow_length(magnitude: float, arrow_scale: float) -> float:
+    """Displayed length [m] of a force [N] or torque [N·m]: arrow_scale·ln(1 + |u|)."""
+    return float(arrow_scale * np.log1p(abs(magnitude)))
+
+
+def _v(x: np.ndarray) -> Vec3:
+    return (float(x[0]), float(x[1]), float(x[2]))
+
+
+class FormationScene:
+    """Markers of one formation; :meth:`shapes` gives those of one instant."""
+
+    def __init__(self, spec: FormationSpec, *, arrow_scale: float = 0.25) -> None:
+        self.spec = spec
+        self.arrow_scale = arrow_scale
+        index = {a.id: a.index for a in spec.agents}
+        self.ids = spec.agent_ids
+        self.radius = np.array([a.radius for a in spec.agents])
+        self.tail = np.array([index[e.tail] for e in spec.edges], dtype=int)
+        self.head = np.array([index[e.head] for e in spec.edges], dtype=int)
+        self.d_des = np.array([e.d_des for e in spec.edges])
+        self.R_des = np.array([e.R_des for e in spec.edges])
+        self.c_col = np.array([e.c_col for e in spec.edges])
+        self.c_con = np.array([e.c_con for e in spec.edges])
+        self._floor_e = np.array([e.rho_e_inf for e in spec.edges]) / np.maximum(self.c_col, self.c_con)
+        self._decay_e = np.array([e.decay_e for e in spec.edges])
+        self._psi = np.array([(e.rho_psi_0, e.rho_psi_inf, e.decay_psi) for e in spec.edges]).reshape(-1, 3)
+
+    def funnels(self, t: float, p: np.ndarray, R: np.ndarray) -> dict[str, np.ndarray]:
+        """Per edge (K,): e [m²], its bounds −C_col·ρ_e and C_con·ρ_e, ψ, ρ_ψ, and the margins."""
+        d = p[self.head] - p[self.tail]
+        e = np.sum(d * d, axis=-1) - self.d_des**2
+        A = R[self.head] @ self.R_des
+        psi = 0.5 * (3.0 - np.sum(A * R[self.tail], axis=(-2, -1)))
+        rho_e = funnels.exp_decay(1.0, self._floor_e, self._decay_e, t)
+        rho_psi = funnels.exp_decay(self._psi[:, 0], self._psi[:, 1], self._psi[:, 2], t)
+        return {
+            "e": e,
+            "e_lower": -self.c_col * rho_e,
+            "e_upper": self.c_con * rho_e,
+            "psi": psi,
+            "rho_psi": rho_psi,
+            "margin_e": funnels.margin_e(e / rho_e, self.c_col, self.c_con),
+            "margin_psi": funnels.margin_psi(psi / rho_psi),
+        }
+
+    def shapes(self, t: float, p: np.ndarray, R: np.ndarray, u: np.ndarray | None) -> list[Shape]:
+        """Every marker at time t [s] from world poses p (N,3), R (N,3,3) and body wrenches u (N,6)."""
+        out: list[Shape] = []
+        for i, aid in enumerate(self.ids):
+            r = float(self.radius[i])
+            q = tuple(float(x) for x in quaternion_from_matrix(R[i]))
+            out.append(Shape("bodies", i, CUBE, _v(p[i]), q, (0.8 * r, 0.5 * r, 0.25 * r), BODY_COLOUR))
+            ends = [_v(p[i] + r * R[i][:, c]) for c in range(3)]
+            start = _v(p[i])
+            pts = tuple(x for c in range(3) for x in (start, ends[c]))
+            cols = tuple(AXIS_COLOURS[c] for c in range(3) for _ in range(2))
+            out.append(Shape("frames", i, LINE_LIST, scale=(0.03 * r, 0.0, 0.0), points=pts, colors=cols))
+            label = _v(p[i] + np.array([0.0, 0.0, 0.6 * r]))
+            out.append(Shape("labels", i, TEXT_VIEW_FACING, label, scale=(0.0, 0.0, 0.4 * r), text=str(aid)))
+            if u is not None:
+                for ns, lo, colour in (("forces", 0, FORCE_COLOUR), ("torques", 3, TORQUE_COLOUR)):
+                    w_world = R[i] @ np.asarray(u[i, lo : lo + 3], dtype=np.float64)
+                    norm = float(np.linalg.norm(w_world))
+                    length = arrow_length(norm, self.arrow_scale * r)
+                    tip = p[i] + (w_world / norm * length if norm > 0.0 else 0.0)
+                    scale = (0.05 * r, 0.1 * r, 0.1 * r)
+                    out.append(Shape(ns, i, ARROW, scale=scale, color=colour, points=(start, _v(tip))))
+        f = self.funnels(t, p, R)
+        worst = np.minimum(f["margin_e"], f["margin_psi"])
+        for k in range(len(self.d_des)):
+            a, b = p[self.tail[k]], p[self.head[k]]
+            colour = margin_colour(float(worst[k]))
+            width = 0.06 * float(min(self.radius[self.tail[k]], self.radius[self.head[k]]))
+            out.append(Shape("edges", k, LINE_LIST, scale=(width, 0.0, 0.0), color=colour, points=(_v(a), _v(b))))
+            direction = b - a
+            dist = float(np.linalg.norm(direction))
+            ghost = a + (direction / dist if dist > 0.0 else np.array([1.0, 0.0, 0.0])) * self.d_des[k]
+            size = 0.5 * float(self.radius[self.head[k]])
+            out.append(
+                Shape("desired", k, SPHERE, _v(ghost), scale=(size, size, size), color=(*colour[:3], GHOST_ALPHA))
+            )
+        return out

@@ -1,0 +1,121 @@
+"""The publisher watch without ROS: who is expected, who is reported, what is refused."""
+
+from __future__ import annotations
+
+import pytest
+
+from formation_msgs_py.publisher_watch import (
+    NAME_GRACE,
+    UNKNOWN_NODE,
+    Expected,
+    PublisherInfo,
+    PublisherWatch,
+    expected_publishers,
+)
+
+SIM = PublisherInfo("formation_sim", "/", "aa01")
+AGENT3 = PublisherInfo("formation_agent", "/agent_3", "bb03")
+OUTSIDER = PublisherInfo("outsider", "/tools", "ee99")
+
+
+def _watch(policy: str = "report") -> PublisherWatch:
+    return PublisherWatch(expected_publishers(["1", "3"], [("1", "3"), ("3", "1")]), policy)  # type: ignore[arg-type]
+
+
+def test_expected_publishers_follow_design_section_3() -> None:
+    """The simulator publishes /clock, velocities and relative poses; agent i its own wrench."""
+    exp = expected_publishers(["1", "3"], [("1", "3")])
+    assert exp["/clock"] == Expected("/formation_sim", "all")
+    assert exp["/agent_3/velocity"] == Expected("/formation_sim", "3")
+    assert exp["/agent_1/relative_pose/agent_3"] == Expected("/formation_sim", "1")
+    assert exp["/agent_3/wrench"] == Expected("/agent_3/formation_agent", "3")
+    assert len(exp) == 6
+
+
+def test_outsider_reported_once_with_node_name_and_gid() -> None:
+    """A second publisher on agent 3's wrench is an intruder, reported once, its last sighting updated."""
+    w = _watch()
+    assert w.observe("/agent_3/wrench", [AGENT3], 1.0) == []
+    new = w.observe("/agent_3/wrench", [AGENT3, OUTSIDER], 2.0)
+    assert [(i.node, i.gid, i.agent, i.first_seen) for i in new] == [("/tools/outsider", "ee99", "3", 2.0)]
+    assert w.observe("/agent_3/wrench", [AGENT3, OUTSIDER], 3.5) == []
+    report = w.report()
+    assert report["intruders_per_agent"] == {"3": 1}
+    assert report["intruders"][0]["last_seen"] == 3.5  # type: ignore[index]
+
+
+def test_impostor_with_the_expected_name_is_an_intruder_once_one_is_pinned() -> None:
+    """The first lone publisher of the expected name is pinned by GID; a later namesake is reported."""
+    w = _watch()
+    w.observe("/agent_1/relative_pose/agent_3", [SIM], 0.0)
+    impostor = PublisherInfo("formation_sim", "/", "cc77")
+    new = w.observe("/agent_1/relative_pose/agent_3", [SIM, impostor], 0.2)
+    assert [(i.gid, i.reason) for i in new] == [("cc77", "second publisher with the expected node name")]
+    assert w.pinned["/agent_1/relative_pose/agent_3"] == "aa01"
+
+
+def test_two_namesakes_at_first_sight_are_both_intruders() -> None:
+    """If two publishers claim the expected name before one is pinned, neither is trusted."""
+    w = _watch()
+    twin = PublisherInfo("formation_sim", "/", "cc77")
+    new = w.observe("/clock", [SIM, twin], 0.0)
+    assert {i.gid for i in new} == {"aa01", "cc77"}
+    assert "/clock" not in w.pinned
+
+
+def test_nameless_publisher_waits_for_its_name_then_is_reported() -> None:
+    """An endpoint whose node name has not arrived yet is reported only after NAME_GRACE, from its first sighting."""
+    w = _watch()
+    w.observe("/agent_3/velocity", [SIM], 0.0)
+    nameless = PublisherInfo(UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_", "dd11")
+    assert w.observe("/agent_3/velocity", [SIM, nameless], 1.0) == []
+    new = w.observe("/agent_3/velocity", [SIM, nameless], 1.0 + NAME_GRACE)
+    assert [(i.gid, i.first_seen) for i in new] == [("dd11", 1.0)]
+
+
+def test_expected_publisher_named_late_is_pinned_not_reported() -> None:
+    """The simulator seen first without its name, then with it: pinned, never reported."""
+    w = _watch()
+    early = PublisherInfo(UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_", "aa01")
+    assert w.observe("/agent_3/velocity", [early], 0.0) == []
+    assert w.observe("/agent_3/velocity", [SIM], 0.2) == []
+    assert w.pinned["/agent_3/velocity"] == "aa01" and w.intruders == {}
+
+
+def test_report_policy_accepts_everything() -> None:
+    """Report-only never refuses a message, even with an intruder present."""
+    w = _watch("report")
+    w.observe("/agent_3/wrench", [AGENT3, OUTSIDER], 0.0)
+    assert w.accept("/agent_3/wrench", 2)
+    assert w.report()["refused_messages"] == {}
+
+
+def test_refuse_policy_refuses_a_topic_while_an_intruder_is_there() -> None:
+    """Refuse: messages are applied only from a lone pinned publisher; intruder present, unpinned or
+    unclassified extra publishers are refused and counted."""
+    w = _watch("refuse")
+    topic = "/agent_3/wrench"
+    assert not w.accept(topic, 1)  # nothing pinned yet: who sent it is unknown
+    w.observe(topic, [AGENT3], 0.0)
+    assert w.accept(topic, 1)
+    assert not w.accept(topic, 2)  # matched a second publisher the poll has not seen yet
+    w.observe(topic, [AGENT3, OUTSIDER], 0.2)
+    assert not w.accept(topic, 1)
+    w.observe(topic, [AGENT3], 0.4)  # the outsider left
+    assert w.accept(topic, 1)
+    assert w.report()["refused_messages"] == {topic: 3}
+
+
+def test_pinned_publisher_restarting_is_pinned_again() -> None:
+    """When the pinned publisher leaves, the next lone publisher of the expected name is pinned."""
+    w = _watch()
+    w.observe("/agent_3/wrench", [AGENT3], 0.0)
+    restarted = PublisherInfo("formation_agent", "/agent_3", "bb04")
+    assert w.observe("/agent_3/wrench", [restarted], 1.0) == []
+    assert w.pinned["/agent_3/wrench"] == "bb04"
+
+
+def test_unknown_policy_is_refused_with_its_value() -> None:
+    """A policy that is neither report nor refuse raises ValueError naming it."""
+    with pytest.raises(ValueError, match="'block'"):
+        PublisherWatch({}, "block")  # type: ignore[arg-type]

@@ -43,6 +43,7 @@ from formation_sim.plant import (
     rkmk4_combine,
     rkmk4_stage,
     rkmk4_step,
+    saturate,
 )
 from formation_sim.report import RunRecorder
 from formation_sim.simulation import Simulation

@@ -21,13 +21,18 @@ def exp_rows(theta: np.ndarray) -> np.ndarray:
 
 
 def test_small_products_and_vee() -> None:
-    """cross3, matvec3, matmul3 equal numpy's to rounding; vee inverts S(w)."""
+    """cross3, matvec3, matTvec3, matmul3_into, matTmul3_into equal numpy's to rounding; vee inverts S(w)."""
     w, x = RNG.normal(size=(2, 50, 3))
     A, B = RNG.normal(size=(2, 50, 3, 3))
     for k in range(50):
         np.testing.assert_allclose(so3.cross3(w[k], x[k]), np.cross(w[k], x[k]), atol=1e-14)
         np.testing.assert_allclose(so3.matvec3(A[k], x[k]), A[k] @ x[k], atol=1e-14)
-        np.testing.assert_allclose(so3.matmul3(A[k], B[k]), A[k] @ B[k], atol=1e-14)
+        np.testing.assert_allclose(so3.matTvec3(A[k], x[k]), A[k].T @ x[k], atol=1e-14)
+        out = np.empty((3, 3))
+        so3.matmul3_into(A[k], B[k], out)
+        np.testing.assert_allclose(out, A[k] @ B[k], atol=1e-14)
+        so3.matTmul3_into(A[k], B[k], out)
+        np.testing.assert_allclose(out, A[k].T @ B[k], atol=1e-14)
         S = np.cross(np.eye(3), -w[k]).T  # S(w): column j is w × e_j
         np.testing.assert_allclose(S @ x[k], np.cross(w[k], x[k]), atol=1e-14)
         np.testing.assert_allclose(so3.vee(S), w[k], atol=0)

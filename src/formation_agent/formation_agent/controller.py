@@ -36,7 +36,7 @@ import numpy as np
 from formation_msgs_py import funnels
 from formation_msgs_py.compiled import kernel
 from formation_msgs_py.errors import FormationError
-from formation_msgs_py.so3 import matmul3, matvec3
+from formation_msgs_py.so3 import add3, matTvec3, matvec3, scale3
 from formation_msgs_py.spec import AgentView
 
 OK, WARN, ERROR = 0, 1, 2
@@ -128,23 +128,44 @@ def new_funnel_start(n_agents: int) -> FunnelStart:
 
 
 @kernel
+def relative_entry(R_i_j, is_tail, a, b):
+    """Entry (a, b) of Q = R_k1ᵀR_k2 from agent i's R_i_j: R_i_j for the tail, its transpose for the head."""
+    return R_i_j[a, b] if is_tail else R_i_j[b, a]
+
+
+@kernel
+def offset_entry(R_i_j, is_tail, R_des, a, b):
+    """Entry (a, b) of A = Q R_des, the relative orientation's offset from the desired one."""
+    return (
+        relative_entry(R_i_j, is_tail, a, 0) * R_des[0, b]
+        + relative_entry(R_i_j, is_tail, a, 1) * R_des[1, b]
+        + relative_entry(R_i_j, is_tail, a, 2) * R_des[2, b]
+    )
+
+
+@kernel
 def edge_errors(p_i_j_in_i, R_i_j, is_tail, d2, R_des):
     """Step I for edge k seen by agent i: (e_k, ψ_k, e_Rk) (eq. errors and eq. e_R_k and psi_k).
 
     In the tail's frame q = R_k1ᵀ(p_k2 − p_k1) and Q = R_k1ᵀR_k2: the tail measures them, the head
     measures R_k2ᵀ(p_k1 − p_k2) and R_k2ᵀR_k1 (NOTES.md, conventions). Then e = ‖q‖² − d² [m²],
-    ψ = ½(3 − tr(Q R_des)) and e_R = S⁻¹(Q R_des − (Q R_des)ᵀ) (3,).
+    ψ = ½(3 − tr A) and e_R = S⁻¹(A − Aᵀ) with A = Q R_des. e_R is a 3-tuple.
     """
     if is_tail:
-        Q = R_i_j.copy()
-        q = p_i_j_in_i.copy()
+        q = (p_i_j_in_i[0], p_i_j_in_i[1], p_i_j_in_i[2])
     else:
-        Q = np.ascontiguousarray(R_i_j.T)
-        q = -matvec3(Q, p_i_j_in_i)
-    A = matmul3(Q, R_des)
-    psi = 0.5 * (3.0 - A[0, 0] - A[1, 1] - A[2, 2])
-    e_R = np.array([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]])
-    return q[0] * q[0] + q[1] * q[1] + q[2] * q[2] - d2, psi, e_R
+        q = scale3(-1.0, matTvec3(R_i_j, p_i_j_in_i))
+    e = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] - d2
+    a00 = offset_entry(R_i_j, is_tail, R_des, 0, 0)
+    a11 = offset_entry(R_i_j, is_tail, R_des, 1, 1)
+    a22 = offset_entry(R_i_j, is_tail, R_des, 2, 2)
+    psi = 0.5 * (3.0 - a00 - a11 - a22)
+    e_R = (
+        offset_entry(R_i_j, is_tail, R_des, 2, 1) - offset_entry(R_i_j, is_tail, R_des, 1, 2),
+        offset_entry(R_i_j, is_tail, R_des, 0, 2) - offset_entry(R_i_j, is_tail, R_des, 2, 0),
+        offset_entry(R_i_j, is_tail, R_des, 1, 0) - offset_entry(R_i_j, is_tail, R_des, 0, 1),
+    )
+    return e, psi, e_R
 
 
 @kernel
@@ -183,18 +204,19 @@ def orientation_term(psi, t, rho_psi_0, rho_psi_inf, decay_psi, saturation_margi
 def alpha(R_i_j, is_tail, x):
     """α(i, k)·x (eq. vel_i_des): −x for the tail, R_k2ᵀR_k1 x = R_i_j x for the head."""
     if is_tail:
-        return -x
+        return scale3(-1.0, x)
     return matvec3(R_i_j, x)
 
 
 @kernel
 def desired_velocity(t, p_rel, R_rel, ends, lo, hi, delta, saturation_margin, edge_out):
-    """v_i,des (eq. vel_i_des) from agent i's ends lo:hi; fills ``edge_out`` rows; (v_des, saturated).
+    """v_i,des (eq. vel_i_des) from agent i's ends lo:hi, a 6-tuple; fills ``edge_out`` rows; (v_des, saturated).
 
     The distance part needs α(i,k)·R_k1ᵀ(p_k2 − p_k1), which is −p_i_j_in_i for either role
     (the paper's remark "Decentralized manner"): it is taken from the measurement directly.
     """
-    v_des = np.zeros(6)
+    v_lin = (0.0, 0.0, 0.0)
+    v_ang = (0.0, 0.0, 0.0)
     saturated = False
     for k in range(lo, hi):
         e, psi, e_R = edge_errors(p_rel[k], R_rel[k], ends.is_tail[k], ends.d2[k], ends.R_des[k])
@@ -205,29 +227,30 @@ def desired_velocity(t, p_rel, R_rel, ends, lo, hi, delta, saturation_margin, ed
             psi, t, ends.rho_psi_0[k], ends.rho_psi_inf[k], ends.decay_psi[k], saturation_margin
         )
         saturated = saturated or sat_e or sat_psi
-        v_des[:3] += w_e * -p_rel[k]
-        v_des[3:] += w_psi * alpha(R_rel[k], ends.is_tail[k], e_R)
-        edge_out[k, 0] = e
-        edge_out[k, 1] = psi
-        edge_out[k, 2] = xi_e
-        edge_out[k, 3] = xi_psi
-        edge_out[k, 4] = m_e
-        edge_out[k, 5] = m_psi
-    return -delta * v_des, saturated
+        alpha_q = scale3(-1.0, p_rel[k])
+        v_lin = add3(v_lin, scale3(w_e, alpha_q))
+        v_ang = add3(v_ang, scale3(w_psi, alpha(R_rel[k], ends.is_tail[k], e_R)))
+        edge_out[k, E] = e
+        edge_out[k, PSI] = psi
+        edge_out[k, XI_E] = xi_e
+        edge_out[k, XI_PSI] = xi_psi
+        edge_out[k, MARGIN_E] = m_e
+        edge_out[k, MARGIN_PSI] = m_psi
+    v_lin = scale3(-delta, v_lin)
+    v_ang = scale3(-delta, v_ang)
+    return (v_lin[0], v_lin[1], v_lin[2], v_ang[0], v_ang[1], v_ang[2]), saturated
 
 
 @kernel
-def velocity_funnel_start(e_v0, rho_v0_file, auto_scale, auto_offset):
-    """ρ_v0 per channel: the file's value, or ``auto``: auto_scale·|e_v(0)| + auto_offset (Step II-a)."""
-    if np.isnan(rho_v0_file[0]):
-        return auto_scale * np.abs(e_v0) + auto_offset
-    return rho_v0_file.copy()
+def velocity_funnel_start(e_v0, rho_v0_file, auto_scale, auto_offset, rho_v0):
+    """ρ_v0 per channel into ``rho_v0``: the file's value, or auto_scale·|e_v(0)| + auto_offset (Step II-a)."""
+    for c in range(6):
+        rho_v0[c] = auto_scale * abs(e_v0[c]) + auto_offset if np.isnan(rho_v0_file[0]) else rho_v0_file[c]
 
 
 @kernel
-def wrench(t_since_start, e_v, rho_v0, rho_v_inf, decay_v, gamma, saturation_margin, xi_out, margin_out):
-    """u_i = −γ_i ρ_v⁻¹ r_v(ξ_v) T_v(ξ_v) per channel (eq. u_i); fills ξ_v and margins; (u, saturated)."""
-    u = np.empty(6)
+def wrench(t_since_start, e_v, rho_v0, rho_v_inf, decay_v, gamma, saturation_margin, u, xi_out, margin_out):
+    """u_i = −γ_i ρ_v⁻¹ r_v(ξ_v) T_v(ξ_v) per channel (eq. u_i) into ``u``; fills ξ_v and margins; saturated?"""
     saturated = False
     keep = 1.0 - saturation_margin
     for c in range(6):
@@ -240,17 +263,25 @@ def wrench(t_since_start, e_v, rho_v0, rho_v_inf, decay_v, gamma, saturation_mar
             saturated = True
             xi = keep if xi > 0 else -keep
         u[c] = -gamma / rho_v * funnels.r_v(xi) * funnels.t_v(xi)
-    return u, saturated
+    return saturated
 
 
 @kernel
 def limit_wrench(u, max_force, max_torque):
-    """Scale the force and the torque down to their norms' limits (inf: none), keeping directions."""
+    """Scale the force and the torque down to their norms' limits, keeping directions (in place)."""
     for lo, limit in ((0, max_force), (3, max_torque)):
         norm = np.sqrt(u[lo] ** 2 + u[lo + 1] ** 2 + u[lo + 2] ** 2)
         if norm > limit:
             for c in range(lo, lo + 3):
                 u[c] = u[c] * limit / norm
+
+
+@kernel
+def all_finite(x):
+    for c in range(x.shape[0]):
+        if not np.isfinite(x[c]):
+            return False
+    return True
 
 
 @kernel
@@ -277,11 +308,19 @@ def agent_step(t, i, p_rel, R_rel, v_measured, agents, ends, start, out):
     lo, hi = agents.first_end[i], agents.first_end[i + 1]
     margin = agents.saturation_margin[i]
     v_des, saturated = desired_velocity(t, p_rel, R_rel, ends, lo, hi, agents.delta[i], margin, out.edge)
-    e_v = v_measured - v_des
+    e_v = (
+        v_measured[0] - v_des[0],
+        v_measured[1] - v_des[1],
+        v_measured[2] - v_des[2],
+        v_measured[3] - v_des[3],
+        v_measured[4] - v_des[4],
+        v_measured[5] - v_des[5],
+    )
     if np.isnan(start.t0[i]):
         start.t0[i] = t
-        start.rho_v0[i] = velocity_funnel_start(e_v, agents.rho_v0[i], agents.auto_scale[i], agents.auto_offset[i])
-    u, sat_v = wrench(
+        velocity_funnel_start(e_v, agents.rho_v0[i], agents.auto_scale[i], agents.auto_offset[i], start.rho_v0[i])
+    u = out.u[i]
+    sat_v = wrench(
         t - start.t0[i],
         e_v,
         start.rho_v0[i],
@@ -289,15 +328,16 @@ def agent_step(t, i, p_rel, R_rel, v_measured, agents, ends, start, out):
         agents.decay_v[i],
         agents.gamma[i],
         margin,
+        u,
         out.xi_v[i],
         out.margin_v[i],
     )
     limit_wrench(u, agents.max_force[i], agents.max_torque[i])
-    out.v_des[i] = v_des
-    out.u[i] = u
+    for c in range(6):
+        out.v_des[i, c] = v_des[c]
     out.reason[i] = REASON_NONE
-    if not np.all(np.isfinite(u)):
-        out.u[i] = 0.0
+    if not all_finite(u):
+        u[:] = 0.0
         out.level[i] = ERROR
         out.reason[i] = REASON_NON_FINITE
     elif saturated or sat_v:

@@ -32,39 +32,74 @@ def vee(S: ArrayLike) -> FloatArray:
     return np.stack([S[..., 2, 1], S[..., 0, 2], S[..., 1, 0]], axis=-1)
 
 
-@kernel
-def matmul3(A, B):
-    """A @ B for 3×3 arrays (explicit loops: compiled, far cheaper than a BLAS call)."""
-    C = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
-    return C
+# --- compiled 3-vector / 3×3 kernels: vectors as tuples (x, y, z), no heap allocation -------
 
 
 @kernel
-def matvec3(A, x):
-    """A @ x for a 3×3 array and a 3-vector."""
-    return np.array(
-        [
-            A[0, 0] * x[0] + A[0, 1] * x[1] + A[0, 2] * x[2],
-            A[1, 0] * x[0] + A[1, 1] * x[1] + A[1, 2] * x[2],
-            A[2, 0] * x[0] + A[2, 1] * x[1] + A[2, 2] * x[2],
-        ]
-    )
+def add3(a, b):
+    """a + b."""
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+@kernel
+def sub3(a, b):
+    """a − b."""
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+@kernel
+def scale3(s, a):
+    """s·a."""
+    return (s * a[0], s * a[1], s * a[2])
 
 
 @kernel
 def cross3(a, b):
-    """a × b for 3-vectors."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+    """a × b."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
 @kernel
-def exp_so3(theta):
-    """exp(S(θ)) of a rotation vector θ (3,) [rad], by Rodrigues' formula; series near 0.
+def matvec3(A, x):
+    """A x for a 3×3 array A."""
+    return (
+        A[0, 0] * x[0] + A[0, 1] * x[1] + A[0, 2] * x[2],
+        A[1, 0] * x[0] + A[1, 1] * x[1] + A[1, 2] * x[2],
+        A[2, 0] * x[0] + A[2, 1] * x[1] + A[2, 2] * x[2],
+    )
 
-    R = cos θ·I + (sin θ/θ)·S(θ) + ((1 − cos θ)/θ²)·θθᵀ.
+
+@kernel
+def matTvec3(A, x):
+    """Aᵀ x for a 3×3 array A."""
+    return (
+        A[0, 0] * x[0] + A[1, 0] * x[1] + A[2, 0] * x[2],
+        A[0, 1] * x[0] + A[1, 1] * x[1] + A[2, 1] * x[2],
+        A[0, 2] * x[0] + A[1, 2] * x[1] + A[2, 2] * x[2],
+    )
+
+
+@kernel
+def matmul3_into(A, B, out):
+    """out = A B for 3×3 A and B (arrays, or B as rows of tuples); out must not alias A or B."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0][j] + A[i, 1] * B[1][j] + A[i, 2] * B[2][j]
+
+
+@kernel
+def matTmul3_into(A, B, out):
+    """out = Aᵀ B for 3×3 arrays; out must not alias A or B."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
+
+
+@kernel
+def exp_rows(theta):
+    """exp(S(θ)) of a rotation vector θ [rad] as three row tuples, by Rodrigues' formula.
+
+    R = cos θ·I + (sin θ/θ)·S(θ) + ((1 − cos θ)/θ²)·θθᵀ, by its series near 0.
     """
     tx, ty, tz = theta[0], theta[1], theta[2]
     a2 = tx * tx + ty * ty + tz * tz
@@ -77,17 +112,26 @@ def exp_so3(theta):
         A = np.sin(a) / a
         C = np.cos(a)
         B = (1.0 - C) / a2
-    return np.array(
-        [
-            [C + B * tx * tx, B * tx * ty - A * tz, B * tx * tz + A * ty],
-            [B * ty * tx + A * tz, C + B * ty * ty, B * ty * tz - A * tx],
-            [B * tz * tx - A * ty, B * tz * ty + A * tx, C + B * tz * tz],
-        ]
+    return (
+        (C + B * tx * tx, B * tx * ty - A * tz, B * tx * tz + A * ty),
+        (B * ty * tx + A * tz, C + B * ty * ty, B * ty * tz - A * tx),
+        (B * tz * tx - A * ty, B * tz * ty + A * tx, C + B * tz * tz),
     )
 
 
 @kernel
-def dexpinv_so3(theta, omega):
+def exp_so3(theta):
+    """exp(S(θ)) (3,3) of a rotation vector θ (3,) [rad]."""
+    out = np.empty((3, 3))
+    rows = exp_rows(theta)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = rows[i][j]
+    return out
+
+
+@kernel
+def dexpinv(theta, omega):
     """Θ̇ such that R0·exp(S(Θ)) moves with body rate ω: Θ̇ = dexp⁻¹_{−Θ}(ω) (RKMK chart).
 
     dexp⁻¹_{−Θ}(ω) = ω + ½ Θ×ω + c·Θ×(Θ×ω), c = (1 − (θ/2)cot(θ/2))/θ² (series near 0).
@@ -99,7 +143,14 @@ def dexpinv_so3(theta, omega):
         half = 0.5 * np.sqrt(a2)
         c = (1.0 - half / np.tan(half)) / a2
     txw = cross3(theta, omega)
-    return omega + 0.5 * txw + c * cross3(theta, txw)
+    return add3(add3(omega, scale3(0.5, txw)), scale3(c, cross3(theta, txw)))
+
+
+@kernel
+def dexpinv_so3(theta, omega):
+    """:func:`dexpinv` as a (3,) array."""
+    x = dexpinv(theta, omega)
+    return np.array([x[0], x[1], x[2]])
 
 
 def log_so3(R: ArrayLike) -> FloatArray:

@@ -39,11 +39,12 @@ from formation_sim.plant import (
     PlantParams,
     body_rates,
     chart_rates,
-    measured_velocity,
+    measured_velocity_into,
+    new_workspace,
     rkmk4_combine,
     rkmk4_stage,
     rkmk4_step,
-    saturate,
+    saturate_into,
 )
 from formation_sim.report import RunRecorder
 from formation_sim.simulation import Simulation
@@ -67,6 +68,7 @@ class ClosedLoop(NamedTuple):
     p_rel: np.ndarray  # (n_ends, 3) scratch: the step's measurements
     R_rel: np.ndarray  # (n_ends, 3, 3)
     in_range: np.ndarray  # (n_ends,) bool
+    v_measured: np.ndarray  # (N, 6) scratch: the step's noisy twists
     noise: np.ndarray  # (draws, 2, n_links, 3) standard normal draws, or (1, 0, 0, 3) without noise
     cursor: np.ndarray  # (1,) int: next row of ``noise``
 
@@ -108,44 +110,48 @@ def sense_and_control(loop, t, p, R, v):
         draws = loop.noise[loop.cursor[0]]
         loop.cursor[0] += 1
     relative_poses(p, R, loop.sensing, draws, loop.p_rel, loop.R_rel, loop.in_range)
-    v_measured = measured_velocity(t, p, R, v, loop.plant.noise)
-    team_step(t, loop.p_rel, loop.R_rel, loop.in_range, v_measured, loop.agents, loop.ends, loop.start, loop.out)
+    measured_velocity_into(t, p, R, v, loop.plant.noise, loop.v_measured)
+    team_step(t, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured, loop.agents, loop.ends, loop.start, loop.out)
 
 
 @kernel
-def continuous_step(loop, t, p, R, v, h):
+def continuous_step(loop, t, p, R, v, h, work):
     """One RKMK4 step (as :func:`formation_sim.plant.rkmk4_step`) with the controller at every stage."""
-    half = 0.5 * h
     sense_and_control(loop, t, p, R, v)
-    pd1, vd1 = body_rates(t, p, R, v, saturate(loop.out.u, loop.plant), loop.plant)
-    K1 = np.ascontiguousarray(v[:, 3:])
-    th2, p2, R2, v2 = rkmk4_stage(half, p, R, v, pd1, vd1, K1)
-    sense_and_control(loop, t + half, p2, R2, v2)
-    pd2, vd2 = body_rates(t + half, p2, R2, v2, saturate(loop.out.u, loop.plant), loop.plant)
-    K2 = chart_rates(th2, v2)
-    th3, p3, R3, v3 = rkmk4_stage(half, p, R, v, pd2, vd2, K2)
-    sense_and_control(loop, t + half, p3, R3, v3)
-    pd3, vd3 = body_rates(t + half, p3, R3, v3, saturate(loop.out.u, loop.plant), loop.plant)
-    K3 = chart_rates(th3, v3)
-    th4, p4, R4, v4 = rkmk4_stage(h, p, R, v, pd3, vd3, K3)
-    sense_and_control(loop, t + h, p4, R4, v4)
-    pd4, vd4 = body_rates(t + h, p4, R4, v4, saturate(loop.out.u, loop.plant), loop.plant)
-    K4 = chart_rates(th4, v4)
-    return rkmk4_combine(h, p, R, v, (pd1, pd2, pd3, pd4), (vd1, vd2, vd3, vd4), (K1, K2, K3, K4))
+    saturate_into(loop.out.u, loop.plant, work.u)
+    body_rates(t, p, R, v, work.u, loop.plant, work.p_dot[0], work.v_dot[0])
+    work.theta_dot[0] = v[:, 3:]
+    for k in range(3):
+        c = h if k == 2 else 0.5 * h
+        rkmk4_stage(c, p, R, v, k, work)
+        sense_and_control(loop, t + c, work.p, work.R, work.v)
+        saturate_into(loop.out.u, loop.plant, work.u)
+        body_rates(t + c, work.p, work.R, work.v, work.u, loop.plant, work.p_dot[k + 1], work.v_dot[k + 1])
+        chart_rates(k + 1, work)
+    rkmk4_combine(h, p, R, v, work)
 
 
 @kernel
 def first_non_finite(p, R, v):
     """Index of the first agent whose state is not finite, or −1."""
     for i in range(p.shape[0]):
-        if not (np.all(np.isfinite(p[i])) and np.all(np.isfinite(R[i])) and np.all(np.isfinite(v[i]))):
+        total = 0.0  # NaN or inf in any entry makes the sum non-finite
+        for x in range(3):
+            total += p[i, x] + R[i, x, 0] + R[i, x, 1] + R[i, x, 2]
+        for x in range(6):
+            total += v[i, x]
+        if not np.isfinite(total):
             return i
     return -1
 
 
 @kernel
-def run_steps(loop, p, R, v, k0, k_stop, k_last, control_rate, substeps, h, continuous, stop_at_fault, buf):
-    """Control steps k0 … k_stop − 1 (no physics after step k_last); (steps done, event, agent, p, R, v)."""
+def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, stop_at_fault, buf):
+    """Control steps k0 … k_stop − 1 (no physics after step k_last), (p, R, v) in place.
+
+    Returns (steps done, event, agent): ``EVENT_FAULT`` after a step with an agent at ERROR when
+    ``stop_at_fault``; ``EVENT_NON_FINITE`` with the first agent whose state is no longer finite.
+    """
     n = 0
     for k in range(k0, k_stop):
         t = k / control_rate
@@ -160,22 +166,23 @@ def run_steps(loop, p, R, v, k0, k_stop, k_last, control_rate, substeps, h, cont
         buf.level[n] = out.level
         buf.reason[n] = out.reason
         buf.in_range[n] = loop.in_range
-        fault = np.any(out.level == ERROR)
+        fault = False
+        for i in range(out.level.shape[0]):
+            fault = fault or out.level[i] == ERROR
         n += 1
         if k == k_last:
             break
-        u = out.u.copy()
         for s in range(substeps):
             if continuous:
-                p, R, v = continuous_step(loop, t + s * h, p, R, v, h)
+                continuous_step(loop, t + s * h, p, R, v, h, work)
             else:
-                p, R, v = rkmk4_step(t + s * h, p, R, v, u, h, loop.plant)
+                rkmk4_step(t + s * h, p, R, v, out.u, h, loop.plant, work)
         bad = first_non_finite(p, R, v)
         if bad >= 0:
-            return n, EVENT_NON_FINITE, bad, p, R, v
+            return n, EVENT_NON_FINITE, bad
         if fault and stop_at_fault:
-            return n, EVENT_FAULT, -1, p, R, v
-    return n, EVENT_NONE, -1, p, R, v
+            return n, EVENT_FAULT, -1
+    return n, EVENT_NONE, -1
 
 
 def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
@@ -192,6 +199,7 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
         np.zeros((n_ends, 3)),
         np.zeros((n_ends, 3, 3)),
         np.zeros(n_ends, dtype=np.bool_),
+        np.zeros((n, 6)),
         sim.sensors.draw_noise(1),
         np.zeros(1, dtype=np.int64),
     )
@@ -236,14 +244,15 @@ def run_closed_loop(
     neighbours = [ie.neighbour for a in ids for ie in agent_view(spec, a).edges]
     buf = new_buffers(chunk, len(ids), len(neighbours))
     draws_per_step = 1 + (4 * sim.substeps if continuous else 0)
-    p, R, v = sim.state.p, sim.state.R, sim.state.v
+    p, R, v = sim.state.p, sim.state.R, sim.state.v  # advanced in place
+    work = new_workspace(len(ids))
     k = 0
     last_report = started
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
         watch = recorder.first_violation is None
-        done, event, agent, p, R, v = run_steps(
-            loop, p, R, v, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
+        done, event, agent = run_steps(
+            loop, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
             sim.substeps, sim.h, continuous, watch, buf,
         )  # fmt: skip
         if watch and buf.level[done - 1].max() == ERROR:
@@ -274,7 +283,6 @@ def run_closed_loop(
         if progress is not None and now - last_report > 1.0:
             progress(k / sim_spec.control_rate, k / sim_spec.control_rate / (now - started), recorder.worst_margin())
             last_report = now
-    sim.state.p, sim.state.R, sim.state.v = p, R, v
     return time.perf_counter() - started
 
 

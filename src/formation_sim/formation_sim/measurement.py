@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from formation_msgs_py.compiled import kernel
-from formation_msgs_py.so3 import exp_so3, matmul3, matvec3
+from formation_msgs_py.so3 import exp_rows, matmul3_into, matTmul3_into, matTvec3
 from formation_msgs_py.spec import SimulatorView
 
 #: {agent_id: {neighbour_id: (p_i_j_in_i (3,), R_i_j (3,3))}}
@@ -70,15 +70,18 @@ def relative_poses(p, R, sens, noise, p_rel, R_rel, in_range):
     noisy = noise.shape[0] > 0
     for k in range(sens.observer.shape[0]):
         i, j = sens.observer[k], sens.target[k]
-        R_i_T = R[i].T
-        d_world = p[j] - p[i]
+        d_world = (p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2])
         in_range[k] = d_world[0] ** 2 + d_world[1] ** 2 + d_world[2] ** 2 <= sens.radius2[k]
-        p_rel[k] = matvec3(R_i_T, d_world)
-        R_rel[k] = matmul3(R_i_T, R[j])
+        p_i_j_in_i = matTvec3(R[i], d_world)
+        for x in range(3):
+            p_rel[k, x] = p_i_j_in_i[x]
+        matTmul3_into(R[i], R[j], R_rel[k])
         if noisy:
             lk = sens.link[k]
-            p_rel[k] = p_rel[k] + noise[0, lk] * sens.position_std[k]
-            R_rel[k] = matmul3(R_rel[k], exp_so3(noise[1, lk] * sens.rotation_std[k]))
+            for x in range(3):
+                p_rel[k, x] += noise[0, lk, x] * sens.position_std[k]
+            R_clean = R_rel[k].copy()
+            matmul3_into(R_clean, exp_rows(noise[1, lk] * sens.rotation_std[k]), R_rel[k])
 
 
 class MeasurementModel:

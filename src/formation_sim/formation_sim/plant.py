@@ -6,12 +6,14 @@ Per agent, in the body frame (paper eq. system)::
     M = diag(m I₃, J),  C(v) v = [m ω×v_L ; ω×Jω],  g(x) = −[m Rᵀ g_world ; 0]
 
 The actuators saturate: each agent's force and torque norms are scaled down to its
-``dynamics.max_force`` / ``max_torque`` before they enter the dynamics (:func:`saturate`).
+``dynamics.max_force`` / ``max_torque`` before they enter the dynamics (:func:`saturate_into`).
 
 Integration is RKMK4 (Runge-Kutta-Munthe-Kaas, order 4): R is advanced as R₀·exp(S(Θ)) with
 Θ̇ = dexp⁻¹_{−Θ}(ω), so it stays in SO(3) to rounding; p and v take the classical RK4 weights
-with the same stages (:func:`rkmk4_stage`, :func:`rkmk4_combine`; :func:`rkmk4_step` with the
-wrench held, the run core with the controller evaluated at every stage). Units: m, s, kg,
+with the same stages (:func:`rkmk4_stage`, :func:`chart_rates`, :func:`rkmk4_combine`:
+:func:`rkmk4_step` with the wrench held, the run core with the controller evaluated at every
+stage). The kernels work in place on preallocated arrays (:class:`Workspace`): no allocation per
+step. Units: m, s, kg,
 kg·m², N, N·m; p in the world frame, v and u in the body frame.
 """
 
@@ -23,9 +25,9 @@ from typing import NamedTuple
 import numpy as np
 
 from formation_msgs_py.compiled import kernel
-from formation_msgs_py.so3 import cross3, dexpinv_so3, exp_so3, matmul3, matvec3
+from formation_msgs_py.so3 import cross3, dexpinv, exp_rows, matmul3_into, matTvec3, matvec3, sub3
 from formation_msgs_py.spec import SimulatorView
-from formation_sim.signals import NONE, SignalParams, signal_params, signal_value, signals_at
+from formation_sim.signals import NONE, SignalParams, l1_norm, signal_params, signal_value, signals_at, signals_into
 
 
 @dataclass
@@ -53,97 +55,133 @@ class PlantParams(NamedTuple):
     noise: SignalParams
 
 
-@kernel
-def saturate(u, plant):
-    """The wrenches (N,6) the actuators apply: force and torque norms at most their limits, directions kept.
+class Workspace(NamedTuple):
+    """Scratch arrays of one RKMK4 step: the applied wrench and the four stages' rates and states."""
 
-    A wrench within the limits is returned unchanged (bit for bit).
+    u: np.ndarray  # (N, 6) the saturated wrench
+    p_dot: np.ndarray  # (4, N, 3)
+    v_dot: np.ndarray  # (4, N, 6)
+    theta_dot: np.ndarray  # (4, N, 3)
+    p: np.ndarray  # (N, 3) the current stage's state
+    R: np.ndarray  # (N, 3, 3)
+    v: np.ndarray  # (N, 6)
+    theta: np.ndarray  # (N, 3)
+
+
+def new_workspace(n: int) -> Workspace:
+    return Workspace(
+        np.zeros((n, 6)),
+        np.zeros((4, n, 3)),
+        np.zeros((4, n, 6)),
+        np.zeros((4, n, 3)),
+        np.zeros((n, 3)),
+        np.zeros((n, 3, 3)),
+        np.zeros((n, 6)),
+        np.zeros((n, 3)),
+    )
+
+
+@kernel
+def saturate_into(u, plant, out):
+    """out (N,6) = the wrenches the actuators apply: force and torque norms at most their limits.
+
+    Directions are kept; a wrench within the limits is copied unchanged (bit for bit).
     """
-    out = u.copy()
+    out[:] = u
     for i in range(u.shape[0]):
         for lo, limit in ((0, plant.max_force[i]), (3, plant.max_torque[i])):
             norm2 = u[i, lo] ** 2 + u[i, lo + 1] ** 2 + u[i, lo + 2] ** 2
             if norm2 > limit * limit:
-                out[i, lo : lo + 3] = limit / np.sqrt(norm2) * u[i, lo : lo + 3]
-    return out
+                scale = limit / np.sqrt(norm2)
+                for c in range(lo, lo + 3):
+                    out[i, c] = scale * u[i, c]
 
 
 @kernel
-def body_rates(t, p, R, v, u, plant):
-    """(ṗ (N,3), v̇ (N,6)): ṗ = R v_L and v̇ = M⁻¹(u − C(v)v − g(x) − w(x, v, t)) (eq. system)."""
-    n = p.shape[0]
-    p_dot = np.empty((n, 3))
-    v_dot = np.empty((n, 6))
-    ref_first = np.abs(p[0]).sum()
-    for i in range(n):
-        f = u[i].copy()
+def body_rates(t, p, R, v, u, plant, p_dot, v_dot):
+    """Fill ṗ = R v_L (N,3) and v̇ = M⁻¹(u − C(v)v − g(x) − w(x, v, t)) (N,6) (eq. system)."""
+    ref_first = l1_norm(p, 0)
+    for i in range(p.shape[0]):
+        force = (u[i, 0], u[i, 1], u[i, 2])
+        torque = (u[i, 3], u[i, 4], u[i, 5])
         if plant.disturbance.kind[i] != NONE:
             trace = R[i, 0, 0] + R[i, 1, 1] + R[i, 2, 2]
-            f = f - signal_value(plant.disturbance, i, t, ref_first, np.abs(p[i]).sum(), trace, v[i])
-        lin, ang = v[i, :3], v[i, 3:]
-        p_dot[i] = matvec3(R[i], lin)
+            w = signal_value(plant.disturbance, i, t, ref_first, l1_norm(p, i), trace, v[i])
+            force = (force[0] - w[0], force[1] - w[1], force[2] - w[2])
+            torque = (torque[0] - w[3], torque[1] - w[4], torque[2] - w[5])
+        lin = (v[i, 0], v[i, 1], v[i, 2])
+        ang = (v[i, 3], v[i, 4], v[i, 5])
+        velocity_world = matvec3(R[i], lin)
         # m v̇_L = f − m ω×v_L + m Rᵀ g_world
-        v_dot[i, :3] = f[:3] / plant.mass[i] - cross3(ang, lin) + matvec3(R[i].T, plant.gravity)
+        spin = cross3(ang, lin)
+        gravity_body = matTvec3(R[i], plant.gravity)
         # J ω̇ = τ − ω×Jω
-        v_dot[i, 3:] = matvec3(plant.inertia_inv[i], f[3:] - cross3(ang, matvec3(plant.inertia[i], ang)))
-    return p_dot, v_dot
+        alpha = matvec3(plant.inertia_inv[i], sub3(torque, cross3(ang, matvec3(plant.inertia[i], ang))))
+        for c in range(3):
+            p_dot[i, c] = velocity_world[c]
+            v_dot[i, c] = force[c] / plant.mass[i] - spin[c] + gravity_body[c]
+            v_dot[i, 3 + c] = alpha[c]
 
 
 @kernel
-def rkmk4_stage(c, p0, R0, v0, p_dot, v_dot, theta_dot):
-    """The stage state at offset c [s]: (Θ, p, R, v) with Θ = c·Θ̇, R = R₀ exp(S(Θ))."""
-    theta = c * theta_dot
-    R = np.empty_like(R0)
-    for i in range(R0.shape[0]):
-        R[i] = matmul3(R0[i], exp_so3(theta[i]))
-    return theta, p0 + c * p_dot, R, v0 + c * v_dot
+def rkmk4_stage(c, p0, R0, v0, k, work):
+    """The next stage's state at offset c [s] from stage k's rates, into ``work``.
+
+    Θ = c·Θ̇_k, p = p₀ + c·ṗ_k, R = R₀ exp(S(Θ)), v = v₀ + c·v̇_k.
+    """
+    for i in range(p0.shape[0]):
+        for x in range(3):
+            work.theta[i, x] = c * work.theta_dot[k, i, x]
+            work.p[i, x] = p0[i, x] + c * work.p_dot[k, i, x]
+        matmul3_into(R0[i], exp_rows(work.theta[i]), work.R[i])
+        for x in range(6):
+            work.v[i, x] = v0[i, x] + c * work.v_dot[k, i, x]
 
 
 @kernel
-def chart_rates(theta, v):
-    """Θ̇ = dexp⁻¹_{−Θ}(ω) of every agent (N,3)."""
-    out = np.empty_like(theta)
-    for i in range(theta.shape[0]):
-        out[i] = dexpinv_so3(theta[i], v[i, 3:])
-    return out
+def chart_rates(k, work):
+    """Θ̇_k = dexp⁻¹_{−Θ}(ω) of every agent at the current stage."""
+    for i in range(work.theta.shape[0]):
+        rate = dexpinv(work.theta[i], (work.v[i, 3], work.v[i, 4], work.v[i, 5]))
+        for x in range(3):
+            work.theta_dot[k, i, x] = rate[x]
 
 
 @kernel
-def rkmk4_combine(h, p0, R0, v0, p_dots, v_dots, theta_dots):
-    """The step's end from the four stages' rates (classical weights 1, 2, 2, 1)."""
+def rkmk4_combine(h, p, R, v, work):
+    """Advance (p, R, v) in place from the four stages' rates (classical weights 1, 2, 2, 1)."""
     w6 = h / 6.0
-    p = p0 + w6 * (p_dots[0] + 2 * p_dots[1] + 2 * p_dots[2] + p_dots[3])
-    v = v0 + w6 * (v_dots[0] + 2 * v_dots[1] + 2 * v_dots[2] + v_dots[3])
-    theta = w6 * (theta_dots[0] + 2 * theta_dots[1] + 2 * theta_dots[2] + theta_dots[3])
-    R = np.empty_like(R0)
-    for i in range(R0.shape[0]):
-        R[i] = matmul3(R0[i], exp_so3(theta[i]))
-    return p, R, v
+    pd, vd, td = work.p_dot, work.v_dot, work.theta_dot
+    for i in range(p.shape[0]):
+        for x in range(3):
+            p[i, x] = p[i, x] + w6 * (pd[0, i, x] + 2 * pd[1, i, x] + 2 * pd[2, i, x] + pd[3, i, x])
+            work.theta[i, x] = w6 * (td[0, i, x] + 2 * td[1, i, x] + 2 * td[2, i, x] + td[3, i, x])
+        for x in range(6):
+            v[i, x] = v[i, x] + w6 * (vd[0, i, x] + 2 * vd[1, i, x] + 2 * vd[2, i, x] + vd[3, i, x])
+        matmul3_into(R[i], exp_rows(work.theta[i]), work.R[i])
+        R[i] = work.R[i]
 
 
 @kernel
-def rkmk4_step(t, p, R, v, u, h, plant):
-    """One RKMK4 step of length h [s] with the commanded wrench u (N,6) held: the new (p, R, v)."""
+def rkmk4_step(t, p, R, v, u, h, plant, work):
+    """One RKMK4 step of length h [s] with the commanded wrench u (N,6) held: (p, R, v) advance in place."""
     half = 0.5 * h
-    u = saturate(u, plant)
-    pd1, vd1 = body_rates(t, p, R, v, u, plant)
-    K1 = np.ascontiguousarray(v[:, 3:])
-    th2, p2, R2, v2 = rkmk4_stage(half, p, R, v, pd1, vd1, K1)
-    pd2, vd2 = body_rates(t + half, p2, R2, v2, u, plant)
-    K2 = chart_rates(th2, v2)
-    th3, p3, R3, v3 = rkmk4_stage(half, p, R, v, pd2, vd2, K2)
-    pd3, vd3 = body_rates(t + half, p3, R3, v3, u, plant)
-    K3 = chart_rates(th3, v3)
-    th4, p4, R4, v4 = rkmk4_stage(h, p, R, v, pd3, vd3, K3)
-    pd4, vd4 = body_rates(t + h, p4, R4, v4, u, plant)
-    K4 = chart_rates(th4, v4)
-    return rkmk4_combine(h, p, R, v, (pd1, pd2, pd3, pd4), (vd1, vd2, vd3, vd4), (K1, K2, K3, K4))
+    saturate_into(u, plant, work.u)
+    body_rates(t, p, R, v, work.u, plant, work.p_dot[0], work.v_dot[0])
+    work.theta_dot[0] = v[:, 3:]
+    for k in range(3):
+        c = h if k == 2 else half
+        rkmk4_stage(c, p, R, v, k, work)
+        body_rates(t + c, work.p, work.R, work.v, work.u, plant, work.p_dot[k + 1], work.v_dot[k + 1])
+        chart_rates(k + 1, work)
+    rkmk4_combine(h, p, R, v, work)
 
 
 @kernel
-def measured_velocity(t, p, R, v, noise):
-    """ṽ = v + n(x, t): the noisy body twists the agents receive (N,6)."""
-    return v + signals_at(noise, t, p, R, v)
+def measured_velocity_into(t, p, R, v, noise, out):
+    """out (N,6) = ṽ = v + n(x, t): the noisy body twists the agents receive."""
+    out[:] = v
+    signals_into(noise, t, p, R, v, out)
 
 
 class Plant:
@@ -164,6 +202,7 @@ class Plant:
             signal_params([a.dynamics.disturbance for a in agents], rng),
             signal_params([a.dynamics.velocity_noise for a in agents], rng),
         )
+        self._work = new_workspace(self.n)
 
     @property
     def mass(self) -> np.ndarray:
@@ -182,7 +221,9 @@ class Plant:
 
     def measured_velocity(self, t: float, s: PlantState) -> np.ndarray:
         """ṽ = v + n(x, t) (N,6)."""
-        return measured_velocity(float(t), s.p, s.R, s.v, self.params.noise)
+        out = np.empty_like(s.v)
+        measured_velocity_into(float(t), s.p, s.R, s.v, self.params.noise, out)
+        return out
 
     def disturbance(self, t: float, s: PlantState) -> np.ndarray:
         """w(x, v, t) (N,6)."""
@@ -190,13 +231,18 @@ class Plant:
 
     def saturate(self, u: np.ndarray) -> np.ndarray:
         """The wrenches (N,6) the actuators apply for the commanded ``u``."""
-        return saturate(np.asarray(u, dtype=np.float64), self.params)
+        out = np.empty((self.n, 6))
+        saturate_into(np.asarray(u, dtype=np.float64), self.params, out)
+        return out
 
     def acceleration(self, t: float, s: PlantState, u: np.ndarray) -> np.ndarray:
         """v̇ (N,6) = M⁻¹(sat(u) − C(v)v − g(x) − w(x,v,t)), body frame."""
-        return body_rates(float(t), s.p, s.R, s.v, self.saturate(u), self.params)[1]
+        p_dot, v_dot = np.empty((self.n, 3)), np.empty((self.n, 6))
+        body_rates(float(t), s.p, s.R, s.v, self.saturate(u), self.params, p_dot, v_dot)
+        return v_dot
 
     def step(self, t: float, s: PlantState, u: np.ndarray, h: float) -> PlantState:
-        """One RKMK4 step of length h (s) with the wrenches u (N,6) held."""
-        p, R, v = rkmk4_step(float(t), s.p, s.R, s.v, np.asarray(u, dtype=np.float64), float(h), self.params)
-        return PlantState(p, R, v)
+        """One RKMK4 step of length h (s) with the wrenches u (N,6) held; a new state."""
+        new = s.copy()
+        rkmk4_step(float(t), new.p, new.R, new.v, np.asarray(u, dtype=np.float64), float(h), self.params, self._work)
+        return new

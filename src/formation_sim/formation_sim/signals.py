@@ -70,32 +70,59 @@ def signal_params(models: Sequence[SignalModel], rng: np.random.Generator) -> Si
 
 
 @kernel
-def signal_value(sig, i, t, ref_first, ref_self, trace, v_i):
-    """Agent i's signal (6,) at t [s]: ``ref_first``/``ref_self`` are ‖p_1‖₁/‖p_i‖₁, ``trace`` tr(R_i)."""
+def random_channel(sig, i, c, t):
+    """Channel c of agent i's ``random`` signal at t: Σ_m a_m sin(ω_m t + φ_m)."""
+    acc = 0.0
+    for m in range(sig.amplitude.shape[2]):
+        acc += sig.amplitude[i, c, m] * np.sin(sig.frequency[i, c, m] * t + sig.phase[i, c, m])
+    return acc
+
+
+@kernel
+def signal_value(sig, i, t, ref_first, ref_self, trace, v):
+    """Agent i's signal at t [s], a 6-tuple: ``ref_first``/``ref_self`` are ‖p_1‖₁/‖p_i‖₁, ``trace``
+    tr(R_i), ``v`` the agent's twist (6,)."""
     kind = sig.kind[i]
     if kind == PAPER:
         amplitude, frequency, phase = sig.paper[i, 0], sig.paper[i, 1], sig.paper[i, 2]
         ref = ref_self if sig.paper[i, 3] > 0.5 else ref_first
-        return amplitude * np.sin(ref * trace * frequency * t + phase) * v_i
+        g = amplitude * np.sin(ref * trace * frequency * t + phase)
+        return (g * v[0], g * v[1], g * v[2], g * v[3], g * v[4], g * v[5])
     if kind == CONSTANT:
-        return sig.constant[i].copy()
-    out = np.zeros(6)
+        c = sig.constant[i]
+        return (c[0], c[1], c[2], c[3], c[4], c[5])
     if kind == RANDOM:
-        for c in range(6):
-            acc = 0.0
-            for m in range(sig.amplitude.shape[2]):
-                acc += sig.amplitude[i, c, m] * np.sin(sig.frequency[i, c, m] * t + sig.phase[i, c, m])
-            out[c] = acc
-    return out
+        return (
+            random_channel(sig, i, 0, t),
+            random_channel(sig, i, 1, t),
+            random_channel(sig, i, 2, t),
+            random_channel(sig, i, 3, t),
+            random_channel(sig, i, 4, t),
+            random_channel(sig, i, 5, t),
+        )
+    return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@kernel
+def l1_norm(p, i):
+    """‖p_i‖₁."""
+    return abs(p[i, 0]) + abs(p[i, 1]) + abs(p[i, 2])
+
+
+@kernel
+def signals_into(sig, t, p, R, v, out):
+    """Add every agent's signal at t to ``out`` (N, 6), for positions p (N,3), rotations R (N,3,3), twists v (N,6)."""
+    ref_first = l1_norm(p, 0)
+    for i in range(p.shape[0]):
+        if sig.kind[i] != NONE:
+            w = signal_value(sig, i, t, ref_first, l1_norm(p, i), R[i, 0, 0] + R[i, 1, 1] + R[i, 2, 2], v[i])
+            for c in range(6):
+                out[i, c] += w[c]
 
 
 @kernel
 def signals_at(sig, t, p, R, v):
-    """Every agent's signal (N, 6) at t for positions p (N,3), rotations R (N,3,3), twists v (N,6)."""
-    n = p.shape[0]
-    out = np.zeros((n, 6))
-    ref_first = np.abs(p[0]).sum()
-    for i in range(n):
-        if sig.kind[i] != NONE:
-            out[i] = signal_value(sig, i, t, ref_first, np.abs(p[i]).sum(), R[i, 0, 0] + R[i, 1, 1] + R[i, 2, 2], v[i])
+    """Every agent's signal (N, 6) at t."""
+    out = np.zeros((p.shape[0], 6))
+    signals_into(sig, t, p, R, v, out)
     return out

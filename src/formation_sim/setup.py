@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "formation_msgs_py", "formation_agent", "numpy", "matplotlib"],
+    install_requires=["setuptools", "formation_msgs_py", "formation_agent", "numpy", "matplotlib", "distributed"],
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
@@ -23,6 +23,7 @@ setup(
             "formation-sim = formation_sim.sim_node:main",
             "formation-launch = formation_sim.launch:main",
             "formation-generate = formation_sim.generate:main",
+            "formation-campaign = formation_sim.campaign:main",
         ],
     },
 )

@@ -1,10 +1,10 @@
 """The controller written as the paper's steps gives the wrenches of the hand-unrolled one it replaced.
 
-``data/controller_reference.npz`` holds the outputs of the controller of commit a2d582a (with its 100 N, 100 N·m limits) on 200
-seeded configurations of the paper's formation (80 % inside every funnel, 20 % far outside:
-saturated), made by ``data/make_reference.py``. Tolerance 1e-12, relative for values above 1
-(saturated wrenches reach 2e4 N): the same formulas in the same order up to a few roundings
-(r_ψ/ρ_ψ as two divisions), so the outputs differ by a few units in the last place.
+``data/controller_reference.npz`` holds the outputs of the controller of commit a2d582a (with its
+100 N, 100 N·m limits) on 200 seeded configurations of the paper's formation (80 % inside every
+funnel, 20 % far outside: saturated, at the limits), made by ``data/make_reference.py``.
+Tolerance 1e-12, relative for values above 1: the same formulas in the same order up to a few
+roundings (r_ψ/ρ_ψ as two divisions), so the outputs differ by a few units in the last place.
 """
 
 from __future__ import annotations

@@ -468,9 +468,18 @@ class AgentController:
         """ρ_v0 per channel, set at the first step after a reset (None before)."""
         return None if np.isnan(self._start.t0[0]) else tuple(self._start.rho_v0[0].tolist())
 
+    @rho_v0.setter
+    def rho_v0(self, value: Sequence[float] | None) -> None:
+        self._start.rho_v0[0] = np.nan if value is None else value
+
     @property
     def t0(self) -> float | None:
+        """Time [s] of the first step after a reset (None before): the velocity funnel's start."""
         return None if np.isnan(self._start.t0[0]) else float(self._start.t0[0])
+
+    @t0.setter
+    def t0(self, value: float | None) -> None:
+        self._start.t0[0] = np.nan if value is None else value
 
     def reset(self) -> None:
         """Forget the velocity funnel's start (ρ_v0 and t0 are set again at the next step)."""

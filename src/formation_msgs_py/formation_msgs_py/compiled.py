@@ -12,17 +12,21 @@ callers check finiteness where the paper's law can leave its domain.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import TypeVar
 
-import numba
-
 F = TypeVar("F", bound=Callable)
 
-#: True when ``NUMBA_DISABLE_JIT`` is set: every kernel is its own Python source.
-INTERPRETED = bool(numba.config.DISABLE_JIT)
+#: True when ``NUMBA_DISABLE_JIT`` is set (not "0"): every kernel is its own Python source, and
+#: numba is not even imported (an agent process saves its start time and memory).
+INTERPRETED = os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0")
 
 
 def kernel(fn: F) -> F:
     """Compile ``fn`` in nopython mode, cached next to its source (or in numba's user cache)."""
+    if INTERPRETED:
+        return fn
+    import numba
+
     return numba.njit(cache=True, error_model="numpy")(fn)

@@ -303,7 +303,10 @@ def _progress(done: int, total: int, started: float) -> None:
 def run_tasks(todo: list[Task], log: Path, *, workers: int, scheduler: str | None, quiet: bool = False) -> None:
     """Run ``todo`` and append each row to ``log`` as it finishes."""
     started = time.perf_counter()
+    torn = log.exists() and log.stat().st_size > 0 and not log.read_bytes().endswith(b"\n")
     with log.open("a", encoding="utf-8") as out:
+        if torn:  # a killed writer left half a line: end it, so that it stays one ignored line
+            out.write("\n")
 
         def record(row: dict[str, Any], done: int) -> None:
             out.write(json.dumps(row) + "\n")

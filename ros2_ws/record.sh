@@ -4,7 +4,7 @@
 #   ros2_ws/record.sh --out DIR [--formation FILE] [--storage mcap|sqlite3] [--topics T …]
 #                     [--segment-seconds S] [--segment-mb M] [--decimate TOPIC=N …] [--meta K=V …]
 #
-# Default: every topic of DESIGN.md §3 (discovered on the graph, or all of FILE's with
+# Default: every topic of docs/topics.md (discovered on the graph, or all of FILE's with
 # --formation, which also stores FILE in the bag for formation-analyze). Stop with Ctrl-C or
 # SIGTERM: the bag is closed cleanly. Segments of 2 s: a killed recorder loses at most the last.
 # ROS_AUTOMATIC_DISCOVERY_RANGE defaults to LOCALHOST (set it to SUBNET to record other hosts).

@@ -37,8 +37,11 @@ hash_files() {  # sha256 over the names and contents of the given files (missing
   done | sha256sum | cut -d' ' -f1
 }
 
-run_pip() {  # quiet pip; the full output goes to $LOG and is shown (tail) only on failure
-  if ! "$VENV/bin/python" -m pip --disable-pip-version-check --no-input "$@" >>"$LOG" 2>&1; then
+run_pip() {  # one line per package pip collects or installs; the full output goes to $LOG
+  if ! PIP_PROGRESS_BAR=off "$VENV/bin/python" -m pip --disable-pip-version-check --no-input "$@" 2>&1 \
+    | tee -a "$LOG" \
+    | awk '/^(Collecting|Obtaining) / { sub(/ \(from .*/, ""); print "setup:   " $0; fflush() }
+           /^Successfully installed / { print "setup:   installed " NF - 2 " packages"; fflush() }' >&2; then
     echo "setup: pip failed; last lines of $LOG:" >&2
     grep -v "is ignored: it is neither a file nor a directory" "$LOG" | tail -n 30 >&2
     exit 1
@@ -67,7 +70,7 @@ flock 9
 REQ_STAMP="$VENV/.stamp-requirements"
 req_hash="$(hash_files "$REQ")"
 if [ "$FORCE" = 1 ] || [ "$(cat "$REQ_STAMP" 2>/dev/null || true)" != "$req_hash" ]; then
-  say "installing requirements (ros2_ws/requirements.txt; the first time takes about a minute)…"
+  say "installing requirements (ros2_ws/requirements.txt; the first time takes one to three minutes)…"
   : >"$LOG"
   run_pip install -r "$REQ"
   echo "$req_hash" >"$REQ_STAMP"
@@ -96,4 +99,5 @@ if [ "${#pkgs[@]}" -gt 0 ] && { [ "$FORCE" = 1 ] || [ "$(cat "$SRC_STAMP" 2>/dev
   echo "$src_hash" >"$SRC_STAMP"
 fi
 
+[ "$SECONDS" -gt 2 ] && say "done in ${SECONDS} s"
 exit 0

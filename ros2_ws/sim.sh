@@ -1,21 +1,27 @@
 #!/usr/bin/env bash
 # Start the simulator process alone (multi-host deployments: the agents run elsewhere, agent.sh).
 #
-#   ros2_ws/sim.sh FILE [--mode lockstep|realtime] [--out DIR] [--duration S] [--control-rate HZ] ...
+#   ros2_ws/sim.sh FILE [--network host|lan] [--secure KEYS [--hosts FILE] [--port-base N]]
+#                  [--mode lockstep|realtime] [--out DIR] [--duration S] [--control-rate HZ] ...
 #
 # Runs formation-sim: waits for every agent of FILE to be discovered, then publishes /clock, relative
 # poses, velocities and ground truth, collects the wrenches, checks the funnels at every control step
 # and writes OUT (default out/<formation>-ros2-<mode>). All options: formation-sim --help (below).
+# Network: --network host (default: this machine only), --network lan, --secure KEYS (key
+# 'simulator'), --hosts, --port-base as for agent.sh (agent.sh --help, docs/security.md).
 # Environment: ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS as for agent.sh.
 # Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 agent missing, 130 interrupted.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case "${1:-}" in
   -h|--help)
-    sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'
     echo
     "$ROOT/ros2_ws/setup.sh"
     exec "$ROOT/.venv/bin/formation-sim" --help ;;
 esac
 "$ROOT/ros2_ws/setup.sh"
-exec "$ROOT/.venv/bin/formation-sim" "$@"
+# shellcheck source=lib/network.sh
+. "$ROOT/ros2_ws/lib/network.sh"
+formation_network_options simulator "${1:-}" "$@" || exit 2  # FILE comes first
+exec "$ROOT/.venv/bin/formation-sim" "${REST[@]+"${REST[@]}"}"

@@ -11,6 +11,7 @@ setup(
         ("share/" + package_name, ["package.xml"]),
     ],
     install_requires=["setuptools", "formation_msgs_py"],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",

@@ -18,7 +18,10 @@ setup(
         "numpy",
         "PyYAML",
         "rosbags",
+        "mcap",
+        "mcap-ros2-support",
     ],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",

@@ -10,15 +10,17 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "formation_msgs_py"],
+    install_requires=["setuptools", "formation_msgs_py", "cryptography", "PyYAML"],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
-    description="Deployment helpers: docker compose generator for a formation file.",
+    description="Deployment helpers: docker compose generator, secure-mode keys and transport profiles.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
             "formation-compose = formation_deploy.compose:main",
+            "formation-keys = formation_deploy.keys:main",
         ],
     },
 )

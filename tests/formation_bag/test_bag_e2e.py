@@ -72,6 +72,27 @@ def test_recorded_run_reproduces_its_summary(ros_procs, tmp_path: Path) -> None:
         assert r.compared + summary["bag"]["wrenches_from_rerun"].get(a, 0) == 101
     report = check_bag(bag)
     assert report.ok, report.problems
+    assert_markers_decode(bag, expected=4)  # 0.1 s at the default 30 Hz display rate: t = 0, 1/30, 2/30, 3/30
+
+
+def assert_markers_decode(bag: Path, expected: int) -> None:
+    """/formation/markers read and decoded by the independent mcap / mcap_ros2 readers: the scene of each instant."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    arrays = []
+    for segment in sorted(bag.glob("*.mcap")):
+        with segment.open("rb") as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            arrays += [m for _, _, _, m in reader.iter_decoded_messages(topics=["/formation/markers"])]
+    assert len(arrays) == expected
+    for msg in arrays:
+        by_ns: dict[str, int] = {}
+        for marker in msg.markers:
+            assert marker.header.frame_id == "world"
+            by_ns[marker.ns] = by_ns.get(marker.ns, 0) + 1
+        # paper: 5 agents (body, frame, label, force, torque) and 4 edges (line, desired-distance ghost)
+        assert by_ns == {"bodies": 5, "frames": 5, "labels": 5, "forces": 5, "torques": 5, "edges": 4, "desired": 4}
 
 
 def test_recorded_realtime_run_gives_the_same_margins(ros_procs, tmp_path: Path) -> None:

@@ -145,7 +145,7 @@ def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:
 
 
 def test_classify_topics() -> None:
-    """Topic names map to their DESIGN.md meaning, also in a namespace."""
+    """Topic names map to their meaning (docs/topics.md), also in a namespace."""
     assert m.classify("/agent_3/relative_pose/agent_5") == m.TopicKind("relative_pose", m.TRANSFORM_STAMPED, "3", "5")
     assert m.classify("/agent_2/wrench").agent == "2"
     assert m.classify("/formation/ground_truth").kind == "ground_truth"
@@ -155,7 +155,7 @@ def test_classify_topics() -> None:
 
 
 def test_fast_decoding_equals_rosbags(short_bags) -> None:
-    """The struct decoders give exactly rosbags' numbers for every DESIGN.md message of a run."""
+    """The struct decoders give exactly rosbags' numbers for every message (docs/topics.md) of a run."""
     decoders = {
         "relative_pose": m.decode_relative_pose,
         "velocity": m.decode_twist,

@@ -67,8 +67,9 @@ def test_same_results_with_1_worker_2_workers_and_a_dask_cluster(tmp_path, paper
     c = load_campaign(write_campaign(tmp_path, paper_path, SMALL))
     run_campaign(c, tmp_path / "one", workers=1, quiet=True)
     run_campaign(c, tmp_path / "two", workers=2, quiet=True)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None) as lc:
-        run_campaign(c, tmp_path / "dask", scheduler=lc.scheduler_address, quiet=True)
+    loopback = {"host": "127.0.0.1", "dashboard_address": None}  # nothing leaves the machine
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, **loopback) as cluster:
+        run_campaign(c, tmp_path / "dask", scheduler=cluster.scheduler_address, quiet=True)
     one = results(tmp_path / "one")
     assert len(one) == 4 and {r["control_rate"] for r in one} == {"2000.0", "10000.0"}
     assert len({(r["peak_force"]) for r in one}) == 4  # every run has its own plant or rate

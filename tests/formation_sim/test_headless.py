@@ -43,7 +43,7 @@ def test_paper_scenario_holds_every_funnel_and_converges(paper_run) -> None:
         assert s["min_margin_e"] > 0 and s["min_margin_psi"] > 0
     for a in summary["agents"].values():
         assert 0 < a["min_margin_v"] <= 1 and a["peak_force"] > 0
-    for name in ("errors.png", "orientation_errors.png", "inputs.png"):
+    for name in ("errors.png", "orientation_errors.png", "inputs.png", "velocity_errors.png"):
         assert (out / name).stat().st_size > 10_000
 
 

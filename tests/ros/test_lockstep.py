@@ -49,7 +49,7 @@ def test_lockstep_equals_headless_and_is_deterministic(ros_env: dict[str, str], 
 
 
 def test_every_process_has_a_log_and_outputs(ros_env: dict[str, str], tmp_path: Path) -> None:
-    """run.sh writes OUT as DESIGN.md §8 (a bag by default) with one log per process; exit 0 when funnels hold."""
+    """run.sh writes OUT as docs/outputs.md (a bag by default) with one log per process; exit 0 when funnels hold."""
     out = tmp_path / "out"
     r = subprocess.run(
         [str(REPO / "ros2_ws" / "run.sh"), str(PAPER), "--out", str(out), "--duration", "0.02"],

@@ -1,6 +1,6 @@
 """One agent's prescribed-performance controller, from local measurements only.
 
-The paper's Steps I–II (Section "Main Results"; DESIGN.md §5), one compiled kernel per step:
+The paper's Steps I–II (Section "Main Results"; docs/controller.md), one compiled kernel per step:
 
 - :func:`edge_errors`: e_k, ψ_k, e_Rk of an incident edge from the neighbour's relative pose;
 - :func:`distance_term`, :func:`orientation_term`: ξ, the margin and the weight
@@ -15,7 +15,7 @@ The kernels work on arrays over *edge ends*: every incident edge of every agent,
 agent (agent i owns ends ``first_end[i]:first_end[i+1]``), so the run core steps every agent
 of a formation with the same code an agent process runs for itself (:class:`AgentController`).
 
-Inputs are what the topics carry (DESIGN.md §3): for neighbour j, ``p_i_j_in_i = R_iᵀ(p_j − p_i)``
+Inputs are what the topics carry (docs/topics.md): for neighbour j, ``p_i_j_in_i = R_iᵀ(p_j − p_i)``
 [m] and ``R_i_j = R_iᵀ R_j``; the agent's own noisy body twist ṽ_i [m/s, rad/s]; the time t [s].
 The wrench is in the body frame [N, N·m]. A normalised error outside its funnel (possible with a
 sampled controller) is clamped to (1 − saturation_margin) of its domain: the wrench stays finite

@@ -2,7 +2,7 @@
 
 From ``/formation/ground_truth`` it recomputes every e_k and ψ_k and checks every funnel with
 the same :class:`formation_sim.report.RunRecorder` the headless runner and the simulator use,
-so the outputs have the format of DESIGN.md §8 (summary.json, trajectory.npz, errors.png,
+so the outputs have the format of docs/outputs.md (summary.json, trajectory.npz, errors.png,
 orientation_errors.png, inputs.png). Per ground-truth sample (stamp t_k) it uses:
 
 - u: the wrench each agent published with stamp t_k; if the bag misses it (a recorder that matched
@@ -42,7 +42,7 @@ from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.errors import BagError
 from formation_bag.rerun import AgentRerun, rerun_all
 from formation_msgs_py.errors import FormationSpecError
-from formation_sim.report import VELOCITY_CHANNELS, RunRecorder, format_summary, write_outputs
+from formation_sim.report import VELOCITY_CHANNELS, RunRecorder, format_summary, report_animation, write_outputs
 
 VELOCITY_MARGIN_MODES = ("rerun", "none")
 
@@ -353,7 +353,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-analyze",
         description="Analyse a recorded run without ROS: recompute e_k and ψ_k from /formation/ground_truth, check "
-        "every funnel, write OUT as DESIGN.md §8 (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
+        "every funnel, write OUT as docs/outputs.md (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
         "inputs.png) plus errors.csv, inputs.csv, positions.csv, ages.json, ages.csv. Works on lockstep and "
         "realtime bags and on bags left by a killed recorder. Exit status: 0 every funnel held, 1 a funnel was "
         "violated, 2 bad input.",
@@ -370,6 +370,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument(
+        "--animate",
+        action="store_true",
+        help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for a 5 s run)",
+    )
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
     return p
 
@@ -396,6 +401,8 @@ def main(argv: list[str] | None = None) -> int:
     write_outputs(out, recorder, summary, plots=not args.no_plots)
     (out / "ages.json").write_text(json.dumps(ages, indent=2) + "\n", encoding="utf-8")
     write_csv(out, recorder, ages)
+    if args.animate:
+        report_animation(out, recorder.spec, recorder.arrays())
     print(format_summary(summary))
     b = summary["bag"]
     expected = "" if b["ground_truth_expected"] is None else f" of {b['ground_truth_expected']} expected"

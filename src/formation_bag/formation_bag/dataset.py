@@ -174,7 +174,7 @@ def load_run(
     namespace: str = "",
     need_ground_truth: bool = True,
 ) -> RunData:
-    """Read and decode every DESIGN.md §3 topic of a bag (tolerates a killed recorder's bag)."""
+    """Read and decode every docs/topics.md topic of a bag (tolerates a killed recorder's bag)."""
     path = Path(path)
     with Bag(path) as bag:
         doc, name = formation_document(bag, formation)

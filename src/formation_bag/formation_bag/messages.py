@@ -1,4 +1,4 @@
-"""The DESIGN.md §3 topics without ROS: names, types, and CDR <-> Python values via rosbags.
+"""The docs/topics.md topics without ROS: names, types, and CDR <-> Python values via rosbags.
 
 Decoding uses the agent node's own decoders and CDR codecs (:mod:`formation_msgs_py.wire`, no
 ROS import), so a relative pose decoded here gives the controller exactly the numbers the agent
@@ -53,7 +53,7 @@ _RE_WRENCH = re.compile(r"^(?P<ns>.*?)/?agent_(?P<i>[^/]+)/wrench$")
 
 
 def absolute(name: str, namespace: str = "") -> str:
-    """Resolve a DESIGN.md topic name (relative or absolute) in ``namespace``."""
+    """Resolve a docs/topics.md topic name (relative or absolute) in ``namespace``."""
     if name.startswith("/"):
         return name
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
@@ -61,7 +61,7 @@ def absolute(name: str, namespace: str = "") -> str:
 
 
 def classify(topic: str, namespace: str = "") -> TopicKind | None:
-    """The meaning of a recorded topic name, or None if it is not a DESIGN.md §3 topic."""
+    """The meaning of a recorded topic name, or None if it is not a docs/topics.md topic."""
     if topic == topics.CLOCK:
         return TopicKind("clock", CLOCK)
     if topic == topics.DIAGNOSTICS:
@@ -84,7 +84,7 @@ def classify(topic: str, namespace: str = "") -> TopicKind | None:
 
 
 def formation_topics(agent_ids: Sequence[str], edges: Sequence[tuple[str, str]], namespace: str = "") -> dict[str, str]:
-    """Every DESIGN.md §3 topic of a formation: {absolute name: type}."""
+    """Every docs/topics.md topic of a formation: {absolute name: type}."""
     out = {
         topics.CLOCK: CLOCK,
         absolute(topics.GROUND_TRUTH, namespace): POSE_ARRAY,
@@ -147,7 +147,7 @@ def _header(data: bytes | memoryview) -> tuple[int, int]:
 
 
 def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int, Any]:
-    """(stamp ns, value) of a DESIGN.md §3 message; rosbags for anything but little-endian CDR.
+    """(stamp ns, value) of a docs/topics.md message; rosbags for anything but little-endian CDR.
 
     value: relative_pose -> (p, R), velocity/wrench -> 6 floats, ground_truth -> (p (N,3), R (N,3,3)),
     clock -> None. Identical numbers to rosbags' deserialize + the decode_* functions.
@@ -190,7 +190,7 @@ def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int,
 
 
 class Encoder:
-    """Serialize the DESIGN.md §3 messages with rosbags (same fields as conversions.*_to_msg)."""
+    """Serialize the docs/topics.md messages with rosbags (same fields as conversions.*_to_msg)."""
 
     def __init__(self) -> None:
         ts = typestore()

@@ -1,4 +1,4 @@
-"""``formation-record``: record the DESIGN.md §3 topics of a running formation into a bag.
+"""``formation-record``: record the docs/topics.md topics of a running formation into a bag.
 
 A thin rclpy node: raw subscriptions (the CDR bytes, nothing is deserialized) drained by one
 wait-set loop straight into a :class:`formation_bag.writer.SegmentedBagWriter`
@@ -9,7 +9,7 @@ SIGINT/SIGTERM (our own handlers) stop the loop, take and write what the subscri
 received, close the last segment and write metadata.yaml (exit status 0). A SIGKILL loses at
 most the open segment.
 
-Topics: every DESIGN.md §3 topic of ``--formation FILE`` (exact, known before anything runs),
+Topics: every docs/topics.md topic of ``--formation FILE`` (exact, known before anything runs),
 plus whatever the graph shows that matches (checked every ``--discovery-period`` s); or only
 ``--topics``. Log time = receive time (system clock, ns), as ``ros2 bag record`` does.
 """
@@ -42,6 +42,7 @@ from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import load_formation
+from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 
 #: depth of the recorder's own subscription queues (it must never be the one that drops)
 SUB_DEPTH = 1000
@@ -340,7 +341,7 @@ class Recorder(Node):
         published: dict[str, int | None] = {}
         total: dict[str, int | None] = {}
         for name, (first, last) in self.seq.items():
-            # one publisher per DESIGN.md topic: its sequence numbers (from 1) count what it
+            # one publisher per topic of docs/topics.md: its sequence numbers (from 1) count what it
             # published in total and while we listened; with several publishers (/diagnostics)
             # they interleave: unknown
             span = last - first + 1
@@ -366,14 +367,14 @@ def _unused(_msg: Any) -> None:  # the subscriptions are drained by Recorder.spi
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-record",
-        description="Record a running formation's topics (DESIGN.md §3) into a ROS 2 bag (MCAP or sqlite3, "
+        description="Record a running formation's topics (docs/topics.md) into a ROS 2 bag (MCAP or sqlite3, "
         "metadata version 9), written in segments so a killed recorder loses at most the last one. "
         "Stop with Ctrl-C (SIGINT) or SIGTERM: the bag is closed cleanly.",
     )
     p.add_argument("--out", type=Path, required=True, help="bag directory to create (must not exist)")
     p.add_argument("--storage", choices=tuple(STORAGES), default="mcap", help="storage plugin (default mcap)")
     p.add_argument(
-        "--topics", nargs="+", metavar="TOPIC", help="record exactly these topics (default: every DESIGN.md §3 topic)"
+        "--topics", nargs="+", metavar="TOPIC", help="record exactly these topics (default: every docs/topics.md topic)"
     )
     p.add_argument(
         "--formation",
@@ -435,6 +436,7 @@ def main(argv: list[str] | None = None) -> int:
     code = 0
     try:
         node = Recorder(writer, known=known, only=only, namespace=args.namespace, decimate=decimate)
+        check_secure_transport()  # secure mode: refuse to record over a transport that fell back to UDP
         signal.signal(signal.SIGINT, node.request_stop)
         signal.signal(signal.SIGTERM, node.request_stop)
         print(f"formation-record: recording {node.topic_count} topics into {args.out}", flush=True)
@@ -446,6 +448,9 @@ def main(argv: list[str] | None = None) -> int:
             # a graph query or wait interrupted by SIGINT/SIGTERM (the context is shut down): a normal stop
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except InsecureTransportError as exc:
+        print(f"formation-record: {exc}", file=sys.stderr)
+        code = 2
     finally:
         if node is not None:
             try:

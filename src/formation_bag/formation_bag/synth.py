@@ -53,7 +53,7 @@ def write_run_bag(
     start_ns: int = 1_700_000_000 * m.NS_PER_S,
     stop_on_violation: bool = False,
 ) -> SynthResult:
-    """Run ``spec`` (sampled control, lockstep) and record every DESIGN.md §3 message in ``bag``."""
+    """Run ``spec`` (sampled control, lockstep) and record every docs/topics.md message in ``bag``."""
     sim_spec = spec.simulation
     sim = Simulation(simulator_view(spec))
     team = AgentTeam(spec)

@@ -1,4 +1,4 @@
-"""QoS profiles of every topic, defined once (DESIGN.md §3). Imports rclpy: nodes only.
+"""QoS profiles of every topic, defined once (docs/topics.md). Imports rclpy: nodes only.
 
 - ``CONTROL``: measurements and wrenches. Reliable, keep last 10, volatile: in lockstep a
   lost message would stall a step until its timeout; on one host reliability is cheap.

@@ -1,7 +1,7 @@
-"""Topic and frame names of DESIGN.md §3, defined once (no ROS import).
+"""Topic and frame names of docs/topics.md, defined once (no ROS import).
 
 Names are relative (no leading slash) so that a run's namespace applies; with the default
-empty namespace they resolve to the absolute names of DESIGN.md.
+empty namespace they resolve to the absolute names of docs/topics.md.
 """
 
 from __future__ import annotations

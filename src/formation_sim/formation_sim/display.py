@@ -9,7 +9,7 @@ At ``marker_rate`` Hz of simulation time (default 30; 0 turns it off) the simula
 - ``/tf`` (tf2_msgs/TFMessage) ``world → agent_<id>``, only where tf2_msgs is importable: an apt
   install of ROS 2 has it, the PyPI wheels of ``ros2_ws/requirements.txt`` do not.
 
-Nothing here is read by an agent (DESIGN.md §3 of the design contract, docs/topics.md).
+Nothing here is read by an agent (docs/topics.md).
 """
 
 from __future__ import annotations

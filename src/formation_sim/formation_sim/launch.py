@@ -21,7 +21,6 @@ settings; 3 a process died, or an agent was missing; 130 interrupted.
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import json
 import os
@@ -36,16 +35,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py import options
+from formation_msgs_py.errors import FormationError
+from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.spec import FormationSpec
-from formation_sim.headless import add_override_options, check_control_rate, prepare_out_dir
-from formation_sim.report import format_summary
+from formation_sim.preflight import preflight
+from formation_sim.report import format_summary, report_animation
 
 EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_PROCESS, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 #: Above this many DDS participants, run in a private network namespace (Fast DDS LOCALHOST limit).
 NETNS_THRESHOLD = 30
 _IN_NETNS = "FORMATION_IN_NETNS"
 _PR_SET_PDEATHSIG = 1
+#: child name -> formation-keys process name, where they differ
+_KEY_NAMES = {"sim": "simulator"}
 
 
 def _bin(name: str) -> Path:
@@ -152,89 +155,31 @@ def reexec_in_netns(argv: list[str]) -> None:
     os.execvpe("unshare", cmd, env)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="formation-launch",
-        description="Run a formation through ROS 2: the simulator node and one process per agent "
-        "(and, unless --no-record, a bag recorder). Writes OUT as DESIGN.md §8 with one log per process in "
+def build_parser() -> OptionParser:
+    return options.build_parser(
+        options.LAUNCH,
+        "formation-launch",
+        "Run a formation through ROS 2: the simulator node and one process per agent "
+        "(and, unless --no-record, a bag recorder). Writes OUT as docs/outputs.md with one log per process in "
         "OUT/logs. Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 a process died or an "
         "agent was missing, 130 interrupted.",
     )
-    p.add_argument("file", type=Path, help="formation file (YAML)")
-    p.add_argument("--out", type=Path, help="output directory (default: out/<formation>-ros2-<mode>-<time>)")
-    add_override_options(p, ros=True)
-    p.add_argument("--discovery-timeout", type=float, help="wall s to wait for the agents (default 30 + 1/agent)")
-    p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
-    p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")
-    p.add_argument(
-        "--record",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="record a bag into OUT/bag with formation-record (default: on; --no-record to skip). While "
-        "recording, ground truth is published at every control step unless --ground-truth-rate is given, so "
-        "that formation-analyze OUT/bag reproduces the run's summary",
-    )
-    p.add_argument(
-        "--netns",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help=f"private network namespace: auto = when more than {NETNS_THRESHOLD} participants (default)",
-    )
-    p.add_argument("--executor", choices=("events", "single"), default="events", help="rclpy executor of every node")
-    p.add_argument(
-        "--measurement-qos",
-        choices=("reliable", "best-effort"),
-        default="reliable",
-        help="QoS of relative poses and velocities; best-effort (realtime only) costs less CPU per message",
-    )
-    p.add_argument(
-        "--intruder-policy",
-        choices=("report", "refuse"),
-        default="report",
-        help="a publisher the formation does not expect: report it (default) or also refuse its topic's "
-        "messages while it is there, in the simulator and every agent (docs/security.md)",
-    )
-    p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
-    p.add_argument("--no-plots", action="store_true", help="skip the figures")
-    p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
-    return p
 
 
-def _sim_args(args: argparse.Namespace, out: Path, spec: FormationSpec) -> list[str]:
-    cmd = [str(args.file.resolve()), "--out", str(out), "--force", "--executor", args.executor]
-    cmd += ["--measurement-qos", args.measurement_qos, "--intruder-policy", args.intruder_policy]
-    for opt in (
-        "mode",
-        "duration",
-        "control_rate",
-        "physics_rate",
-        "record_rate",
-        "seed",
-        "step_timeout",
-        "command_timeout",
-        "discovery_timeout",
-        "ground_truth_rate",
-        "clock_rate",
-    ):
-        value = getattr(args, opt)
-        if value is not None:
-            cmd += [f"--{opt.replace('_', '-')}", str(value)]
-    for flag in ("allow_low_rate", "no_plots"):
-        if getattr(args, flag):
-            cmd.append(f"--{flag.replace('_', '-')}")
+def _sim_args(args: RunOptions, out: Path, spec: FormationSpec) -> list[str]:
+    cmd = [str(args.file.resolve()), "--out", str(out), "--force", *args.child_argv(options.SIM)]
     if args.record:
         cmd.append("--wait-recorder")
         if args.ground_truth_rate is None:
             # the analysis checks the funnels at the recorded ground-truth samples: all of them
-            cmd += ["--ground-truth-rate", str(spec.simulation.control_rate)]
+            cmd += ["--ground-truth-rate", repr(spec.simulation.control_rate)]
     return cmd
 
 
 class Launcher:
     """Starts, watches and stops the processes of one run."""
 
-    def __init__(self, spec: FormationSpec, args: argparse.Namespace, out: Path, env: dict[str, str]) -> None:
+    def __init__(self, spec: FormationSpec, args: RunOptions, out: Path, env: dict[str, str]) -> None:
         self.spec = spec
         self.args = args
         self.out = out
@@ -247,6 +192,8 @@ class Launcher:
         self.agent_died = False
         self._relay: threading.Thread | None = None
         self._tty = sys.stdout.isatty()
+        #: per-process environments (secure mode: each its own certificate and port), by key name
+        self.process_env: dict[str, dict[str, str]] = {}
 
     def start(self, name: str, role: str, cmd: list[str], *, pipe: bool = False) -> Child:
         log = self.logs / f"{name}.log"
@@ -256,7 +203,7 @@ class Launcher:
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE if pipe else fh,
             stderr=subprocess.STDOUT,
-            env=self.env,
+            env=self.process_env.get(_KEY_NAMES.get(name, name), self.env),
             start_new_session=True,
             preexec_fn=_die_with_parent,
         )
@@ -416,6 +363,7 @@ class Launcher:
                 "name": c.name,
                 "pid": c.proc.pid,
                 "role": c.role,
+                "executable": str(c.proc.args[0]),
                 "returncode": c.returncode,
                 "log": str(c.log.relative_to(self.out)),
                 **c.rusage,
@@ -427,28 +375,16 @@ class Launcher:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
-    from formation_sim.sim_node import load_spec  # rclpy is imported only once the file is valid
-
+    opts = options.parse(options.LAUNCH, build_parser(), argv)
     try:
-        spec = load_spec(args)
-    except FormationSpecError as exc:
+        run = preflight(opts, lambda spec, o: _default_out(spec, o.mode))
+    except FormationError as exc:
         print(f"formation-launch: INVALID: {exc}", file=sys.stderr)
         return EXIT_INVALID
-    mode = args.mode or spec.simulation.mode
-    if mode == "lockstep" and args.measurement_qos != "reliable":
-        print("formation-launch: --measurement-qos best-effort is for realtime runs only", file=sys.stderr)
-        return EXIT_INVALID
-    problems = check_control_rate(spec)
-    if problems:
-        warn = args.allow_low_rate or spec.simulation.rate_check == "warn"
-        for msg in problems:
-            print(f"formation-launch: {'warning' if warn else 'error'}: {msg}", file=sys.stderr)
-        if not warn:
-            print(
-                "formation-launch: control rate too low; raise --control-rate or pass --allow-low-rate", file=sys.stderr
-            )
-            return EXIT_INVALID
+    spec, out, args = run.spec, run.out, run.options
+    mode = args.mode
+    for msg in run.warnings:
+        print(f"formation-launch: warning: {msg}", file=sys.stderr)
     if args.record and not _bin("formation-record").exists():
         print(
             f"formation-launch: --record needs {_bin('formation-record')} (package formation_bag), which is not "
@@ -468,18 +404,12 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return EXIT_INVALID
-        if args.out is None:  # fix the output directory before re-executing
-            argv += ["--out", str(_default_out(spec, mode))]
+        if opts.out is None:  # fix the output directory before re-executing
+            argv += ["--out", str(out)]
         if not os.environ.get("ROS_DOMAIN_ID"):
             # picked here, where the host's DDS ports are visible: /dev/shm is shared with the host
             os.environ["ROS_DOMAIN_ID"] = str(pick_domain_id())
         reexec_in_netns(argv)
-    out = args.out or _default_out(spec, mode)
-    try:
-        prepare_out_dir(out, args.force)
-    except FileExistsError as exc:
-        print(f"formation-launch: {exc}", file=sys.stderr)
-        return EXIT_INVALID
     out = out.resolve()
     (out / "logs").mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
@@ -494,17 +424,36 @@ def main(argv: list[str] | None = None) -> int:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(pick_domain_id())
+    secure = None
+    if args.secure:
+        from formation_deploy.secure_transport import SecureRun, SecureTransportError, single_host_port_start
+
+        try:
+            port_start = single_host_port_start(int(env["ROS_DOMAIN_ID"]))
+            secure = SecureRun.prepare(spec.agent_ids, env, keys=args.keys, port_start=port_start)
+        except (SecureTransportError, OSError) as exc:
+            print(f"formation-launch: --secure: {exc}", file=sys.stderr)
+            return EXIT_INVALID
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
     s = spec.simulation
+    transport = f"secure: TLS over TCP ports {secure.describe()['ports']}" if secure else None
     print(
         f"formation-launch: {spec.name}: simulator + {len(spec.agents)} agent processes"
         f"{' + recorder' if args.record else ''}, {mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
-        f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
+        f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, "
+        f"{transport or 'discovery ' + env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
         f"{' in a private network namespace' if in_netns else ''}; logs in {out / 'logs'}/",
         flush=True,
     )
     launcher = Launcher(spec, args, out, env)
+    if secure is not None:
+        launcher.process_env = secure.environments
     started = time.monotonic()
-    code = launcher.run()
+    try:
+        code = launcher.run()
+    finally:
+        if secure is not None:
+            secure.close()
     launcher.write_process_table()
     summary_path = out / "summary.json"
     if launcher._tty:
@@ -515,6 +464,7 @@ def main(argv: list[str] | None = None) -> int:
             "ros_domain_id": int(env["ROS_DOMAIN_ID"]),
             "discovery_range": env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
             "network_namespace": in_netns,
+            "secure": secure.describe() if secure else None,
             "processes": len(launcher.children),
             "wall_time_total": time.monotonic() - started,
         }
@@ -524,6 +474,11 @@ def main(argv: list[str] | None = None) -> int:
             code = EXIT_VIOLATION
         if summary.get("faults"):
             print("faults: " + "; ".join(f"agent {a}: {m}" for a, m in summary["faults"].items()))
+        if args.animate and (out / "trajectory.npz").exists():
+            import numpy as np
+
+            with np.load(out / "trajectory.npz") as data:
+                report_animation(out, spec, dict(data))
     if launcher.stop_reason:
         print(f"formation-launch: stopped: {launcher.stop_reason}", file=sys.stderr)
     print(f"outputs in {out}/ (exit status {code})")

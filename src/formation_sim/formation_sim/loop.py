@@ -8,7 +8,7 @@ the step's ground truth, wrenches and velocity-funnel margins into the recording
 controller evaluated on every integrator stage (``continuous``, the paper's law). It returns to
 Python after a buffer's worth of steps, at the first step with a fault while none is recorded
 yet (so the recorder sees faults and funnel checks in the order the streaming runs record them),
-or when a state is no longer finite (naming the agent).
+or when a state is no longer finite (naming the agents).
 
 :func:`run_closed_loop` drives it for a formation and a :class:`RunRecorder`.
 """
@@ -34,6 +34,7 @@ from formation_agent.controller import (
 )
 from formation_msgs_py.compiled import kernel
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
+from formation_sim.inputs import non_finite_agents
 from formation_sim.measurement import Sensing, relative_poses
 from formation_sim.plant import (
     PlantParams,
@@ -132,25 +133,23 @@ def continuous_step(loop, t, p, R, v, h, work):
 
 
 @kernel
-def first_non_finite(p, R, v):
-    """Index of the first agent whose state is not finite, or −1."""
+def all_finite_state(p, R, v):
+    """True while every entry of the state is finite (the caller names the agents otherwise)."""
+    total = 0.0  # NaN or inf in any entry makes the sum non-finite
     for i in range(p.shape[0]):
-        total = 0.0  # NaN or inf in any entry makes the sum non-finite
         for x in range(3):
             total += p[i, x] + R[i, x, 0] + R[i, x, 1] + R[i, x, 2]
         for x in range(6):
             total += v[i, x]
-        if not np.isfinite(total):
-            return i
-    return -1
+    return np.isfinite(total)
 
 
 @kernel
 def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, stop_at_fault, buf):
     """Control steps k0 … k_stop − 1 (no physics after step k_last), (p, R, v) in place.
 
-    Returns (steps done, event, agent): ``EVENT_FAULT`` after a step with an agent at ERROR when
-    ``stop_at_fault``; ``EVENT_NON_FINITE`` with the first agent whose state is no longer finite.
+    Returns (steps done, event): ``EVENT_FAULT`` after a step with an agent at ERROR when
+    ``stop_at_fault``; ``EVENT_NON_FINITE`` when the state is no longer finite.
     """
     n = 0
     for k in range(k0, k_stop):
@@ -177,12 +176,11 @@ def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h
                 continuous_step(loop, t + s * h, p, R, v, h, work)
             else:
                 rkmk4_step(t + s * h, p, R, v, out.u, h, loop.plant, work)
-        bad = first_non_finite(p, R, v)
-        if bad >= 0:
-            return n, EVENT_NON_FINITE, bad
+        if not all_finite_state(p, R, v):
+            return n, EVENT_NON_FINITE
         if fault and stop_at_fault:
-            return n, EVENT_FAULT, -1
-    return n, EVENT_NONE, -1
+            return n, EVENT_FAULT
+    return n, EVENT_NONE
 
 
 def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
@@ -251,7 +249,7 @@ def run_closed_loop(
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
         watch = recorder.first_violation is None
-        done, event, agent = run_steps(
+        done, event = run_steps(
             loop, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
             sim.substeps, sim.h, continuous, watch, buf,
         )  # fmt: skip
@@ -275,7 +273,8 @@ def run_closed_loop(
             recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
         k += done
         if event == EVENT_NON_FINITE:
-            recorder.fault(k / sim_spec.control_rate, "plant", ids[agent], "non-finite state")
+            bad = non_finite_agents(ids, p, R, v)
+            recorder.fault(k / sim_spec.control_rate, "plant", ", ".join(bad), "non-finite state")
             break
         if stop_on_violation and recorder.first_violation is not None:
             break

@@ -1,6 +1,6 @@
 """What the agents sense: relative poses of their tree neighbours and their own noisy twist.
 
-For a tree edge between agents i and j, agent i receives (DESIGN.md §3), while j is within
+For a tree edge between agents i and j, agent i receives (docs/topics.md), while j is within
 i's sensing radius::
 
     p_i_j_in_i = R_iᵀ (p_j − p_i)    [m, frame agent_i]

@@ -1,4 +1,4 @@
-"""Funnel checks on ground truth and the outputs every run leaves (DESIGN.md §8).
+"""Funnel checks on ground truth and the outputs every run leaves (docs/outputs.md).
 
 Headless runs, ROS 2 runs and bag analyses all fill a :class:`RunRecorder` with samples of
 the ground truth (and, where known, the agents' wrenches and velocity-funnel margins), then
@@ -259,7 +259,7 @@ class RunRecorder:
         return float(min(vals))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The decimated trajectory (DESIGN.md §8 trajectory.npz)."""
+        """The decimated trajectory (docs/outputs.md)."""
         return {k: np.array(v) for k, v in self._rows.items()}
 
     def summary(
@@ -315,6 +315,15 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
         from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
 
         plot_run(out_dir, recorder.spec, arrays)
+
+
+def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+    """Write OUT/animation.gif (:mod:`formation_sim.animation`) and print where and how long it took."""
+    from formation_sim.animation import write_animation
+
+    path, frames, wall = write_animation(out_dir, spec, arrays)
+    print(f"animation: {path} ({frames} frames, written in {wall:.1f} s)", flush=True)
+    return path
 
 
 def format_summary(summary: dict[str, Any]) -> str:

@@ -1,0 +1,48 @@
+# Network options shared by sim.sh and agent.sh (sourced, not run).
+#
+#   --network host   discovery on this machine only (default): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+#                    unless the environment sets it (docker/compose.yaml and the image set SUBNET)
+#   --network lan    the ROS default: multicast discovery on the local network (SUBNET)
+#   --secure KEYS    TLS over TCP only, with this process's key from KEYS (formation-keys init KEYS):
+#                    no UDP, no shared memory; every process of the run needs --secure (docs/security.md)
+#   --hosts FILE     with --secure: YAML mapping process name -> host (default: all on 127.0.0.1)
+#   --host NAME=ADDR with --secure: one process's host (repeat; wins over --hosts)
+#   --port-base N    with --secure: first port, the same on every host (default 7700)
+#
+# formation_network_options NAME FILE ARGS...: sets REST (the other arguments) and exports the
+# environment; NAME is the process's key name (simulator, agent_<id>).
+formation_network_options() {
+  local name="$1" file="$2"; shift 2
+  local network="" keys="" hosts="" port_base="" host_args=()
+  REST=()
+  while [ $# -gt 0 ]; do
+    case "$1" in
+      --network) network="${2:?--network needs host or lan}"; shift 2 ;;
+      --network=*) network="${1#*=}"; shift ;;
+      --secure) keys="${2:?--secure needs the key directory}"; shift 2 ;;
+      --secure=*) keys="${1#*=}"; shift ;;
+      --hosts) hosts="${2:?--hosts needs a file}"; shift 2 ;;
+      --port-base) port_base="${2:?--port-base needs a number}"; shift 2 ;;
+      --host) host_args+=(--host "${2:?--host needs NAME=ADDR}"); shift 2 ;;
+      --ros-args) REST+=("$@"); break ;;
+      *) REST+=("$1"); shift ;;
+    esac
+  done
+  case "$network" in
+    "") export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}" ;;
+    host) export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ;;
+    lan) export ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET ;;
+    *) echo "--network: expected host or lan, got '$network'" >&2; return 2 ;;
+  esac
+  if [ -n "$keys" ]; then
+    local args=(profile "$keys" "$name" --formation "$file" --out "${FORMATION_PROFILE_DIR:-$keys/profiles}")
+    [ -n "$hosts" ] && args+=(--hosts "$hosts")
+    [ -n "$port_base" ] && args+=(--port-base "$port_base")
+    args+=("${host_args[@]+"${host_args[@]}"}")
+    local lines
+    lines="$("$ROOT/.venv/bin/formation-keys" "${args[@]}")" || return 2
+    eval "$lines"
+  elif [ -n "$hosts$port_base${host_args[*]+x}" ]; then
+    echo "--hosts, --host and --port-base need --secure KEYS" >&2; return 2
+  fi
+}

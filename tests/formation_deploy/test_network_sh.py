@@ -1,0 +1,65 @@
+"""ros2_ws/lib/network.sh (sim.sh, agent.sh): discovery on this host unless asked, --secure environment."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+from formation_deploy.keys import init_keys, process_names
+
+REPO = Path(__file__).resolve().parents[2]
+PAPER = REPO / "config" / "paper_5agents.yaml"
+SHOW = "ROS_AUTOMATIC_DISCOVERY_RANGE ROS_STATIC_PEERS FASTRTPS_DEFAULT_PROFILES_FILE OPENSSL_CONF"
+
+
+def _options(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Source network.sh, parse ``args`` for agent_1, print the resulting variables and REST."""
+    script = (
+        f'ROOT="{REPO}"; . "$ROOT/ros2_ws/lib/network.sh"; '
+        f'formation_network_options agent_1 "{PAPER}" "$@" || exit $?; '
+        f'for v in {SHOW}; do echo "$v=${{!v-}}"; done; echo "REST=${{REST[*]-}}"'
+    )
+    base = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "FASTRTPS", "OPENSSL"))}
+    return subprocess.run(
+        ["bash", "-c", script, "bash", *args], env={**base, **(env or {})}, capture_output=True, text=True, timeout=60
+    )
+
+
+def _vars(r: subprocess.CompletedProcess) -> dict[str, str]:
+    return dict(line.split("=", 1) for line in r.stdout.splitlines())
+
+
+def test_default_is_this_host_and_lan_is_explicit() -> None:
+    """No option: LOCALHOST; --network lan: SUBNET; an explicit environment value is kept; other args pass on."""
+    assert _vars(_options("--ros-args", "-p", "x:=1")) == {
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_STATIC_PEERS": "",
+        "FASTRTPS_DEFAULT_PROFILES_FILE": "",
+        "OPENSSL_CONF": "",
+        "REST": "--ros-args -p x:=1",
+    }
+    assert _vars(_options("--network", "lan"))["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    kept = _options(env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})
+    assert _vars(kept)["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+
+
+def test_bad_network_and_hosts_without_secure_exit_2() -> None:
+    """--network wan and --hosts without --secure are refused with exit 2 and the reason."""
+    r = _options("--network", "wan")
+    assert r.returncode == 2 and "expected host or lan, got 'wan'" in r.stderr
+    r = _options("--port-base", "9000")
+    assert r.returncode == 2 and "need --secure" in r.stderr
+
+
+def test_secure_selects_the_profile_and_drops_static_peers(tmp_path: Path) -> None:
+    """--secure KEYS: agent_1's profile and OpenSSL configuration, SYSTEM_DEFAULT range, no static peers."""
+    keys = tmp_path / "keys"
+    init_keys(keys, process_names(["1", "2", "3", "4", "5"]))
+    r = _options("--secure", str(keys), "--port-base", "9100", env={"ROS_STATIC_PEERS": "10.1.1.1"})
+    assert r.returncode == 0, r.stderr
+    v = _vars(r)
+    assert v["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT" and v["ROS_STATIC_PEERS"] == ""
+    profile = Path(v["FASTRTPS_DEFAULT_PROFILES_FILE"])
+    assert profile == (keys / "profiles" / "agent_1.xml").resolve()
+    assert "<port>9101</port>" in profile.read_text() and Path(v["OPENSSL_CONF"]).is_file()

@@ -1,0 +1,49 @@
+"""The velocity-error figure's data and the animation, from a short trajectory (no ROS; the headless
+tests check that every figure is written)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from formation_msgs_py.spec import load_formation, simulator_view
+from formation_sim.animation import write_animation, write_frame
+from formation_sim.figures import velocity_errors
+from formation_sim.report import RunRecorder
+from formation_sim.simulation import Simulation
+from formation_sim.team import AgentTeam
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    """The paper's first 0.2 s at 1 kHz control, recorded every 20 steps (11 samples)."""
+    spec = load_formation(Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml")
+    sim = Simulation(simulator_view(spec), physics_rate=1000.0, control_rate=1000.0)
+    team = AgentTeam(spec)
+    rec = RunRecorder(spec, record_every=20)
+    for _ in range(201):
+        u, margin_v, _ = team.evaluate(sim.sense(), rec)
+        s = sim.state
+        rec.add(sim.t, s.p, s.R, s.v, u, margin_v)
+        sim.advance(u)
+    return spec, rec.arrays()
+
+
+def test_velocity_errors_start_inside_their_auto_funnel(short_run) -> None:
+    """ρ_v(0) = 2|e_v(0)| + 1 per channel (rho_0: auto), and every e_v stays inside ±ρ_v."""
+    spec, arrays = short_run
+    e_v, rho_v = velocity_errors(spec, arrays)
+    np.testing.assert_allclose(rho_v[0], 2.0 * np.abs(e_v[0]) + 1.0, rtol=1e-12)
+    assert np.all(np.abs(e_v) < rho_v)
+
+
+def test_animation_frames(short_run, tmp_path: Path) -> None:
+    """One GIF frame per 1/fps of simulated time; a single frame as PNG."""
+    spec, arrays = short_run
+    path, frames, _ = write_animation(tmp_path, spec, arrays, fps=20.0)
+    assert frames == 5 and Image.open(path).n_frames == 5
+    png = write_frame(tmp_path / "frame.png", spec, arrays, 0.1)
+    assert Image.open(png).size == (1000, 480)

@@ -1,0 +1,80 @@
+"""Secure mode end to end: a lockstep run over mutual TLS equals the headless run, and outsiders
+(no certificate, another CA's certificate, plain UDP) neither see its topics nor reach the simulator."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros_helpers import BIN, PAPER, REPO
+
+from formation_msgs_py.spec import load_formation
+from formation_sim.headless import run_headless
+
+
+def test_secure_lockstep_equals_headless(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """0.08 s of the paper preset through TLS (keys made for the run) equals run_headless (|Δe|, |Δψ| ≤ 1e-9)."""
+    out = tmp_path / "out"
+    cmd = [str(BIN / "formation-launch"), str(PAPER), "--secure", "--out", str(out), "--no-plots", "--quiet"]
+    cmd += ["--no-record", "--duration", "0.08", "--record-rate", "10000"]
+    r = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=240, start_new_session=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["launch"]["secure"]["transport"] == "TCPv4+TLS (mutual)"
+    assert summary["launch"]["discovery_range"] == "SYSTEM_DEFAULT"
+    ros = np.load(out / "trajectory.npz")
+    spec = load_formation(PAPER, overrides={"duration": 0.08, "record_rate": 10000.0})
+    ref = run_headless(spec, controller_mode="sampled").recorder.arrays()
+    np.testing.assert_array_equal(ros["t"], ref["t"])
+    # the same bound as the unsecured lockstep test (tests/ros/test_lockstep.py): float round-off only
+    assert np.max(np.abs(ros["e"] - ref["e"])) <= 1e-9
+    assert np.max(np.abs(ros["psi"] - ref["psi"])) <= 1e-9
+
+
+def test_outsiders_neither_see_nor_command_a_secure_run(ros_domain_id: int, tmp_path: Path) -> None:
+    """In a private network namespace: plain, certificate-less and other-CA outsiders see no topic of the
+    run and their 50 N wrench never reaches the simulator; a member of the run's CA (the control) is
+    connected and reported as an intruder by node name."""
+    if shutil.which("unshare") is None or subprocess.run(["unshare", "-n", "true"]).returncode != 0:
+        pytest.skip("unshare -n is not permitted here (needs root or CAP_SYS_ADMIN)")
+    script = 'ip link set lo up && exec "$@"'
+    cmd = ["unshare", "-n", "sh", "-c", script, "sh", sys.executable, str(REPO / "tests/ros/secure_driver.py")]
+    r = subprocess.run(
+        [*cmd, str(tmp_path), str(ros_domain_id)], capture_output=True, text=True, timeout=300, start_new_session=True
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    result = json.loads(r.stdout.strip().splitlines()[-1])
+    log = (tmp_path / "launch.log").read_text(errors="replace")
+    # 0 or 1: under heavy load a realtime run may leave a funnel (stale commands); that verdict is not
+    # what this test is about, a process that died or an agent missing (3) is
+    assert result["launch"] in (0, 1), log
+    for kind in ("plain", "nocert", "otherca"):
+        report = result["outsiders"][kind]
+        assert report == {"name": f"outsider_{kind}", "seen": [], "received": 0, "matched": 0}, (kind, report)
+    member = result["outsiders"]["member"]
+    assert member["received"] > 0 and "/agent_3/relative_pose/agent_1" in member["seen"], member
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    intruders = {(i["topic"], i["node"]) for i in summary["security"]["intruders"]}
+    assert intruders == {("/agent_3/wrench", "/outsider_member")}, summary["security"]
+    u = np.load(tmp_path / "out" / "trajectory.npz")["u"]
+    agent3 = load_formation(REPO / "config" / "realtime_5agents_100hz.yaml").agent_ids.index("3")
+    assert not np.any(u[:, agent3, 0] == 50.0)  # the outsiders' command was never applied
+
+
+def test_agent_refuses_to_run_when_its_secure_profile_does_not_apply(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """A profile Fast DDS cannot parse (it falls back to UDP): the agent exits 2 and names the profile."""
+    broken = tmp_path / "agent_1.xml"
+    broken.write_text(
+        "<dds><profiles><participant profile_name='x' is_default_profile='true'><rtps><builtin>"
+        "<initialPeersList></initialPeersList></builtin></rtps></participant></profiles></dds>"
+    )
+    env = dict(ros_env, FORMATION_SECURE="1", FASTRTPS_DEFAULT_PROFILES_FILE=str(broken))
+    cmd = [str(BIN / "formation-agent"), "--ros-args", "-p", f"formation_file:={PAPER}", "-p", "agent_id:='1'"]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, start_new_session=True)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"the profile {broken} did not apply" in r.stderr

@@ -498,8 +498,6 @@ def main(args: list[str] | None = None) -> int:
         return 0
     if not _cli_sets(argv, "use_sim_time"):
         argv += ["--ros-args", "-p", "use_sim_time:=true"]
-    if "best-effort" in argv or "measurement_qos:=best_effort" in argv:
-        argv = [a.replace("measurement_qos:=best_effort", "measurement_qos:=best-effort") for a in argv]
     rclpy.init(args=argv)
     node = None
     try:

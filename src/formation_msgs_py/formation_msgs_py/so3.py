@@ -15,7 +15,6 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from formation_msgs_py.compiled import kernel
 from formation_msgs_py.errors import RotationError
@@ -155,6 +154,8 @@ def dexpinv_so3(theta, omega):
 
 def log_so3(R: ArrayLike) -> FloatArray:
     """Rotation vector of R (angle in [0, π]); robust near 0 and π (uses scipy)."""
+    from scipy.spatial.transform import Rotation  # scipy takes ~0.4 s to import: only when used
+
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
 
 
@@ -224,6 +225,8 @@ def matrix_from_quaternion(x: float, y: float, z: float, w: float) -> list[list[
 
 def matrix_from_rpy(rpy: ArrayLike) -> FloatArray:
     """R = Rz(yaw) Ry(pitch) Rx(roll) (REP 103 fixed-axis roll, pitch, yaw), radians."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_euler("xyz", np.asarray(rpy, dtype=np.float64)).as_matrix()
 
 
@@ -233,4 +236,6 @@ def matrix_from_axis_angle(axis: ArrayLike, angle: float) -> FloatArray:
     n = np.linalg.norm(axis)
     if not np.isfinite(n) or n < 1e-12:
         raise RotationError(f"axis {axis.tolist()} has no direction")
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_rotvec(axis / n * float(angle)).as_matrix()

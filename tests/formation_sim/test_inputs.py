@@ -86,3 +86,28 @@ def test_non_finite_state_names_the_agent() -> None:
     v[1, 4] = math.nan
     R[2, 0, 0] = math.inf
     assert inputs.non_finite_agents(("1", "2", "3"), p, R, v) == ["2", "3"]
+
+
+def test_blown_up_plant_ends_the_run_incomplete_naming_the_agent(tmp_path) -> None:
+    """An initial spin of 1e200 rad/s overflows the integrator: INCOMPLETE (exit 4), agent named, strict JSON."""
+    import yaml
+
+    from formation_msgs_py.outcome import ExitCode
+    from formation_sim import headless
+
+    agent = {"radius": 0.5, "sensing_radius": 3.0, "dynamics": {"mass": 1.0, "inertia": [0.1, 0.2, 0.3]}}
+    doc = {
+        "simulation": {"duration": 0.01, "physics_rate": 1000.0, "control_rate": 1000.0, "rate_check": "warn"},
+        "agents": [
+            {"id": "a", "position": [0, 0, 0], "angular_velocity": [1e200, 1e200, 0], **agent},
+            {"id": "b", "position": [2, 0, 0], **agent},
+        ],
+        "edges": [{"tail": "a", "head": "b", "distance": 1.5}],
+    }
+    path = tmp_path / "spin.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "out"
+    assert headless.main([str(path), "--out", str(out), "--no-plots", "--quiet"]) == ExitCode.INCOMPLETE
+    summary = json.loads((out / "summary.json").read_text())
+    assert "fastest agent a" in summary["incomplete_reason"]
+    json.dumps(summary, allow_nan=False)

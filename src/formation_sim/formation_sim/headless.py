@@ -43,10 +43,13 @@ def run_headless(
     sim_spec = spec.simulation
     record_every = max(1, round(sim_spec.control_rate / sim_spec.record_rate))
     recorder = RunRecorder(spec, record_every=record_every, mode=f"headless-{mode}", control_rate=sim_spec.control_rate)
-    wall = run_closed_loop(
+    wall, incomplete = run_closed_loop(
         spec, recorder, continuous=mode == "continuous", stop_on_violation=stop_on_violation, progress=progress
     )
-    summary = recorder.summary(wall_time=wall, extra={"controller": mode, "physics_rate": sim_spec.physics_rate})
+    extra: dict[str, Any] = {"controller": mode, "physics_rate": sim_spec.physics_rate}
+    if incomplete:
+        extra["incomplete_reason"] = incomplete
+    summary = recorder.summary(wall_time=wall, extra=extra)
     return HeadlessResult(recorder, summary)
 
 
@@ -90,6 +93,9 @@ def main(argv: list[str] | None = None) -> int:
         report_animation(out, spec, result.recorder.arrays())
     print(format_summary(result.summary))
     print(f"outputs in {out}/")
+    if result.summary.get("incomplete_reason"):
+        print(f"formation-headless: INCOMPLETE: {result.summary['incomplete_reason']}", file=sys.stderr)
+        return ExitCode.INCOMPLETE
     return 0 if result.summary["funnels_held"] else 1
 
 

@@ -14,6 +14,9 @@ sim time) from agent i is refused, counted per agent and kind, and never integra
 
 A refused value for the current step counts as that agent's answer with a zero wrench (a lockstep
 run goes on; the fault is in the report); a refused stamp is no answer at all.
+
+A plant state that is no longer finite (:func:`advance_checked`) ends the run as INCOMPLETE with
+the agents named; it is never recorded, so no NaN reaches summary.json.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -108,6 +112,20 @@ class WrenchCheck:
                 "reason": e.reason,
             }
         return out
+
+
+def advance_checked(sim: Any, u: Any) -> str:
+    """``sim.advance(u)`` (a :class:`formation_sim.simulation.Simulation`); "" when the new plant
+    state is finite, else why the run cannot go on, naming the agents (never raises on overflow)."""
+    ids = sim.agent_ids
+    try:
+        sim.advance(u)
+    except (ValueError, OverflowError, FloatingPointError, ZeroDivisionError) as exc:
+        speed = np.abs(sim.state.v).max(axis=1)
+        worst = ids[int(np.argmax(speed))]
+        return f"t={sim.t:.6f} s: integration failed ({exc}); fastest agent {worst} (|v| up to {speed.max():.3g})"
+    bad = non_finite_agents(ids, sim.state.p, sim.state.R, sim.state.v)
+    return f"t={sim.t:.6f} s: non-finite plant state of agent(s) {', '.join(bad)}" if bad else ""
 
 
 def non_finite_agents(agent_ids: Sequence[str], p: np.ndarray, R: np.ndarray, v: np.ndarray) -> list[str]:

@@ -223,13 +223,13 @@ def run_closed_loop(
     stop_on_violation: bool = False,
     progress: ProgressFn | None = None,
     chunk: int | None = None,
-) -> float:
-    """Run ``spec`` for ``simulation.duration`` into ``recorder``; returns the wall time [s].
+) -> tuple[float, str]:
+    """Run ``spec`` for ``simulation.duration`` into ``recorder``: (wall time [s], why it is incomplete or "").
 
     Every control step is checked (``recorder.add_many``); faults are recorded as the streaming
     runs record them (:func:`formation_sim.team.note_missing` before a step's funnel check,
     :func:`formation_sim.team.note_errors` after it). A state that stops being finite ends the
-    run with a ``plant`` fault naming the agent.
+    run, incomplete, naming the agents (as :func:`formation_sim.inputs.advance_checked`).
     """
     started = time.perf_counter()
     sim_spec = spec.simulation
@@ -245,6 +245,7 @@ def run_closed_loop(
     p, R, v = sim.state.p, sim.state.R, sim.state.v  # advanced in place
     work = new_workspace(len(ids))
     k = 0
+    incomplete = ""
     last_report = started
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
@@ -272,9 +273,9 @@ def run_closed_loop(
         else:
             recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
         k += done
-        if event == EVENT_NON_FINITE:
-            bad = non_finite_agents(ids, p, R, v)
-            recorder.fault(k / sim_spec.control_rate, "plant", ", ".join(bad), "non-finite state")
+        if event == EVENT_NON_FINITE:  # the run stops; the non-finite state is never recorded
+            bad = ", ".join(non_finite_agents(ids, p, R, v))
+            incomplete = f"t={k / sim_spec.control_rate:.6f} s: non-finite plant state of agent(s) {bad}"
             break
         if stop_on_violation and recorder.first_violation is not None:
             break
@@ -282,7 +283,7 @@ def run_closed_loop(
         if progress is not None and now - last_report > 1.0:
             progress(k / sim_spec.control_rate, k / sim_spec.control_rate / (now - started), recorder.worst_margin())
             last_report = now
-    return time.perf_counter() - started
+    return time.perf_counter() - started, incomplete
 
 
 def _samples(buf: Buffers, rows: slice) -> tuple[np.ndarray, ...]:

@@ -276,17 +276,9 @@ class Runner:
             self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.u_val))
 
     def advance(self, u: np.ndarray) -> bool:
-        """Integrate one control period; False (and a recorded fault) if the state blew up."""
-        sim = self.sim
-        try:
-            sim.advance(u)
-        except (ValueError, OverflowError, FloatingPointError, ZeroDivisionError) as exc:
-            self.recorder.fault(sim.t, "plant", "all", f"integration failed: {exc}")
-            print(f"formation-sim: plant integration failed at t={sim.t:.4f} s: {exc}", flush=True)
-            return False
-        bad = inputs.non_finite_agents(self.spec.agent_ids, sim.state.p, sim.state.R, sim.state.v)
-        if bad:
-            self.incomplete_reason = f"t={sim.t:.6f} s: non-finite plant state of agent(s) {', '.join(bad)}"
+        """Integrate one control period; False (run INCOMPLETE, agents named) if the state blew up."""
+        self.incomplete_reason = inputs.advance_checked(self.sim, u)
+        if self.incomplete_reason:
             print(f"formation-sim: ERROR: {self.incomplete_reason}: run stopped", flush=True)
             return False
         return True

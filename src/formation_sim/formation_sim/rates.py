@@ -34,7 +34,8 @@ class RateNeed:
 def rate_need(M: np.ndarray, gamma: float, rho_v: np.ndarray) -> np.ndarray:
     """f_s [Hz] = λ_max(M⁻¹ diag(4γ/ρ_v²))/2 for a (6,6) inertia matrix M and ρ_v of shape (..., 6)."""
     rho_v = np.asarray(rho_v, dtype=np.float64)
-    K = 4.0 * gamma / rho_v**2
+    with np.errstate(over="ignore"):  # a huge e_v(0) gives a huge ρ_v0: its need is 0, not a warning
+        K = 4.0 * gamma / rho_v**2
     A = np.linalg.inv(M) * K[..., None, :]  # M⁻¹ diag(K): column ℓ scaled by K_ℓ
     return np.max(np.abs(np.linalg.eigvals(A)), axis=-1) / 2.0
 

@@ -59,7 +59,7 @@ def test_wrench_at_the_limit_is_accepted() -> None:
 def test_wrench_for_a_step_that_does_not_exist_is_refused(ns, current_ns, lockstep, kind) -> None:
     c = check(lockstep)
     assert c.check(0, ns, GOOD, current_ns) == kind
-    assert kind in inputs.STAMP_KINDS
+    assert kind in inputs.DROPPED_KINDS
 
 
 def test_realtime_accepts_a_late_answer_lockstep_does_not() -> None:
@@ -112,3 +112,16 @@ def test_blown_up_plant_ends_the_run_incomplete_naming_the_agent(tmp_path) -> No
     # the compiled plant never raises: the overflow shows as a non-finite state of agent a
     assert "non-finite plant state of agent(s) a" in summary["incomplete_reason"]
     json.dumps(summary, allow_nan=False)
+
+
+def test_bytes_that_are_no_wrench_are_refused() -> None:
+    """Raw bytes on a wrench topic that do not decode: counted as malformed for that agent."""
+    import struct
+
+    from formation_msgs_py import wire
+
+    c = check()
+    with pytest.raises(struct.error):
+        wire.wrench_codec("b").decode(b"\x00\x01\x00\x00garbage")
+    assert c.malformed(1, 0) == inputs.MALFORMED and inputs.MALFORMED in inputs.DROPPED_KINDS
+    assert c.report()["b"]["malformed"]["count"] == 1

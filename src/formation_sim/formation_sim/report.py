@@ -68,8 +68,8 @@ class EdgeErrors:
         """(ρ_e, ρ_ψ) of every edge at t: (K,) or (T,K)."""
         t = np.asarray(t, dtype=np.float64)[..., None]
         return (
-            funnels.exp_decay(1.0, self._floor_e, self._decay_e, t),
-            funnels.exp_decay(self._rho_psi_0, self._rho_psi_inf, self._decay_psi, t),
+            funnels.rho(t, 1.0, self._floor_e, self._decay_e),
+            funnels.rho(t, self._rho_psi_0, self._rho_psi_inf, self._decay_psi),
         )
 
     def steady_band(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -126,9 +126,19 @@ class Judge:
         self.t_last: float | None = None
 
     def update(
-        self, t: np.ndarray | float, p: np.ndarray, R: np.ndarray, margin_v: np.ndarray | None = None
+        self,
+        t: np.ndarray | float,
+        p: np.ndarray,
+        R: np.ndarray,
+        margin_v: np.ndarray | None = None,
+        *,
+        stop_at_violation: bool = False,
     ) -> EdgeSample:
-        """Check samples at t ((T,) or scalar) of p (…,N,3), R (…,N,3,3); margin_v (…,N,6) if known."""
+        """Check samples at t ((T,) or scalar) of p (…,N,3), R (…,N,3,3); margin_v (…,N,6) if known.
+
+        With ``stop_at_violation`` the samples after the first violation are not taken (the
+        returned arrays say how many were).
+        """
         single = np.ndim(t) == 0
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         p = np.asarray(p, dtype=np.float64).reshape(len(t), -1, 3)
@@ -136,24 +146,28 @@ class Judge:
         e, psi = self.edges.errors(p, R)
         rho_e, rho_psi = self.edges.rho(t)
         xi_e = e / rho_e
-        m_e = np.minimum(1.0 + xi_e / self.edges.c_col, 1.0 - xi_e / self.edges.c_con)
-        m_psi = 1.0 - psi / rho_psi
-        np.minimum(self.min_margin_e, m_e.min(axis=0), out=self.min_margin_e)
-        np.minimum(self.min_margin_psi, m_psi.min(axis=0), out=self.min_margin_psi)
+        m_e = funnels.margin_e(xi_e, self.edges.c_col, self.edges.c_con)
+        m_psi = funnels.margin_psi(psi / rho_psi)
         mv = None
         if margin_v is not None:
             margin_v = np.asarray(margin_v, dtype=np.float64).reshape(len(t), -1, 6)
             mv = margin_v.min(axis=2)  # (T,N); inf where unknown
-            np.minimum(self.min_margin_v, mv.min(axis=0), out=self.min_margin_v)
+        n = len(t)
         if self.first_violation is None:
-            self.first_violation = _first_violation(self, t, xi_e, m_e, m_psi, margin_v, mv)
-        self._settle(t, e, psi)
-        self.samples += len(t)
+            self.first_violation, j = _first_violation(self, t, xi_e, m_e, m_psi, margin_v, mv)
+            if self.first_violation is not None and stop_at_violation:
+                n = j + 1
+        np.minimum(self.min_margin_e, m_e[:n].min(axis=0), out=self.min_margin_e)
+        np.minimum(self.min_margin_psi, m_psi[:n].min(axis=0), out=self.min_margin_psi)
+        if mv is not None:
+            np.minimum(self.min_margin_v, mv[:n].min(axis=0), out=self.min_margin_v)
+        self._settle(t[:n], e[:n], psi[:n])
+        self.samples += n
         self.t_first = float(t[0]) if self.t_first is None else self.t_first
-        self.t_last = float(t[-1])
+        self.t_last = float(t[n - 1])
         if single:
             return EdgeSample(e[0], psi[0], rho_e[0], rho_psi[0])
-        return EdgeSample(e, psi, rho_e, rho_psi)
+        return EdgeSample(e[:n], psi[:n], rho_e[:n], rho_psi[:n])
 
     def update_velocity(self, t: float, margin_v: np.ndarray) -> None:
         """Velocity-funnel margins (N,6) at a control step without a ground-truth sample (inf: unknown)."""
@@ -194,8 +208,8 @@ def _first_violation(
     m_psi: np.ndarray,
     margin_v: np.ndarray | None,
     mv: np.ndarray | None,
-) -> Violation | None:
-    """The earliest sample with a margin ≤ 0; at one sample the worst edge before any agent."""
+) -> tuple[Violation | None, int]:
+    """The earliest sample with a margin ≤ 0 and its index; at one sample the worst edge before any agent."""
     m_edge = np.minimum(m_e, m_psi)
     bad_edge = np.flatnonzero(m_edge.min(axis=1) <= 0)
     bad_v = np.flatnonzero(mv.min(axis=1) <= 0) if mv is not None else np.empty(0, dtype=int)
@@ -204,15 +218,15 @@ def _first_violation(
         k = int(np.argmin(m_edge[j]))
         name = judge.edges.names[k]
         if m_e[j, k] <= m_psi[j, k]:
-            return Violation(float(t[j]), "distance", name, "collision" if xi_e[j, k] < 0 else "connectivity")
-        return Violation(float(t[j]), "orientation", name, "psi")
+            return Violation(float(t[j]), "distance", name, "collision" if xi_e[j, k] < 0 else "connectivity"), j
+        return Violation(float(t[j]), "orientation", name, "psi"), j
     if bad_v.size:
         assert margin_v is not None and mv is not None
         j = int(bad_v[0])
         i = int(np.argmin(mv[j]))
         channel = VELOCITY_CHANNELS[int(np.argmin(margin_v[j, i]))]
-        return Violation(float(t[j]), "velocity", judge.spec.agents[i].id, channel)
-    return None
+        return Violation(float(t[j]), "velocity", judge.spec.agents[i].id, channel), j
+    return None, -1
 
 
 def judge(
@@ -332,6 +346,34 @@ class RunRecorder:
     def _peaks(self, u: np.ndarray) -> None:
         np.maximum(self.peak_force, np.linalg.norm(u[:, :3], axis=1), out=self.peak_force)
         np.maximum(self.peak_torque, np.linalg.norm(u[:, 3:], axis=1), out=self.peak_torque)
+
+    def add_many(
+        self,
+        t: np.ndarray,
+        p: np.ndarray,
+        R: np.ndarray,
+        v: np.ndarray,
+        u: np.ndarray,
+        margin_v: np.ndarray,
+        *,
+        stop_at_violation: bool = False,
+    ) -> int:
+        """:meth:`add` of T consecutive samples at once (arrays with a leading axis T); returns how many.
+
+        The same checks (:meth:`Judge.update` on the stack: the run core's path). With
+        ``stop_at_violation`` the samples after the first violation are not added.
+        """
+        sample = self.judge.update(t, p, R, margin_v, stop_at_violation=stop_at_violation)
+        n = len(sample.e)
+        start = self.judge.samples - n
+        np.maximum(self.peak_force, np.linalg.norm(u[:n, :, :3], axis=2).max(axis=0), out=self.peak_force)
+        np.maximum(self.peak_torque, np.linalg.norm(u[:n, :, 3:], axis=2).max(axis=0), out=self.peak_torque)
+        rows = np.flatnonzero((start + np.arange(n)) % self.record_every == 0)
+        for key, arr in (("t", t), ("p", p), ("R", R), ("v", v), ("u", u)):
+            self._rows[key].extend(np.array(arr[rows], dtype=np.float64))
+        for key, arr in (("e", sample.e), ("psi", sample.psi), ("rho_e", sample.rho_e), ("rho_psi", sample.rho_psi)):
+            self._rows[key].extend(arr[rows])
+        return n
 
     def set_inputs(self, u: np.ndarray) -> None:
         """Wrenches (N,6) applied from the sample added last (which was added with ``u=None``).

@@ -67,7 +67,9 @@ def test_lockstep_bag_is_complete_under_cpu_load(ros_procs, tmp_path: Path) -> N
     assert summary["bag"]["missing"] == [] and summary["bag"]["recorder_counts"]["missing"] == {}
     assert _compare({k: summary[k] for k in JUDGED}, {k: theirs[k] for k in JUDGED}, "") == []
     for r in reruns.values():
-        assert r.compared == steps and r.max_abs_diff == 0.0
+        # formation-rerun's equality (1e-12 N, N·m): the agent process and the re-run evaluate the
+        # same controller kernels, not necessarily with the same floating-point operation order
+        assert r.compared == steps and r.first_difference(1e-12) is None
     assert summary["bag"]["wrenches_from_rerun"] == {}
     report = check_bag(bag)
     assert report.ok, report.problems

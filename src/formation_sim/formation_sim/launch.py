@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.hotloop import EXECUTORS, FASTDDS_PROFILE
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.headless import add_override_options, check_control_rate, prepare_out_dir
 from formation_sim.report import format_summary, report_animation
@@ -182,7 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help=f"private network namespace: auto = when more than {NETNS_THRESHOLD} participants (default)",
     )
-    p.add_argument("--executor", choices=("events", "single"), default="events", help="rclpy executor of every node")
+    p.add_argument(
+        "--executor", choices=EXECUTORS, default="lean", help="how every node spins (formation_msgs_py.hotloop)"
+    )
     p.add_argument(
         "--measurement-qos",
         choices=("reliable", "best-effort"),
@@ -513,6 +516,7 @@ def main(argv: list[str] | None = None) -> int:
         env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
     else:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))  # secure mode sets its own per process
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(pick_domain_id())
     secure = None

@@ -35,13 +35,14 @@ from typing import Any
 import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.graph_watch import GraphWatch
+from formation_msgs_py.hotloop import EXECUTORS, Spinner, hot_group
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
@@ -75,8 +76,15 @@ class SimNode(Node):
 
     display: DisplayPublisher | None = None
 
-    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable", intruder_policy: str = "report") -> None:
+    def __init__(
+        self,
+        spec: FormationSpec,
+        measurement_qos: str = "reliable",
+        intruder_policy: str = "report",
+        executor: str = "lean",
+    ) -> None:
         super().__init__(topics.SIM_NODE_NAME)
+        hot = hot_group(executor)
         meas_qos = qos.measurements(measurement_qos)
         self.spec = spec
         self.ids = spec.agent_ids
@@ -103,7 +111,12 @@ class SimNode(Node):
         self.timing = Timing(n)
         self.wrench_subs = [
             self.create_subscription(
-                WrenchStamped, topics.wrench(a), lambda data, i=i: self._on_wrench(i, data), qos.CONTROL, raw=True
+                WrenchStamped,
+                topics.wrench(a),
+                lambda data, i=i: self._on_wrench(i, data),
+                qos.CONTROL,
+                raw=True,
+                callback_group=hot,
             )
             for i, a in enumerate(self.ids)
         ]
@@ -153,8 +166,8 @@ class SimNode(Node):
     def publish_clock(self, ns: int) -> None:
         self.clock_pub.publish(conversions.clock_bytes(ns))
 
-    def publish_ground_truth(self, t: float, sim: Simulation) -> None:
-        self.gt_pub.publish(conversions.poses_to_msg(t, sim.state.p, sim.state.R))
+    def publish_ground_truth(self, ns: int, sim: Simulation) -> None:
+        self.gt_pub.publish(conversions.ground_truth_bytes(ns, sim.state.p.tolist(), sim.state.R.tolist()))
 
     # discovery -------------------------------------------------------------------------------
     def unmatched_agents(self) -> list[str]:
@@ -257,7 +270,7 @@ class Runner:
         if k % self.clock_every == 0:
             self.node.publish_clock(ns)
         if k % self.gt_every == 0:
-            self.node.publish_ground_truth(t, self.sim)
+            self.node.publish_ground_truth(ns, self.sim)
         if self.node.display is not None:  # markers at the display rate, with the latest wrenches
             self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.u_val))
 
@@ -436,7 +449,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off; "
         f"default {DEFAULT_MARKER_RATE:g}]; also the live parameter marker_rate",
     )
-    p.add_argument("--executor", choices=("events", "single"), default="events", help="rclpy executor")
+    p.add_argument(
+        "--executor", choices=EXECUTORS, default="lean", help="how the node spins (formation_msgs_py.hotloop)"
+    )
     p.add_argument(
         "--measurement-qos",
         choices=("reliable", "best-effort"),
@@ -465,14 +480,6 @@ def load_spec(args: argparse.Namespace) -> FormationSpec:
         if getattr(args, opt, None) is not None:
             over[key] = getattr(args, opt)
     return load_with_overrides(args.file, over)
-
-
-def make_executor(kind: str, context: Any) -> Any:
-    if kind == "events":
-        from rclpy.experimental import EventsExecutor
-
-        return EventsExecutor(context=context)
-    return SingleThreadedExecutor(context=context)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -508,13 +515,12 @@ def main(argv: list[str] | None = None) -> int:
     code = EXIT_OK
     extra: dict[str, Any] = {}
     try:
-        node = SimNode(spec, args.measurement_qos, args.intruder_policy)
+        node = SimNode(spec, args.measurement_qos, args.intruder_policy, args.executor)
         check_secure_transport()
         settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
         settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
         node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
-        executor = make_executor(args.executor, node.context)
-        executor.add_node(node)
+        executor = Spinner(args.executor, node, node.wrench_subs)
         runner = Runner(node, executor, spec, args)
         timeout = args.discovery_timeout or 30.0 + len(spec.agents)
         t_disc = time.monotonic()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +51,8 @@ def expect_error(doc: dict[str, Any], tmp_path: Path, field: str, text: str) -> 
         load(doc, tmp_path)
     assert info.value.path == field, str(info.value)
     assert text in str(info.value)
-    assert str(info.value).startswith(field)
+    # FILE:LINE:COL of the offending node, then the field
+    assert re.match(rf"{re.escape(str(tmp_path / 'f.yaml'))}:\d+:\d+: {re.escape(field)}: ", str(info.value))
     return info.value
 
 
@@ -84,7 +86,7 @@ def test_desired_distance_outside_bounds(paper_doc, tmp_path) -> None:
     """The message of the issue, to the letter."""
     paper_doc["edges"][2]["distance"] = 4.5
     err = expect_error(paper_doc, tmp_path, "edges[2].distance", "4.5 is not inside (d_col=2.0, d_con=4.0)")
-    assert str(err) == "edges[2].distance: 4.5 is not inside (d_col=2.0, d_con=4.0)"
+    assert str(err).endswith(": edges[2].distance: 4.5 is not inside (d_col=2.0, d_con=4.0)")
 
 
 def test_initial_distance_outside_bounds(paper_doc, tmp_path) -> None:
@@ -169,7 +171,7 @@ def test_missing_file_and_bad_yaml(tmp_path) -> None:
         load_formation(tmp_path / "nope.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("agents: [\n")
-    with pytest.raises(FormationSpecError, match="not valid YAML at line"):
+    with pytest.raises(FormationSpecError, match=r"bad.yaml:2:1: not valid YAML: expected the node content"):
         load_formation(bad)
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController, ControlOutput
+from formation_agent.inputs import STAMP_KINDS, InputCheck, Refusal
 from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.spec import AgentView
 
@@ -91,6 +92,8 @@ class StepSynchroniser:
     window: Window = None  # type: ignore[assignment]
     resets: int = 0
     last_measurement_wall: float | None = None
+    #: reasons of refused measurements (formation_agent.inputs) by stamp: that step answers zero
+    refused: dict[int, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.neighbours = tuple(e.neighbour for e in self.controller.view.edges)
@@ -135,6 +138,17 @@ class StepSynchroniser:
         self.pending = (ns, v, now + self.pose_wait)
         self.try_compute(now, final=False)
 
+    def refuse(self, ns: int, reason: str, now: float, neighbour: str | None = None) -> None:
+        """A measurement of step ``ns`` was refused (the velocity if ``neighbour`` is None): the step
+        is answered with a zero wrench and ERROR naming ``reason``."""
+        self.refused[ns] = reason
+        if len(self.refused) > _POSE_MEMORY:
+            del self.refused[next(iter(self.refused))]
+        if neighbour is None:
+            self.on_velocity(ns, None, now, self._clock_ns)  # type: ignore[arg-type]
+        else:
+            self.on_pose(neighbour, ns, None, None, now)  # type: ignore[arg-type]
+
     def deadline(self) -> float | None:
         return None if self.pending is None else self.pending[2]
 
@@ -153,7 +167,10 @@ class StepSynchroniser:
         self.pending = None
         t = ns / _NS
         ctrl = self.controller
-        if len(rel) < len(self.neighbours):
+        refused = self.refused.pop(ns, None)
+        if refused is not None:
+            out = ctrl.fault_output(t, f"refused at t={t:.6f}: {refused}")
+        elif len(rel) < len(self.neighbours):
             missing = [j for j in self.neighbours if j not in rel]
             out = ctrl.fault_output(t, f"no relative pose of neighbour(s) {', '.join(missing)} at t={t:.6f}")
         elif not _finite(v) or not all(_finite(p) and _finite(R[0] + R[1] + R[2]) for p, R in rel.values()):
@@ -259,6 +276,7 @@ class AgentNode(Node):
             pose_wait=float(pose_wait),
             measurement_timeout_ns=round(view.controller.measurement_timeout * _NS),
         )
+        self.inputs = InputCheck(view.sensing_radius, round(view.controller.measurement_timeout * _NS))
         self.sync.set_gains(**live_gains(self.agent_id, gains))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         # hot path: CDR bytes in and out (formation_msgs_py.conversions), no message objects
@@ -319,14 +337,32 @@ class AgentNode(Node):
             return
         ns, v = self._twist_codec.decode(data)
         clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
+        refusal = self.inputs.velocity(ns, v, clock_ns)
+        if refusal is not None:
+            self._refuse(ns, refusal)
+            return
         self.sync.on_velocity(ns, list(v), time.monotonic(), clock_ns)
 
     def _on_pose(self, j: str, codec: conversions.StampedCodec, topic: str, data: bytes) -> None:
         if not self._watch.accept(topic, self._subs[topic]):
             return
         ns, values = codec.decode(data)
+        clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
+        refusal = self.inputs.pose(j, ns, values, clock_ns)
+        if refusal is not None:
+            self._refuse(ns, refusal, j)
+            return
         p, R = conversions.relative_pose_from_values(values)
         self.sync.on_pose(j, ns, p, R, time.monotonic())
+
+    def _refuse(self, ns: int, refusal: Refusal, neighbour: str | None = None) -> None:
+        """A refused measurement (formation_agent.inputs): ERROR, counted; a bad value answers zero."""
+        self.get_logger().error(f"refused ({refusal.kind}): {refusal.reason}", throttle_duration_sec=1.0)
+        if refusal.kind in STAMP_KINDS:  # names no step to answer: dropped
+            w = self.sync.window
+            w.level, w.message, w.faults = ERROR, f"refused: {refusal.reason}", w.faults + 1
+            return
+        self.sync.refuse(ns, refusal.reason, time.monotonic(), neighbour)
 
     def _publish_wrench(self, ns: int, u: Sequence[float]) -> None:
         self._pub.publish(self._wrench_codec.encode(ns, u))
@@ -374,6 +410,7 @@ class AgentNode(Node):
         status.level = _DIAG_LEVEL[level]
         status.message = message or LEVEL_NAMES[level]
         values = [KeyValue(key="steps", value=str(w.steps)), KeyValue(key="faults", value=str(w.faults))]
+        values += [KeyValue(key=f"refused/{k}", value=str(n)) for k, n in sorted(self.inputs.counts.items())]
         values.append(KeyValue(key="last_stamp", value="" if sync.last_ns is None else f"{sync.last_ns / _NS:.9f}"))
         values.append(KeyValue(key="measurement_age_wall", value="" if age is None else f"{age:.6f}"))
         values.append(KeyValue(key="measurement_age_sim", value="" if stale_s is None else f"{stale_s:.6f}"))

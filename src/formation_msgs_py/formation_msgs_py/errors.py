@@ -4,18 +4,56 @@ from __future__ import annotations
 
 from typing import Any
 
+#: At most this many errors of one formation file are shown (all are counted).
+MAX_ERRORS_SHOWN = 20
+
 
 class FormationError(Exception):
     """Base class of every error this project raises on purpose."""
 
 
 class FormationSpecError(FormationError, ValueError):
-    """A formation file is invalid; ``path`` names the field (``edges[2].distance``)."""
+    """A formation file is invalid; ``path`` names the field (``edges[2].distance``).
+
+    ``location`` is ``FILE:LINE:COL`` of the offending YAML node once the loader knows it.
+    """
 
     def __init__(self, path: str, message: str, value: Any = None) -> None:
         self.path = path
+        self.message = message
         self.value = value
-        super().__init__(f"{path}: {message}" if path else message)
+        self.location = ""
+        super().__init__(path, message)
+
+    def __str__(self) -> str:
+        text = f"{self.path}: {self.message}" if self.path else self.message
+        return f"{self.location}: {text}" if self.location else text
+
+
+class CollectedFormationSpecError(FormationSpecError):
+    """Every error found in one formation file (``errors``, in file order); behaves as the first."""
+
+    def __init__(self, errors: list[FormationSpecError]) -> None:
+        flat: list[FormationSpecError] = []
+        for e in errors:
+            flat.extend(e.errors if isinstance(e, CollectedFormationSpecError) else [e])
+        self.errors = flat
+        first = flat[0]
+        super().__init__(first.path, first.message, first.value)
+
+    @property  # type: ignore[override]
+    def location(self) -> str:
+        return self.errors[0].location
+
+    @location.setter
+    def location(self, value: str) -> None:
+        pass  # each error carries its own
+
+    def __str__(self) -> str:
+        lines = [str(e) for e in self.errors[:MAX_ERRORS_SHOWN]]
+        if len(self.errors) > MAX_ERRORS_SHOWN:
+            lines.append(f"… and {len(self.errors) - MAX_ERRORS_SHOWN} more errors")
+        return "\n".join(lines)
 
 
 class RotationError(FormationError, ValueError):

@@ -11,13 +11,15 @@ Semantic checks (tree, distance bounds, funnels) live in :mod:`formation_msgs_py
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
+import reprlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
 
 
 class _Required:
@@ -260,7 +262,7 @@ SIMULATION_FIELDS: tuple[Field, ...] = (
         "Hz",
         sign="positive",
     ),
-    Field("seed", "int", 0, "seed of every random draw (noise, random disturbances)"),
+    Field("seed", "int", 0, "seed of every random draw (noise, random disturbances)", sign="nonnegative"),
     Field("gravity", "vec3", (0.0, 0.0, 0.0), "gravity in the world frame (the paper: off)", "m/s²"),
     Field(
         "spanning_tree",
@@ -315,32 +317,56 @@ def _type_name(value: Any) -> str:
     return type(value).__name__ if value is not None else "null"
 
 
+_SHORT = reprlib.Repr()
+_SHORT.maxstring = _SHORT.maxother = 40
+_SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxdict = 4
+_SHORT.maxlevel = 2
+
+
+def short(value: Any) -> str:
+    """A repr of ``value`` of at most about 60 characters (error messages never print a whole document)."""
+    text = _SHORT.repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def did_you_mean(key: Any, known: Sequence[str]) -> str:
+    """`` (did you mean 'gamma'?)`` for the nearest valid key, or ``""``."""
+    close = difflib.get_close_matches(str(key), list(known), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def unknown_key(path: str, key: Any, known: Sequence[str]) -> FormationSpecError:
+    """The error of an unknown key, with the nearest valid one."""
+    listed = ", ".join(sorted(known)) or "none"
+    return _fail(path, f"unknown key{did_you_mean(key, known)} (expected one of: {listed})", key)
+
+
 def _fail(path: str, message: str, value: Any = None) -> FormationSpecError:
     return FormationSpecError(path, message, value)
 
 
 def _as_float(value: Any, path: str, sign: str = "") -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise _fail(path, f"expected a number, got {_type_name(value)} {value!r}", value)
+        raise _fail(path, f"expected a number, got {_type_name(value)} {short(value)}", value)
     x = float(value)
     if not math.isfinite(x):
-        raise _fail(path, f"{value!r} is not finite", value)
+        raise _fail(path, f"{short(value)} is not finite", value)
     if sign == "positive" and x <= 0:
-        raise _fail(path, f"{value!r} must be > 0", value)
+        raise _fail(path, f"{short(value)} must be > 0", value)
     if sign == "nonnegative" and x < 0:
-        raise _fail(path, f"{value!r} must be >= 0", value)
+        raise _fail(path, f"{short(value)} must be >= 0", value)
     return x
 
 
 def _as_vector(value: Any, n: int, path: str, sign: str = "") -> tuple[float, ...]:
     if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != n:
-        raise _fail(path, f"expected a list of {n} numbers, got {value!r}", value)
+        raise _fail(path, f"expected a list of {n} numbers, got {short(value)}", value)
     return tuple(_as_float(x, f"{path}[{i}]", sign) for i, x in enumerate(value))
 
 
 def _as_matrix(value: Any, path: str) -> tuple[tuple[float, ...], ...]:
     if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 3:
-        raise _fail(path, f"expected a 3x3 matrix (3 rows of 3 numbers), got {value!r}", value)
+        raise _fail(path, f"expected a 3x3 matrix (3 rows of 3 numbers), got {short(value)}", value)
     return tuple(_as_vector(row, 3, f"{path}[{i}]") for i, row in enumerate(value))
 
 
@@ -348,22 +374,18 @@ def _parse_rotation(value: Any, path: str) -> dict[str, Any]:
     if value == "identity":
         return {"matrix": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), "project": False}
     if not isinstance(value, Mapping):
-        raise _fail(path, f"expected a rotation mapping or 'identity', got {value!r}", value)
+        raise _fail(path, f"expected a rotation mapping or 'identity', got {short(value)}", value)
     forms = [k for k in ("matrix", "quaternion", "rpy", "axis_angle") if k in value]
     unknown = sorted(set(value) - {"matrix", "quaternion", "rpy", "axis_angle", "project"})
     if unknown:
-        raise _fail(
-            f"{path}.{unknown[0]}",
-            "unknown key (rotations take matrix, quaternion, rpy, axis_angle, project)",
-            unknown[0],
-        )
+        raise unknown_key(f"{path}.{unknown[0]}", unknown[0], ("matrix", "quaternion", "rpy", "axis_angle", "project"))
     if len(forms) != 1:
         raise _fail(path, f"give exactly one of matrix, quaternion, rpy, axis_angle (got {forms or 'none'})", value)
     form = forms[0]
     out: dict[str, Any] = {"project": False}
     if "project" in value:
         if not isinstance(value["project"], bool):
-            raise _fail(f"{path}.project", f"expected true or false, got {value['project']!r}", value["project"])
+            raise _fail(f"{path}.project", f"expected true or false, got {short(value['project'])}", value["project"])
         out["project"] = value["project"]
     raw = value[form]
     if form == "matrix":
@@ -377,7 +399,7 @@ def _parse_rotation(value: Any, path: str) -> dict[str, Any]:
         out["rpy"] = _as_vector(raw, 3, f"{path}.rpy")
     else:
         if not isinstance(raw, Mapping) or set(raw) != {"axis", "angle"}:
-            raise _fail(f"{path}.axis_angle", f"expected {{axis: [x, y, z], angle: rad}}, got {raw!r}", raw)
+            raise _fail(f"{path}.axis_angle", f"expected {{axis: [x, y, z], angle: rad}}, got {short(raw)}", raw)
         axis = _as_vector(raw["axis"], 3, f"{path}.axis_angle.axis")
         if math.sqrt(sum(c * c for c in axis)) < 1e-12:
             raise _fail(f"{path}.axis_angle.axis", f"{list(axis)} has no direction", raw["axis"])
@@ -393,28 +415,30 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
         return None if value is None else _as_float(value, path, f.sign)
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
-            raise _fail(path, f"expected an integer, got {_type_name(value)} {value!r}", value)
+            raise _fail(path, f"expected an integer, got {_type_name(value)} {short(value)}", value)
         if f.sign == "positive" and value <= 0:
-            raise _fail(path, f"{value!r} must be > 0", value)
+            raise _fail(path, f"{short(value)} must be > 0", value)
+        if f.sign == "nonnegative" and value < 0:
+            raise _fail(path, f"{short(value)} must be >= 0", value)
         return value
     if kind == "bool":
         if not isinstance(value, bool):
-            raise _fail(path, f"expected true or false, got {value!r}", value)
+            raise _fail(path, f"expected true or false, got {short(value)}", value)
         return value
     if kind == "str":
         if not isinstance(value, str):
-            raise _fail(path, f"expected a string, got {_type_name(value)} {value!r}", value)
+            raise _fail(path, f"expected a string, got {_type_name(value)} {short(value)}", value)
         return value
     if kind == "enum":
         if value not in f.choices:
-            raise _fail(path, f"{value!r} is not one of {', '.join(f.choices)}", value)
+            raise _fail(path, f"{short(value)} is not one of {', '.join(f.choices)}", value)
         return value
     if kind == "agent_id":
         if isinstance(value, bool) or not isinstance(value, (int, str)):
-            raise _fail(path, f"expected an agent id (integer or name), got {value!r}", value)
+            raise _fail(path, f"expected an agent id (integer or name), got {short(value)}", value)
         text = str(value)
         if not AGENT_ID_PATTERN.match(text):
-            raise _fail(path, f"{value!r} is not a valid agent id (letters, digits, underscore)", value)
+            raise _fail(path, f"{short(value)} is not a valid agent id (letters, digits, underscore)", value)
         return text
     if kind == "vec3":
         return _as_vector(value, 3, path, f.sign)
@@ -428,7 +452,7 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return (_as_float(value, path, "positive"),) * 6
         if isinstance(value, str):
-            raise _fail(path, f"{value!r} is neither 'auto' nor a number or list of 6", value)
+            raise _fail(path, f"{short(value)} is neither 'auto' nor a number or list of 6", value)
         return _as_vector(value, 6, path, "positive")
     if kind == "inertia":
         if (
@@ -446,10 +470,10 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
         return parse_mapping(value, f.children, path)
     if kind == "variant":
         if not isinstance(value, Mapping) or "model" not in value:
-            raise _fail(path, f"expected a mapping with a 'model' key, got {value!r}", value)
+            raise _fail(path, f"expected a mapping with a 'model' key, got {short(value)}", value)
         model = value["model"]
         if model not in f.variants:
-            raise _fail(f"{path}.model", f"{model!r} is not one of {', '.join(f.variants)}", model)
+            raise _fail(f"{path}.model", f"{short(model)} is not one of {', '.join(f.variants)}", model)
         rest = {k: v for k, v in value.items() if k != "model"}
         out = parse_mapping(rest, f.variants[model], path)
         out["model"] = model
@@ -458,27 +482,56 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
 
 
 def parse_mapping(node: Any, fields: tuple[Field, ...], path: str) -> dict[str, Any]:
-    """Validate ``node`` against ``fields``; returns a dict with every field set."""
+    """Validate ``node`` against ``fields``; returns a dict with every field set.
+
+    Every unknown key and bad field is reported: one FormationSpecError, or CollectedFormationSpecError.
+    """
     if node is None:
         node = {}
     if not isinstance(node, Mapping):
-        raise _fail(path, f"expected a mapping, got {_type_name(node)} {node!r}", node)
-    known = {f.name for f in fields}
+        raise _fail(path, f"expected a mapping, got {_type_name(node)} {short(node)}", node)
+    known = [f.name for f in fields]
+    errors: list[FormationSpecError] = []
     for key in node:
         if key not in known:
-            where = f"{path}.{key}" if path else str(key)
-            raise _fail(where, f"unknown key (expected one of: {', '.join(sorted(known)) or 'none'})", key)
+            errors.append(unknown_key(f"{path}.{key}" if path else str(key), key, known))
     out: dict[str, Any] = {}
     for f in fields:
         where = f"{path}.{f.name}" if path else f.name
-        if f.name in node:
-            out[f.name] = _parse_value(f, node[f.name], where)
-        elif f.default is REQUIRED:
-            raise _fail(where, "is required")
-        else:
-            # defaults go through the same parser, so they are normalised like given values
-            out[f.name] = _parse_value(f, f.default, where)
+        try:
+            if f.name in node:
+                out[f.name] = _parse_value(f, node[f.name], where)
+            elif f.default is REQUIRED:
+                raise _fail(where, "is required")
+            else:
+                # defaults go through the same parser, so they are normalised like given values
+                out[f.name] = _parse_value(f, f.default, where)
+        except FormationSpecError as exc:
+            errors.append(exc)
+    if errors:
+        raise errors[0] if len(errors) == 1 else CollectedFormationSpecError(errors)
     return out
+
+
+def check_partial(node: Any, fields: tuple[Field, ...], path: str) -> list[FormationSpecError]:
+    """Errors of a partial mapping (a ``defaults`` block): unknown keys and bad values; none required."""
+    if not isinstance(node, Mapping):
+        return [_fail(path, f"expected a mapping, got {_type_name(node)} {short(node)}", node)]
+    by_name = {f.name: f for f in fields}
+    errors: list[FormationSpecError] = []
+    for key, value in node.items():
+        where = f"{path}.{key}"
+        f = by_name.get(key)
+        if f is None:
+            errors.append(unknown_key(where, key, list(by_name)))
+        elif f.kind == "map":
+            errors.extend(check_partial(value, f.children, where))
+        else:
+            try:
+                _parse_value(f, value, where)
+            except FormationSpecError as exc:
+                errors.extend(exc.errors if isinstance(exc, CollectedFormationSpecError) else [exc])
+    return errors
 
 
 # --- documentation ----------------------------------------------------------------------------

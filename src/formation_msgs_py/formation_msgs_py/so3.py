@@ -160,8 +160,14 @@ def quaternion_from_matrix(R: ArrayLike) -> tuple[float, float, float, float]:
 
 
 def matrix_from_quaternion(x: float, y: float, z: float, w: float) -> list[list[float]]:
-    """Rotation matrix (nested lists) of a quaternion; normalises it."""
+    """Rotation matrix (nested lists) of a quaternion; normalises it.
+
+    Raises RotationError for a zero or non-finite quaternion (no rotation to give). Messages are
+    checked before they get here (formation_agent.inputs: the norm must be 1 to 1e-6).
+    """
     n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not (n > 1e-12 and math.isfinite(n)):
+        raise RotationError(f"quaternion ({x!r}, {y!r}, {z!r}, {w!r}) has no rotation (norm {n!r})")
     x, y, z, w = x / n, y / n, z / n, w / n
     return [
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

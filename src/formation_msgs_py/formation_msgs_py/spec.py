@@ -11,6 +11,7 @@ specification of its incident edges (what the paper lets an agent know). The sim
 
 from __future__ import annotations
 
+import contextlib
 import copy
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -18,11 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from formation_msgs_py import funnels
-from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.schema import TOP_FIELDS, parse_mapping
+from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
+from formation_msgs_py.loader import locate, read_document, split_path
+from formation_msgs_py.schema import TOP_FIELDS, check_partial, parse_mapping, short, unknown_key
 from formation_msgs_py.so3 import (
     is_rotation,
     matrix_from_axis_angle,
@@ -30,6 +31,11 @@ from formation_msgs_py.so3 import (
     matrix_from_rpy,
     project_to_so3,
 )
+
+#: ``project: true`` accepts a matrix with ‖RᵀR − I‖_F up to this and det > 0: the paper's printed
+#: R_2(0) is 0.37 off (NOTES.md); a reflection (det −1) or a zero matrix has no nearest rotation
+#: worth taking.
+PROJECT_TOLERANCE = 0.5
 
 # --- result objects ---------------------------------------------------------------------------
 
@@ -211,11 +217,12 @@ class IncidentEdge:
 
 @dataclass(frozen=True)
 class AgentView:
-    """All an agent process may know: its gains and funnel, its incident edges."""
+    """All an agent process may know: its gains and funnel, its sensing radius (m), its incident edges."""
 
     agent_id: str
     controller: ControllerGains
     edges: tuple[IncidentEdge, ...]
+    sensing_radius: float
 
     @property
     def neighbours(self) -> tuple[str, ...]:
@@ -241,7 +248,7 @@ def agent_view(spec: FormationSpec, agent_id: str | int) -> AgentView:
             incident.append(IncidentEdge(e, "tail", e.head))
         elif e.head == me.id:
             incident.append(IncidentEdge(e, "head", e.tail))
-    return AgentView(me.id, me.controller, tuple(incident))
+    return AgentView(me.id, me.controller, tuple(incident), me.sensing_radius)
 
 
 def simulator_view(spec: FormationSpec) -> SimulatorView:
@@ -252,27 +259,22 @@ def simulator_view(spec: FormationSpec) -> SimulatorView:
 
 
 def load_formation(path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> FormationSpec:
-    """Read, validate and return a formation file; ``overrides`` replace ``simulation`` keys."""
+    """Read, validate and return a formation file; ``overrides`` replace ``simulation`` keys.
+
+    Raises FormationSpecError (CollectedFormationSpecError for several) with FILE:LINE:COL on each.
+    """
     path = Path(path)
+    document = read_document(path)
+    data = document.data
+    if overrides and isinstance(data, dict):
+        data = copy.deepcopy(data)
+        data.setdefault("simulation", {})
+        if isinstance(data["simulation"], dict):
+            data["simulation"].update(overrides)
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise FormationSpecError("", f"formation file {str(path)!r} does not exist", str(path)) from None
-    except OSError as exc:
-        raise FormationSpecError("", f"cannot read {str(path)!r}: {exc.strerror}", str(path)) from None
-    try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise FormationSpecError("", f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
-    if overrides:
-        document = copy.deepcopy(document) if isinstance(document, dict) else document
-        if isinstance(document, dict):
-            document.setdefault("simulation", {})
-            if isinstance(document["simulation"], dict):
-                document["simulation"].update(overrides)
-    return formation_from_dict(document, source=str(path), default_name=path.stem)
+        return formation_from_dict(data, source=str(path), default_name=path.stem)
+    except FormationSpecError as exc:
+        raise locate(exc, document) from None
 
 
 def _deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
@@ -289,13 +291,22 @@ def _rotation_from(parsed: Mapping[str, Any], path: str) -> np.ndarray:
     if "matrix" in parsed:
         R = np.array(parsed["matrix"], dtype=np.float64)
         if not is_rotation(R):
-            if parsed["project"]:
-                return project_to_so3(R)
             err = float(np.linalg.norm(R.T @ R - np.eye(3)))
+            det = float(np.linalg.det(R))
+            close = err <= PROJECT_TOLERANCE and det > 0
+            if parsed["project"] and close:
+                return project_to_so3(R)
+            if parsed["project"]:
+                why = f"det = {det:.4f} <= 0" if det <= 0 else f"‖RᵀR − I‖_F = {err:.3g} > {PROJECT_TOLERANCE:g}"
+                raise FormationSpecError(
+                    f"{path}.matrix",
+                    f"is too far from a rotation to project ({why}): give a rotation",
+                    parsed["matrix"],
+                )
+            hint = "; add 'project: true' to use its nearest rotation" if close else ""
             raise FormationSpecError(
                 f"{path}.matrix",
-                f"is not a rotation (‖RᵀR − I‖_F = {err:.3g}, det = {np.linalg.det(R):.4f}); "
-                "add 'project: true' to use its nearest rotation",
+                f"is not a rotation (‖RᵀR − I‖_F = {err:.3g}, det = {det:.4f}){hint}",
                 parsed["matrix"],
             )
         # Rotations given to 1e-6 are snapped so that the plant starts exactly in SO(3).
@@ -319,73 +330,92 @@ def _check_rates(physics_rate: float, control_rate: float) -> None:
 
 
 def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: str = "formation") -> FormationSpec:
-    """Validate a parsed YAML document (see :func:`load_formation`)."""
+    """Validate a parsed YAML document (see :func:`load_formation`).
+
+    Every error is collected (CollectedFormationSpecError when there are several); the semantic checks
+    of an agent or edge run only once its fields are valid, the tree checks once every edge is.
+    """
     if not isinstance(document, Mapping):
         raise FormationSpecError("", f"a formation file is a mapping at the top level, got {type(document).__name__}")
-    top_plain = {k: v for k, v in document.items() if k not in ("agents", "edges", "defaults")}
-    top_fields = tuple(f for f in TOP_FIELDS if f.name not in ("agents", "edges", "defaults"))
-    known = {f.name for f in TOP_FIELDS}
+    errors = _Collector()
+    known = [f.name for f in TOP_FIELDS]
     for key in document:
         if key not in known:
-            raise FormationSpecError(str(key), f"unknown key (expected one of: {', '.join(sorted(known))})", key)
-    top = parse_mapping(top_plain, top_fields, "")
-    sim = top["simulation"]
-    _check_rates(sim["physics_rate"], sim["control_rate"])
+            errors.add(unknown_key(str(key), key, known))
+    top_plain = {k: v for k, v in document.items() if k in ("name", "description", "simulation")}
+    top_fields = tuple(f for f in TOP_FIELDS if f.name in ("name", "description", "simulation"))
+    top = errors.run(lambda: parse_mapping(top_plain, top_fields, ""))
+    sim = top["simulation"] if top is not None else None
+    if sim is not None:
+        errors.run(lambda: _check_rates(sim["physics_rate"], sim["control_rate"]))
 
-    defaults = document.get("defaults") or {}
-    if not isinstance(defaults, Mapping) or set(defaults) - {"agent", "edge"}:
-        raise FormationSpecError("defaults", "expected a mapping with optional keys 'agent' and 'edge'", defaults)
     agent_fields = next(f for f in TOP_FIELDS if f.name == "agents").children
     edge_fields = next(f for f in TOP_FIELDS if f.name == "edges").children
+    defaults = document.get("defaults") or {}
+    if not isinstance(defaults, Mapping):
+        errors.add(
+            FormationSpecError("defaults", f"expected a mapping with keys agent and edge, got {short(defaults)}")
+        )
+        defaults = {}
+    for key in defaults:
+        if key not in ("agent", "edge"):
+            errors.add(unknown_key(f"defaults.{key}", key, ("agent", "edge")))
+    blocks = {}
     for key, fields in (("agent", agent_fields), ("edge", edge_fields)):
         block = defaults.get(key) or {}
         if not isinstance(block, Mapping):
-            raise FormationSpecError(f"defaults.{key}", f"expected a mapping, got {block!r}", block)
-        names = {f.name for f in fields}
-        for k in block:
-            if k not in names:
-                raise FormationSpecError(
-                    f"defaults.{key}.{k}", f"unknown key (expected one of: {', '.join(sorted(names))})", k
-                )
+            errors.add(FormationSpecError(f"defaults.{key}", f"expected a mapping, got {short(block)}", block))
+            block = {}
+        errors.extend(check_partial(block, fields, f"defaults.{key}"))
+        blocks[key] = block
 
     raw_agents = document.get("agents")
     if not isinstance(raw_agents, list) or len(raw_agents) < 2:
-        raise FormationSpecError("agents", f"expected a list of at least 2 agents, got {raw_agents!r:.80}", raw_agents)
+        errors.add(FormationSpecError("agents", f"expected a list of at least 2 agents, got {short(raw_agents)}"))
+        raw_agents = []
     raw_edges = document.get("edges")
     if not isinstance(raw_edges, list) or not raw_edges:
-        raise FormationSpecError("edges", f"expected a non-empty list of edges, got {raw_edges!r:.80}", raw_edges)
+        errors.add(FormationSpecError("edges", f"expected a non-empty list of edges, got {short(raw_edges)}"))
+        raw_edges = []
 
     agents = []
     ids: dict[str, int] = {}
     for i, raw in enumerate(raw_agents):
         path = f"agents[{i}]"
         if not isinstance(raw, Mapping):
-            raise FormationSpecError(path, f"expected a mapping, got {raw!r}", raw)
-        a = parse_mapping(_deep_merge(defaults.get("agent") or {}, raw), agent_fields, path)
-        if a["id"] in ids:
-            raise FormationSpecError(f"{path}.id", f"{a['id']!r} is used by agents[{ids[a['id']]}] too", a["id"])
-        ids[a["id"]] = i
-        agents.append(_make_agent(i, a, path))
+            errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
+            continue
+        with errors.item(path, raw, "defaults.agent"):
+            a = parse_mapping(_deep_merge(blocks["agent"], raw), agent_fields, path)
+            if a["id"] in ids:
+                raise FormationSpecError(f"{path}.id", f"{a['id']!r} is used by agents[{ids[a['id']]}] too", a["id"])
+            ids[a["id"]] = i
+            agents.append(_make_agent(i, a, path))
+    agents_ok = not errors.items
 
     edges_parsed = []
     seen: dict[frozenset[str], int] = {}
     for k, raw in enumerate(raw_edges):
         path = f"edges[{k}]"
         if not isinstance(raw, Mapping):
-            raise FormationSpecError(path, f"expected a mapping, got {raw!r}", raw)
-        e = parse_mapping(_deep_merge(defaults.get("edge") or {}, raw), edge_fields, path)
-        for end in ("tail", "head"):
-            if e[end] not in ids:
-                raise FormationSpecError(
-                    f"{path}.{end}", f"unknown agent {e[end]!r} (agents: {', '.join(ids)})", e[end]
-                )
-        if e["tail"] == e["head"]:
-            raise FormationSpecError(path, f"tail and head are the same agent {e['tail']!r}", e["tail"])
-        pair = frozenset((e["tail"], e["head"]))
-        if pair in seen:
-            raise FormationSpecError(path, f"duplicates edges[{seen[pair]}] ({e['tail']}, {e['head']})", raw)
-        seen[pair] = k
-        edges_parsed.append((k, e, path))
+            errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
+            continue
+        with errors.item(path, raw, "defaults.edge"):
+            e = parse_mapping(_deep_merge(blocks["edge"], raw), edge_fields, path)
+            if agents_ok:
+                for end in ("tail", "head"):
+                    if e[end] not in ids:
+                        raise FormationSpecError(
+                            f"{path}.{end}", f"unknown agent {e[end]!r} (agents: {', '.join(ids)})", e[end]
+                        )
+            if e["tail"] == e["head"]:
+                raise FormationSpecError(path, f"tail and head are the same agent {e['tail']!r}", e["tail"])
+            pair = frozenset((e["tail"], e["head"]))
+            if pair in seen:
+                raise FormationSpecError(path, f"duplicates edges[{seen[pair]}] ({e['tail']}, {e['head']})", raw)
+            seen[pair] = k
+            edges_parsed.append((k, e, path))
+    errors.raise_if_any()
 
     kept, dropped = _tree(list(ids), [(e["tail"], e["head"]) for _, e, _ in edges_parsed], sim["spanning_tree"])
     by_id = {a.id: a for a in agents}
@@ -393,7 +423,10 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
     for k, e, path in edges_parsed:
         if k not in kept:
             continue
-        edges.append(_make_edge(len(edges), e, path, by_id[e["tail"]], by_id[e["head"]]))
+        raw = raw_edges[k]
+        with errors.item(path, raw, "defaults.edge"):
+            edges.append(_make_edge(len(edges), e, path, by_id[e["tail"]], by_id[e["head"]]))
+    errors.raise_if_any()
 
     simulation = SimulationSpec(**{**sim, "gravity": np.array(sim["gravity"])})
     return FormationSpec(
@@ -405,6 +438,64 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
         edges=tuple(edges),
         dropped_edges=tuple((edges_parsed[k][1]["tail"], edges_parsed[k][1]["head"]) for k in dropped),
     )
+
+
+class _Collector:
+    """Errors of one formation file in the order found, each once; an item's errors that come from
+    ``defaults`` are reported at the defaults."""
+
+    def __init__(self) -> None:
+        self.errors: list[FormationSpecError] = []
+        self.items = 0
+        self._seen: set[tuple[str, str]] = set()
+
+    def add(self, err: FormationSpecError) -> None:
+        for e in err.errors if isinstance(err, CollectedFormationSpecError) else [err]:
+            key = (e.path, e.message)
+            if key not in self._seen:
+                self._seen.add(key)
+                self.errors.append(e)
+
+    def extend(self, errs: list[FormationSpecError]) -> None:
+        for e in errs:
+            self.add(e)
+
+    def run(self, fn: Any) -> Any:
+        try:
+            return fn()
+        except FormationSpecError as exc:
+            self.add(exc)
+            return None
+
+    @contextlib.contextmanager
+    def item(self, path: str, raw: Mapping[str, Any], defaults_path: str) -> Any:
+        """Collect the errors of one agent or edge; re-path those whose value came from the defaults."""
+        try:
+            yield
+        except FormationSpecError as exc:
+            self.items += 1
+            for e in exc.errors if isinstance(exc, CollectedFormationSpecError) else [exc]:
+                if e.path.startswith(path + ".") and not _given(raw, split_path(e.path[len(path) + 1 :])):
+                    if not e.message == "is required":
+                        e.path = defaults_path + e.path[len(path) :]
+                self.add(e)
+
+    def raise_if_any(self) -> None:
+        if self.errors:
+            raise self.errors[0] if len(self.errors) == 1 else CollectedFormationSpecError(self.errors)
+
+
+def _given(raw: Any, key: tuple[Any, ...]) -> bool:
+    """Whether the item itself (not the defaults) holds the value at ``key``."""
+    node = raw
+    for part in key:
+        if isinstance(node, Mapping) and part in node:
+            node = node[part]
+        elif isinstance(node, list) and isinstance(part, int) and part < len(node):
+            node = node[part]
+        else:
+            return False
+    return True
 
 
 def _tree(nodes: list[str], pairs: list[tuple[str, str]], reduce: bool) -> tuple[set[int], list[int]]:

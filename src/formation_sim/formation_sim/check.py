@@ -7,15 +7,17 @@ field). ``--schema`` prints the reference of every field of a formation file.
 
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 
-from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py import options
+from formation_msgs_py.errors import FormationError
+from formation_msgs_py.options import OptionParser
+from formation_msgs_py.outcome import ExitCode
 from formation_msgs_py.schema import schema_markdown
-from formation_msgs_py.spec import FormationSpec, load_formation
+from formation_msgs_py.spec import FormationSpec
+from formation_sim.preflight import load_spec
 from formation_sim.rates import rate_needs
 
 #: An initial normalised error closer than this fraction to its bound is "unsafe".
@@ -77,63 +79,45 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
     return lines, unsafe
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="formation-check",
-        description="Validate a formation file and print a summary: agents, tree, edges, initial errors and "
+def build_parser() -> OptionParser:
+    p = options.build_parser(
+        options.CHECK,
+        "formation-check",
+        "Validate a formation file and print a summary: agents, tree, edges, initial errors and "
         "margins, and the control rate each agent needs over the run. "
         "Exit status: 0 valid, 1 valid but unsafe, 2 invalid.",
-    )
-    p.add_argument("file", type=Path, nargs="?", help="formation file (YAML)")
-    p.add_argument("--control-rate", type=float, help="check against this control rate [Hz] instead of the file's")
-    p.add_argument("--duration", type=float, help="check over this duration [s] instead of the file's")
-    p.add_argument(
-        "--spanning-tree",
-        action="store_true",
-        help="reduce a cyclic sensing graph to a spanning tree (prints the dropped edges)",
+        file_required=False,
     )
     p.add_argument(
         "--schema", action="store_true", help="print the reference of every formation-file field (Markdown) and exit"
     )
-    p.add_argument("--quiet", action="store_true", help="print only problems")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.schema:
+    opts = options.parse(options.CHECK, parser, argv)
+    if opts.schema:
         sys.stdout.write(schema_markdown())
-        return 0
-    if args.file is None:
+        return ExitCode.PASS
+    if opts.file is None:
         parser.error("a formation file is required (or --schema)")
-    overrides = {}
-    if args.spanning_tree:
-        overrides["spanning_tree"] = True
-    if args.duration is not None:
-        overrides["duration"] = args.duration
     try:
-        spec = load_formation(args.file, overrides=overrides or None)
-        if args.control_rate is not None:
-            ratio = spec.simulation.physics_rate / args.control_rate
-            physics = (
-                spec.simulation.physics_rate if ratio >= 1 and abs(ratio - round(ratio)) < 1e-9 else args.control_rate
-            )
-            spec = spec.with_simulation(control_rate=args.control_rate, physics_rate=physics)
-    except FormationSpecError as exc:
+        spec = load_spec(opts)
+    except FormationError as exc:
         print(f"formation-check: INVALID: {exc}", file=sys.stderr)
-        return 2
+        return ExitCode.INVALID
     lines, unsafe = report(spec)
-    if not args.quiet:
+    if not opts.quiet:
         print("\n".join(lines))
     if unsafe:
         print("UNSAFE:", file=sys.stderr)
         for reason in unsafe:
             print(f"  - {reason}", file=sys.stderr)
-        return 1
-    if not args.quiet:
+        return ExitCode.FAIL
+    if not opts.quiet:
         print("VALID: safe to run at these settings")
-    return 0
+    return ExitCode.PASS
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ settings; 3 a process died, or an agent was missing; 130 interrupted.
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import json
 import os
@@ -36,10 +35,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.hotloop import EXECUTORS, FASTDDS_PROFILE
+from formation_msgs_py import options
+from formation_msgs_py.errors import FormationError
+from formation_msgs_py.hotloop import FASTDDS_PROFILE
+from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.spec import FormationSpec
-from formation_sim.headless import add_override_options, check_control_rate, prepare_out_dir
+from formation_sim.preflight import preflight
 from formation_sim.report import format_summary, report_animation
 
 EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_PROCESS, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -155,107 +156,31 @@ def reexec_in_netns(argv: list[str]) -> None:
     os.execvpe("unshare", cmd, env)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="formation-launch",
-        description="Run a formation through ROS 2: the simulator node and one process per agent "
+def build_parser() -> OptionParser:
+    return options.build_parser(
+        options.LAUNCH,
+        "formation-launch",
+        "Run a formation through ROS 2: the simulator node and one process per agent "
         "(and, unless --no-record, a bag recorder). Writes OUT as docs/outputs.md with one log per process in "
         "OUT/logs. Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 a process died or an "
         "agent was missing, 130 interrupted.",
     )
-    p.add_argument("file", type=Path, help="formation file (YAML)")
-    p.add_argument("--out", type=Path, help="output directory (default: out/<formation>-ros2-<mode>-<time>)")
-    add_override_options(p, ros=True)
-    p.add_argument("--discovery-timeout", type=float, help="wall s to wait for the agents (default 30 + 1/agent)")
-    p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
-    p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")
-    p.add_argument(
-        "--record",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="record a bag into OUT/bag with formation-record (default: on; --no-record to skip). While "
-        "recording, ground truth is published at every control step unless --ground-truth-rate is given, so "
-        "that formation-analyze OUT/bag reproduces the run's summary",
-    )
-    p.add_argument(
-        "--netns",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help=f"private network namespace: auto = when more than {NETNS_THRESHOLD} participants (default)",
-    )
-    p.add_argument(
-        "--executor", choices=EXECUTORS, default="lean", help="how every node spins (formation_msgs_py.hotloop)"
-    )
-    p.add_argument(
-        "--measurement-qos",
-        choices=("reliable", "best-effort"),
-        default="reliable",
-        help="QoS of relative poses and velocities; best-effort (realtime only) costs less CPU per message",
-    )
-    p.add_argument(
-        "--intruder-policy",
-        choices=("report", "refuse"),
-        default="report",
-        help="a publisher the formation does not expect: report it (default) or also refuse its topic's "
-        "messages while it is there, in the simulator and every agent (docs/security.md)",
-    )
-    p.add_argument(
-        "--secure",
-        action="store_true",
-        help="every process over TCP with mutual TLS only (no UDP, no shared memory): a process without a "
-        "certificate of the run's CA can neither publish nor subscribe (docs/security.md)",
-    )
-    p.add_argument(
-        "--keys",
-        type=Path,
-        help="with --secure: key directory of formation-keys init (default: a CA and keys for this run only)",
-    )
-    p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
-    p.add_argument("--no-plots", action="store_true", help="skip the figures")
-    p.add_argument(
-        "--animate",
-        action="store_true",
-        help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for a 5 s run)",
-    )
-    p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
-    return p
 
 
-def _sim_args(args: argparse.Namespace, out: Path, spec: FormationSpec) -> list[str]:
-    cmd = [str(args.file.resolve()), "--out", str(out), "--force", "--executor", args.executor]
-    cmd += ["--measurement-qos", args.measurement_qos, "--intruder-policy", args.intruder_policy]
-    for opt in (
-        "mode",
-        "duration",
-        "control_rate",
-        "physics_rate",
-        "record_rate",
-        "seed",
-        "step_timeout",
-        "command_timeout",
-        "discovery_timeout",
-        "ground_truth_rate",
-        "clock_rate",
-    ):
-        value = getattr(args, opt)
-        if value is not None:
-            cmd += [f"--{opt.replace('_', '-')}", str(value)]
-    for flag in ("allow_low_rate", "no_plots"):
-        if getattr(args, flag):
-            cmd.append(f"--{flag.replace('_', '-')}")
+def _sim_args(args: RunOptions, out: Path, spec: FormationSpec) -> list[str]:
+    cmd = [str(args.file.resolve()), "--out", str(out), "--force", *args.child_argv(options.SIM)]
     if args.record:
         cmd.append("--wait-recorder")
         if args.ground_truth_rate is None:
             # the analysis checks the funnels at the recorded ground-truth samples: all of them
-            cmd += ["--ground-truth-rate", str(spec.simulation.control_rate)]
+            cmd += ["--ground-truth-rate", repr(spec.simulation.control_rate)]
     return cmd
 
 
 class Launcher:
     """Starts, watches and stops the processes of one run."""
 
-    def __init__(self, spec: FormationSpec, args: argparse.Namespace, out: Path, env: dict[str, str]) -> None:
+    def __init__(self, spec: FormationSpec, args: RunOptions, out: Path, env: dict[str, str]) -> None:
         self.spec = spec
         self.args = args
         self.out = out
@@ -451,28 +376,16 @@ class Launcher:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
-    from formation_sim.sim_node import load_spec  # rclpy is imported only once the file is valid
-
+    opts = options.parse(options.LAUNCH, build_parser(), argv)
     try:
-        spec = load_spec(args)
-    except FormationSpecError as exc:
+        run = preflight(opts, lambda spec, o: _default_out(spec, o.mode))
+    except FormationError as exc:
         print(f"formation-launch: INVALID: {exc}", file=sys.stderr)
         return EXIT_INVALID
-    mode = args.mode or spec.simulation.mode
-    if mode == "lockstep" and args.measurement_qos != "reliable":
-        print("formation-launch: --measurement-qos best-effort is for realtime runs only", file=sys.stderr)
-        return EXIT_INVALID
-    problems = check_control_rate(spec)
-    if problems:
-        warn = args.allow_low_rate or spec.simulation.rate_check == "warn"
-        for msg in problems:
-            print(f"formation-launch: {'warning' if warn else 'error'}: {msg}", file=sys.stderr)
-        if not warn:
-            print(
-                "formation-launch: control rate too low; raise --control-rate or pass --allow-low-rate", file=sys.stderr
-            )
-            return EXIT_INVALID
+    spec, out, args = run.spec, run.out, run.options
+    mode = args.mode
+    for msg in run.warnings:
+        print(f"formation-launch: warning: {msg}", file=sys.stderr)
     if args.record and not _bin("formation-record").exists():
         print(
             f"formation-launch: --record needs {_bin('formation-record')} (package formation_bag), which is not "
@@ -492,18 +405,12 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return EXIT_INVALID
-        if args.out is None:  # fix the output directory before re-executing
-            argv += ["--out", str(_default_out(spec, mode))]
+        if opts.out is None:  # fix the output directory before re-executing
+            argv += ["--out", str(out)]
         if not os.environ.get("ROS_DOMAIN_ID"):
             # picked here, where the host's DDS ports are visible: /dev/shm is shared with the host
             os.environ["ROS_DOMAIN_ID"] = str(pick_domain_id())
         reexec_in_netns(argv)
-    out = args.out or _default_out(spec, mode)
-    try:
-        prepare_out_dir(out, args.force)
-    except FileExistsError as exc:
-        print(f"formation-launch: {exc}", file=sys.stderr)
-        return EXIT_INVALID
     out = out.resolve()
     (out / "logs").mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)

@@ -26,7 +26,6 @@ or settings, 3 an agent missing (discovery or step timeout), 130 interrupted.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -39,22 +38,19 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from formation_msgs_py import conversions, qos, topics
-from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py import conversions, options, qos, topics
+from formation_msgs_py.errors import FormationError
 from formation_msgs_py.graph_watch import GraphWatch
-from formation_msgs_py.hotloop import EXECUTORS, Spinner, hot_group
-from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, describe, expected_publishers
+from formation_msgs_py.hotloop import Spinner, hot_group
+from formation_msgs_py.options import OptionParser, RunOptions
+from formation_msgs_py.outcome import ExitCode
+from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
+from formation_sim import inputs
 from formation_sim.deployment import Timing
-from formation_sim.display import DEFAULT_MARKER_RATE, DisplayPublisher, declare_simulator_parameters
-from formation_sim.headless import (
-    add_override_options,
-    check_control_rate,
-    load_with_overrides,
-    overrides_from_args,
-    prepare_out_dir,
-)
+from formation_sim.display import DisplayPublisher, declare_simulator_parameters
+from formation_sim.preflight import preflight
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
 from formation_sim.team import AgentTeam
@@ -101,6 +97,14 @@ class SimNode(Node):
                 pub = self.create_publisher(TransformStamped, topics.relative_pose(obs, tgt), meas_qos)
                 self.links[(obs, tgt)] = (pub, conversions.relative_pose_codec(obs, tgt))
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
+        self.wrench_check = inputs.WrenchCheck(
+            self.ids,
+            [a.dynamics.max_force for a in spec.agents],
+            [a.dynamics.max_torque for a in spec.agents],
+            spec.simulation.control_rate,
+            lockstep=spec.simulation.mode == "lockstep",
+        )
+        self._refusals_printed: set[tuple[str, str]] = set()
         # wrenches: latest per agent (stamp ns, values); lockstep counts answers of the current step
         self.u_ns = [-1] * n
         self.u_val: list[tuple[float, ...]] = [(0.0,) * 6] * n
@@ -133,6 +137,15 @@ class SimNode(Node):
             return
         self.received += 1
         ns, u = self.wrench_codecs[i].decode(data)
+        refused = self.wrench_check.check(i, ns, u, self.current_ns)
+        if refused is not None:
+            if (self.ids[i], refused) not in self._refusals_printed:
+                self._refusals_printed.add((self.ids[i], refused))
+                reason = self.wrench_check.log[(self.ids[i], refused)].reason
+                print(f"formation-sim: agent {self.ids[i]}: wrench refused ({refused}): {reason}", flush=True)
+            if refused in inputs.STAMP_KINDS:
+                return  # answers no step
+            u = (0.0,) * 6  # a refused value answers its step with zero: never integrated
         if ns < self.u_ns[i]:
             return  # out of date (a re-sent step answered twice)
         first = ns != self.u_ns[i]
@@ -184,7 +197,7 @@ class SimNode(Node):
 class Runner:
     """The stepping loops of one run (lockstep or realtime)."""
 
-    def __init__(self, node: SimNode, executor: Any, spec: FormationSpec, args: argparse.Namespace) -> None:
+    def __init__(self, node: SimNode, executor: Any, spec: FormationSpec, args: RunOptions) -> None:
         self.node = node
         self.executor = executor
         self.spec = spec
@@ -207,6 +220,7 @@ class Runner:
         self.last_progress = self.started
         self.step = 0
         self.faults: dict[str, str] = {}
+        self.incomplete_reason = ""
 
     def ok(self) -> bool:
         return rclpy.ok(context=self.node.context)
@@ -283,8 +297,10 @@ class Runner:
             self.recorder.fault(sim.t, "plant", "all", f"integration failed: {exc}")
             print(f"formation-sim: plant integration failed at t={sim.t:.4f} s: {exc}", flush=True)
             return False
-        if not np.all(np.isfinite(sim.state.v)):
-            self.recorder.fault(sim.t, "plant", "all", "non-finite state")
+        bad = inputs.non_finite_agents(self.spec.agent_ids, sim.state.p, sim.state.R, sim.state.v)
+        if bad:
+            self.incomplete_reason = f"t={sim.t:.6f} s: non-finite plant state of agent(s) {', '.join(bad)}"
+            print(f"formation-sim: ERROR: {self.incomplete_reason}: run stopped", flush=True)
             return False
         return True
 
@@ -415,95 +431,40 @@ class Runner:
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
         if self.faults:
             info["faults"] = self.faults
+        refused = self.node.wrench_check.report()
+        if refused:
+            info["refused_wrenches"] = refused
+        if self.incomplete_reason:
+            info["incomplete_reason"] = self.incomplete_reason
         info["security"] = self.node.watch.watch.report()
         info.update(extra)
         return self.recorder.summary(wall_time=wall, extra=info)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="formation-sim",
-        description="The simulator node of a ROS 2 formation run (docs/ros2.md): publishes /clock, relative "
+def build_parser() -> OptionParser:
+    return options.build_parser(
+        options.SIM,
+        "formation-sim",
+        "The simulator node of a ROS 2 formation run (docs/ros2.md): publishes /clock, relative "
         "poses, velocities and ground truth, collects every agent's wrench, checks the funnels at every "
         "control step and writes OUT (docs/outputs.md). Agents are separate processes (formation-agent). "
         "Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 agent missing, 130 interrupted. "
         "ROS arguments may follow --ros-args.",
     )
-    p.add_argument("file", type=Path, help="formation file (YAML)")
-    p.add_argument("--out", type=Path, help="output directory (default: out/<formation>-ros2-<mode>)")
-    add_override_options(p, ros=True)
-    p.add_argument(
-        "--discovery-timeout", type=float, default=None, help="wall s to wait for the agents (default 30 + 1/agent)"
-    )
-    p.add_argument("--settle", type=float, default=0.3, help="wall s to wait after discovery (default 0.3)")
-    p.add_argument("--resend", type=float, default=0.25, help="lockstep: re-send an unanswered step after [wall s]")
-    p.add_argument(
-        "--wait-recorder", action="store_true", help="also wait for a ground-truth subscriber (a bag recorder)"
-    )
-    p.add_argument("--ground-truth-rate", type=float, help="ground-truth publication rate [Hz, sim time]")
-    p.add_argument("--clock-rate", type=float, help="/clock publication rate [Hz, sim time]")
-    p.add_argument(
-        "--marker-rate",
-        type=float,
-        default=DEFAULT_MARKER_RATE,
-        help="display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off; "
-        f"default {DEFAULT_MARKER_RATE:g}]; also the live parameter marker_rate",
-    )
-    p.add_argument(
-        "--executor", choices=EXECUTORS, default="lean", help="how the node spins (formation_msgs_py.hotloop)"
-    )
-    p.add_argument(
-        "--measurement-qos",
-        choices=("reliable", "best-effort"),
-        default="reliable",
-        help="QoS of relative poses and velocities (best-effort: realtime only; agents need -p measurement_qos)",
-    )
-    p.add_argument(
-        "--intruder-policy",
-        choices=POLICIES,
-        default="report",
-        help="a publisher the formation does not expect on its topics: report it (default), or also refuse the "
-        "wrenches of that topic while it is there (docs/security.md)",
-    )
-    p.add_argument("--allow-low-rate", action="store_true", help="run even if the control rate is below the need")
-    p.add_argument("--progress-period", type=float, default=1.0, help="wall s between progress lines")
-    p.add_argument("--no-plots", action="store_true", help="skip the figures")
-    p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
-    return p
-
-
-def load_spec(args: argparse.Namespace) -> FormationSpec:
-    """The formation with the command-line overrides applied (raises FormationSpecError)."""
-    over = overrides_from_args(args)
-    for opt, key in (("mode", "mode"), ("step_timeout", "step_timeout"), ("command_timeout", "command_timeout")):
-        if getattr(args, opt, None) is not None:
-            over[key] = getattr(args, opt)
-    return load_with_overrides(args.file, over)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``formation-sim``."""
     raw = list(sys.argv if argv is None else [sys.argv[0], *argv])
-    args = build_parser().parse_args(rclpy.utilities.remove_ros_args(raw)[1:])
+    opts = options.parse(options.SIM, build_parser(), rclpy.utilities.remove_ros_args(raw)[1:])
     try:
-        spec = load_spec(args)
-        args.mode = spec.simulation.mode
-        if args.mode == "lockstep" and args.measurement_qos != "reliable":
-            raise FormationSpecError("--measurement-qos", "lockstep needs reliable measurements (a lost one stalls)")
-        out = args.out or Path("out") / f"{spec.name}-ros2-{args.mode}"
-        prepare_out_dir(out, args.force)
-    except (FormationSpecError, FileExistsError) as exc:
+        run = preflight(opts, lambda spec, o: Path("out") / f"{spec.name}-ros2-{o.mode}")
+    except FormationError as exc:
         print(f"formation-sim: {exc}", file=sys.stderr)
         return EXIT_INVALID
-    problems = check_control_rate(spec)
-    if problems:
-        warn = args.allow_low_rate or spec.simulation.rate_check == "warn"
-        for msg in problems:
-            print(f"formation-sim: {'warning' if warn else 'error'}: {msg}", file=sys.stderr)
-        if not warn:
-            print("formation-sim: control rate too low; raise --control-rate or pass --allow-low-rate", file=sys.stderr)
-            return EXIT_INVALID
+    spec, out, args = run.spec, run.out, run.options
+    for msg in run.warnings:
+        print(f"formation-sim: warning: {msg}", file=sys.stderr)
     s = spec.simulation
     print(
         f"formation-sim: {spec.name}, {len(spec.agents)} agents, {args.mode} at {s.control_rate:g} Hz "
@@ -546,6 +507,8 @@ def main(argv: list[str] | None = None) -> int:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if code == EXIT_OK and runner is not None and runner.incomplete_reason:
+        code = ExitCode.INCOMPLETE
     if runner is not None and runner.recorder.samples > 0:
         summary = runner.summary(wall, extra)
         write_outputs(out, runner.recorder, summary, plots=not args.no_plots)

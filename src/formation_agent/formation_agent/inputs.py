@@ -1,0 +1,97 @@
+"""Plausibility of what an agent receives, checked before anything is computed from it (no ROS).
+
+A relative pose (translation xyz [m], quaternion xyzw, frame agent_i) or a body twist is refused
+when it cannot be a measurement:
+
+- a value is not finite;
+- the quaternion's norm is zero or differs from 1 by more than :data:`QUATERNION_NORM_TOLERANCE`
+  (we publish unit quaternions to rounding; a float32-normalised one is off by ~1e-7: anything
+  further is not a rotation someone meant, and silently normalising (0, 0, 0, 2) turned it into
+  a command of 1e8 N·m);
+- the translation is longer than the agent's sensing radius by more than
+  :data:`SENSING_SLACK` (relative): the neighbour could not have been sensed there;
+- its stamp leads the agent's /clock by more than the measurement timeout (a stamp from the
+  future would be held as the newest step) or trails it by more than the measurement timeout.
+  Without a /clock (clock_ns == 0) stamps are not judged.
+
+:class:`InputCheck` returns the reason of a refusal (or None) and counts refusals per kind.
+The node answers a refused value with a zero wrench and ERROR for that step; a refused stamp is
+dropped (it names no step the agent should answer).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+#: |‖q‖ − 1| above this refuses a relative pose.
+QUATERNION_NORM_TOLERANCE = 1e-6
+#: a translation longer than (1 + slack)·sensing_radius refuses a relative pose (room for noise).
+SENSING_SLACK = 0.1
+
+NON_FINITE, BAD_QUATERNION, OUT_OF_RANGE, FUTURE_STAMP, OLD_STAMP = (
+    "non_finite",
+    "bad_quaternion",
+    "out_of_range",
+    "future_stamp",
+    "old_stamp",
+)
+#: kinds that name no step to answer: the message is dropped
+STAMP_KINDS = frozenset({FUTURE_STAMP, OLD_STAMP})
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why a message was refused: ``kind`` (one of the constants above) and a readable reason."""
+
+    kind: str
+    reason: str
+
+
+@dataclass
+class InputCheck:
+    """The checks of one agent: its sensing radius [m] and allowed measurement age [ns]."""
+
+    sensing_radius: float
+    max_age_ns: int
+    counts: Counter = field(default_factory=Counter)
+
+    def _stamp(self, what: str, ns: int, clock_ns: int) -> Refusal | None:
+        if clock_ns <= 0:
+            return None
+        if ns - clock_ns > self.max_age_ns:
+            return Refusal(
+                FUTURE_STAMP, f"{what} stamped {ns / 1e9:.9g} s, {(ns - clock_ns) / 1e9:.3g} s ahead of /clock"
+            )
+        if clock_ns - ns > self.max_age_ns:
+            return Refusal(OLD_STAMP, f"{what} stamped {ns / 1e9:.9g} s, {(clock_ns - ns) / 1e9:.3g} s behind /clock")
+        return None
+
+    def _count(self, refusal: Refusal | None) -> Refusal | None:
+        if refusal is not None:
+            self.counts[refusal.kind] += 1
+        return refusal
+
+    def pose(self, neighbour: str, ns: int, values: Sequence[float], clock_ns: int = 0) -> Refusal | None:
+        """Check the 7 doubles of a relative pose of ``neighbour`` (translation, quaternion xyzw)."""
+        what = f"relative pose of {neighbour}"
+        if not all(math.isfinite(x) for x in values):
+            return self._count(Refusal(NON_FINITE, f"{what}: non-finite value"))
+        px, py, pz, qx, qy, qz, qw = values
+        qn = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        if not abs(qn - 1.0) <= QUATERNION_NORM_TOLERANCE:
+            return self._count(Refusal(BAD_QUATERNION, f"{what}: quaternion norm {qn:.6g} is not 1"))
+        dist = math.sqrt(px * px + py * py + pz * pz)
+        if dist > (1.0 + SENSING_SLACK) * self.sensing_radius:
+            return self._count(
+                Refusal(OUT_OF_RANGE, f"{what}: {dist:.4g} m is beyond the sensing radius {self.sensing_radius:g} m")
+            )
+        return self._count(self._stamp(what, ns, clock_ns))
+
+    def velocity(self, ns: int, values: Sequence[float], clock_ns: int = 0) -> Refusal | None:
+        """Check the 6 doubles of the agent's own body twist."""
+        if not all(math.isfinite(x) for x in values):
+            return self._count(Refusal(NON_FINITE, "velocity: non-finite value"))
+        return self._count(self._stamp("velocity", ns, clock_ns))

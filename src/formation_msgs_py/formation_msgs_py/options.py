@@ -1,0 +1,250 @@
+"""The run options of formation-headless, formation-sim, formation-launch and formation-check.
+
+Declared once (:data:`OPTIONS`): each option's flag, type, default, help, the commands that
+take it, the ``simulation.*`` key it overrides and whether formation-launch passes it on to
+formation-sim. From the declaration come the argparse options (:func:`build_parser`), the
+typed, frozen :class:`RunOptions` the runners receive, and the child command line
+(:meth:`RunOptions.child_argv`).
+
+Every rate, duration and timeout must be a finite number > 0 (``--settle`` ≥ 0), a seed an
+integer ≥ 0: anything else ends the command with exit 2 and one line naming the option and the
+value, before any file is read or process started. This module imports only the standard
+library (``--help`` of every command stays fast).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NoReturn
+
+from formation_msgs_py.hotloop import EXECUTORS
+
+HEADLESS, SIM, LAUNCH, CHECK = "headless", "sim", "launch", "check"
+RUNNERS = frozenset({HEADLESS, SIM, LAUNCH})
+ROS = frozenset({SIM, LAUNCH})
+
+
+def _number(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(x):
+        raise argparse.ArgumentTypeError(f"{text!r} is not finite")
+    return x
+
+
+def positive(text: str) -> float:
+    """A finite number > 0 (rates in Hz, durations and timeouts in s)."""
+    x = _number(text)
+    if x <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return x
+
+
+def nonnegative(text: str) -> float:
+    """A finite number ≥ 0."""
+    x = _number(text)
+    if x < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
+    return x
+
+
+def seed(text: str) -> int:
+    """An integer ≥ 0 (numpy's seeds)."""
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if x < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
+    return x
+
+
+@dataclass(frozen=True)
+class Option:
+    """One command-line option: ``kind`` is a converter, ``flag`` (store_true), or ``bool`` (--x/--no-x)."""
+
+    flag: str
+    help: str
+    commands: frozenset[str]
+    kind: Callable[[str], Any] | str = "flag"
+    default: Any = None
+    choices: tuple[str, ...] = ()
+    #: the ``simulation.*`` key this option overrides
+    overrides: str | None = None
+    #: formation-launch passes it on to formation-sim
+    forward: bool = False
+
+    @property
+    def dest(self) -> str:
+        return self.flag.lstrip("-").replace("-", "_")
+
+
+OPTIONS: tuple[Option, ...] = (
+    Option("--out", "output directory (default: out/<formation>-<runner>…)", RUNNERS, Path),
+    Option("--controller", "override simulation.controller", frozenset({HEADLESS}), str, None,
+           ("sampled", "continuous"), overrides="controller"),
+    Option("--mode", "override simulation.mode", ROS, str, None, ("lockstep", "realtime"), overrides="mode",
+           forward=True),
+    Option("--duration", "override simulation.duration [s]", RUNNERS | {CHECK}, positive, overrides="duration",
+           forward=True),
+    Option("--control-rate", "override simulation.control_rate [Hz]", RUNNERS | {CHECK}, positive,
+           overrides="control_rate", forward=True),
+    Option("--physics-rate", "override simulation.physics_rate [Hz] (default: kept if a multiple of the control "
+           "rate, else equal to it)", RUNNERS, positive, overrides="physics_rate", forward=True),
+    Option("--record-rate", "override simulation.record_rate [Hz]", RUNNERS, positive, overrides="record_rate",
+           forward=True),
+    Option("--seed", "override simulation.seed (integer >= 0)", RUNNERS, seed, overrides="seed", forward=True),
+    Option("--step-timeout", "override simulation.step_timeout [wall s] (lockstep)", ROS, positive,
+           overrides="step_timeout", forward=True),
+    Option("--command-timeout", "override simulation.command_timeout [sim s] (realtime)", ROS, positive,
+           overrides="command_timeout", forward=True),
+    Option("--spanning-tree", "reduce a cyclic sensing graph to a spanning tree (prints the dropped edges)",
+           frozenset({CHECK})),
+    Option("--discovery-timeout", "wall s to wait for the agents (default 30 + 1/agent)", ROS, positive,
+           forward=True),
+    Option("--settle", "wall s to wait after discovery", frozenset({SIM}), nonnegative, 0.3),
+    Option("--resend", "lockstep: re-send an unanswered step after [wall s]", frozenset({SIM}), positive, 0.25),
+    Option("--wait-recorder", "also wait for a ground-truth subscriber (a bag recorder)", frozenset({SIM})),
+    Option("--ground-truth-rate", "ground-truth publication rate [Hz, sim time] (default: the record rate, at "
+           "most the control rate; while recording: the control rate)", ROS, positive, forward=True),
+    Option("--clock-rate", "/clock publication rate [Hz, sim time]", ROS, positive, forward=True),
+    Option("--executor", "how every node spins (formation_msgs_py.hotloop)", ROS, str, "lean", EXECUTORS, forward=True),
+    Option("--measurement-qos", "QoS of relative poses and velocities; best-effort (realtime only) costs less CPU "
+           "per message (agents need -p measurement_qos:=best_effort)", ROS, str, "reliable",
+           ("reliable", "best-effort"), forward=True),
+    Option("--intruder-policy", "a publisher the formation does not expect on its topics: report it (default), or "
+           "also refuse that topic's messages while it is there, in the simulator and every agent (docs/security.md)",
+           ROS, str, "report", ("report", "refuse"), forward=True),
+    Option("--secure", "every process over TCP with mutual TLS only (no UDP, no shared memory): a process without a "
+           "certificate of the run's CA can neither publish nor subscribe (docs/security.md)", frozenset({LAUNCH})),
+    Option("--keys", "with --secure: key directory of formation-keys init (default: a CA and keys for this run only)",
+           frozenset({LAUNCH}), Path),
+    Option("--marker-rate", "display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off]; "
+           "also the live parameter marker_rate", frozenset({SIM}), nonnegative, 30.0),
+    Option("--record", "record a bag into OUT/bag with formation-record (default: on; --no-record to skip). While "
+           "recording, ground truth is published at every control step unless --ground-truth-rate is given, so "
+           "that formation-analyze OUT/bag reproduces the run's summary", frozenset({LAUNCH}), "bool", True),
+    Option("--netns", "private network namespace: auto = when more than 30 DDS participants", frozenset({LAUNCH}),
+           str, "auto", ("auto", "on", "off")),
+    Option("--allow-low-rate", "run even if the control rate is below what the velocity loop needs (warn)",
+           RUNNERS, forward=True),
+    Option("--stop-on-violation", "stop at the first funnel violation", frozenset({HEADLESS})),
+    Option("--progress-period", "wall s between progress lines", frozenset({SIM}), positive, 1.0),
+    Option("--no-plots", "skip the figures", RUNNERS, forward=True),
+    Option("--animate", "also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for 5 s)",
+           frozenset({HEADLESS, LAUNCH})),
+    Option("--force", "write into an existing non-empty output directory", RUNNERS),
+    Option("--quiet", "no progress lines", RUNNERS | {CHECK}),
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """What a command was asked to do: the formation file and every option (None: not given)."""
+
+    command: str
+    file: Path | None = None
+    out: Path | None = None
+    controller: str | None = None
+    mode: str | None = None
+    duration: float | None = None
+    control_rate: float | None = None
+    physics_rate: float | None = None
+    record_rate: float | None = None
+    seed: int | None = None
+    step_timeout: float | None = None
+    command_timeout: float | None = None
+    spanning_tree: bool = False
+    discovery_timeout: float | None = None
+    settle: float = 0.3
+    resend: float = 0.25
+    wait_recorder: bool = False
+    ground_truth_rate: float | None = None
+    clock_rate: float | None = None
+    executor: str = "lean"
+    measurement_qos: str = "reliable"
+    intruder_policy: str = "report"
+    marker_rate: float = 30.0
+    secure: bool = False
+    keys: Path | None = None
+    record: bool = True
+    netns: str = "auto"
+    allow_low_rate: bool = False
+    stop_on_violation: bool = False
+    progress_period: float = 1.0
+    no_plots: bool = False
+    animate: bool = False
+    force: bool = False
+    quiet: bool = False
+    schema: bool = False
+
+    @classmethod
+    def from_namespace(cls, command: str, ns: argparse.Namespace) -> RunOptions:
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(command=command, **{k: v for k, v in vars(ns).items() if k in names})
+
+    def replace(self, **changes: Any) -> RunOptions:
+        return dataclasses.replace(self, **changes)
+
+    def overrides(self) -> dict[str, Any]:
+        """The ``simulation.*`` keys this command line overrides."""
+        out = {}
+        for o in OPTIONS:
+            value = getattr(self, o.dest)
+            if o.overrides and self.command in o.commands and value is not None:
+                out[o.overrides] = value
+        if self.spanning_tree:
+            out["spanning_tree"] = True
+        return out
+
+    def child_argv(self, command: str) -> list[str]:
+        """The options this command passes on to ``command`` (formation-launch → formation-sim)."""
+        argv: list[str] = []
+        for o in OPTIONS:
+            if not o.forward or command not in o.commands or self.command not in o.commands:
+                continue
+            value = getattr(self, o.dest)
+            if o.kind == "flag":
+                if value:
+                    argv.append(o.flag)
+            elif value is not None:
+                argv += [o.flag, repr(value) if isinstance(value, float) else str(value)]
+        return argv
+
+
+class OptionParser(argparse.ArgumentParser):
+    """argparse whose errors are one line (``PROG: error: …``) and exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"{self.prog}: error: {message} (see --help)\n")
+        sys.exit(2)
+
+
+def build_parser(command: str, prog: str, description: str, *, file_required: bool = True) -> OptionParser:
+    """The parser of ``command`` with every option declared for it in :data:`OPTIONS`."""
+    p = OptionParser(prog=prog, description=description)
+    p.add_argument("file", type=Path, nargs=None if file_required else "?", help="formation file (YAML)")
+    for o in OPTIONS:
+        if command not in o.commands:
+            continue
+        if o.kind == "flag":
+            p.add_argument(o.flag, action="store_true", help=o.help)
+        elif o.kind == "bool":
+            p.add_argument(o.flag, action=argparse.BooleanOptionalAction, default=o.default, help=o.help)
+        else:
+            extra = {"choices": o.choices} if o.choices else {}
+            p.add_argument(o.flag, type=o.kind, default=o.default, help=o.help, **extra)
+    return p
+
+
+def parse(command: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> RunOptions:
+    """Parse ``argv`` (exit 2 with one line on a bad option) into :class:`RunOptions`."""
+    return RunOptions.from_namespace(command, parser.parse_args(argv))

@@ -1,0 +1,116 @@
+"""What the simulator accepts from the agents, and the plant state it can go on with (no ROS).
+
+A wrench (body frame, [fx, fy, fz, tx, ty, tz] in N and N·m) stamped ``ns`` (integer ns of
+sim time) from agent i is refused, counted per agent and kind, and never integrated when:
+
+- a value is not finite (``non_finite``);
+- its force or torque norm exceeds the agent's actuator limits, ``dynamics.max_force`` /
+  ``max_torque``, by more than rounding (``over_limit``: a healthy controller scales its wrench
+  to at most these limits);
+- its stamp is no step of the run, i.e. not k / control_rate for an integer k (``unknown_step``),
+  is later than the newest published step (``future_step``: once, a wrench stamped 2³¹−1 s was
+  held for the rest of a run), or, in lockstep, is earlier than the current step (``past_step``:
+  that step has been integrated already).
+
+A refused value for the current step counts as that agent's answer with a zero wrench (a lockstep
+run goes on; the fault is in the report); a refused stamp is no answer at all.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+NON_FINITE, OVER_LIMIT, UNKNOWN_STEP, FUTURE_STEP, PAST_STEP = (
+    "non_finite",
+    "over_limit",
+    "unknown_step",
+    "future_step",
+    "past_step",
+)
+#: refusals of the stamp: the wrench answers no step
+STAMP_KINDS = frozenset({UNKNOWN_STEP, FUTURE_STEP, PAST_STEP})
+#: relative rounding allowed above a limit (a controller scaling to the limit lands within 1e-15)
+LIMIT_ROUNDING = 1e-9
+_NS = 1_000_000_000
+
+
+@dataclass
+class RefusalLog:
+    """Refusals of one agent and kind: count, first and last sim time [s], last reason."""
+
+    count: int = 0
+    first_t: float = math.nan
+    last_t: float = math.nan
+    reason: str = ""
+
+
+@dataclass
+class WrenchCheck:
+    """The wrench checks of one run: agent ids in formation order, limits, the step grid."""
+
+    agent_ids: Sequence[str]
+    max_force: Sequence[float]
+    max_torque: Sequence[float]
+    control_rate: float
+    lockstep: bool
+    log: dict[tuple[str, str], RefusalLog] = field(default_factory=dict)
+
+    def step_of(self, ns: int) -> int | None:
+        """The step k whose stamp is ``ns``, or None if ``ns`` is no step's stamp."""
+        k = round(ns * self.control_rate / _NS)
+        return k if round(k * _NS / self.control_rate) == ns else None
+
+    def check(self, i: int, ns: int, u: Sequence[float], current_ns: int) -> str | None:
+        """The kind of refusal of agent i's wrench ``u`` stamped ``ns`` (None: accepted).
+
+        ``current_ns`` is the stamp of the newest published step (lockstep: the step waited for).
+        """
+        reason = kind = None
+        if self.step_of(ns) is None:
+            kind, reason = UNKNOWN_STEP, f"stamp {ns / _NS:.9g} s is no step of the {self.control_rate:g} Hz grid"
+        elif ns > current_ns:
+            kind, reason = FUTURE_STEP, f"stamp {ns / _NS:.9g} s is after the newest step {current_ns / _NS:.9g} s"
+        elif self.lockstep and ns < current_ns:
+            kind, reason = PAST_STEP, f"stamp {ns / _NS:.9g} s is before the current step {current_ns / _NS:.9g} s"
+        elif not all(math.isfinite(x) for x in u):
+            kind, reason = NON_FINITE, "non-finite value"
+        else:
+            f = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+            t = math.sqrt(u[3] * u[3] + u[4] * u[4] + u[5] * u[5])
+            if f > self.max_force[i] * (1 + LIMIT_ROUNDING) or t > self.max_torque[i] * (1 + LIMIT_ROUNDING):
+                kind = OVER_LIMIT
+                reason = (
+                    f"force {f:.4g} N / torque {t:.4g} N·m beyond the limits "
+                    f"{self.max_force[i]:g} N / {self.max_torque[i]:g} N·m"
+                )
+        if kind is None:
+            return None
+        entry = self.log.setdefault((self.agent_ids[i], kind), RefusalLog())
+        t_now = current_ns / _NS
+        entry.count += 1
+        entry.first_t = t_now if entry.count == 1 else entry.first_t
+        entry.last_t = t_now
+        entry.reason = reason or ""
+        return kind
+
+    def report(self) -> dict[str, dict[str, dict[str, object]]]:
+        """{agent: {kind: {count, first_t, last_t, reason}}} for summary.json (strict JSON)."""
+        out: dict[str, dict[str, dict[str, object]]] = {}
+        for (agent, kind), e in sorted(self.log.items()):
+            out.setdefault(agent, {})[kind] = {
+                "count": e.count,
+                "first_t": e.first_t,
+                "last_t": e.last_t,
+                "reason": e.reason,
+            }
+        return out
+
+
+def non_finite_agents(agent_ids: Sequence[str], p: np.ndarray, R: np.ndarray, v: np.ndarray) -> list[str]:
+    """The agents whose position (N,3), attitude (N,3,3) or twist (N,6) is not finite."""
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(R).all(axis=(1, 2)) & np.isfinite(v).all(axis=1)
+    return [a for a, good in zip(agent_ids, ok.tolist()) if not good]

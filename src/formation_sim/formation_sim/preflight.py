@@ -1,0 +1,102 @@
+"""Pre-flight of every runner: the checks made before anything starts (exit 2 on failure).
+
+One function, :func:`preflight`, used by formation-headless, formation-sim and
+formation-launch: load the formation file with the command-line overrides, refuse QoS settings
+that cannot work (lockstep needs reliable measurements), refuse a control rate below what the
+velocity loop needs (NOTES.md, "Sampled-data") unless asked to warn, and prepare the output
+directory (never overwrite a non-empty one without ``--force``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from formation_msgs_py.errors import FormationError
+from formation_msgs_py.options import HEADLESS, RunOptions
+from formation_msgs_py.spec import FormationSpec, load_formation
+from formation_sim.rates import rate_needs
+
+
+class InvalidRunError(FormationError):
+    """The run cannot start as asked (settings, rate, output directory): exit 2."""
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A run that passed pre-flight: the formation, the options with mode resolved, OUT, warnings."""
+
+    spec: FormationSpec
+    options: RunOptions
+    out: Path | None
+    warnings: tuple[str, ...]
+
+
+def load_spec(options: RunOptions) -> FormationSpec:
+    """The formation file with the command's ``simulation.*`` overrides (raises FormationSpecError).
+
+    A new control rate without a physics rate keeps the file's physics rate when it is an
+    integer multiple of it, else runs physics at the control rate.
+    """
+    over = options.overrides()
+    if "control_rate" in over and "physics_rate" not in over:
+        spec = load_formation(options.file)
+        ratio = spec.simulation.physics_rate / over["control_rate"]
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+            over["physics_rate"] = over["control_rate"]
+    return load_formation(options.file, overrides=over or None)
+
+
+def rate_problems(spec: FormationSpec) -> list[str]:
+    """One message per agent whose velocity loop needs more than the configured control rate."""
+    f_s = spec.simulation.control_rate
+    return [
+        f"agent {n.agent_id} needs {n.at_end:.0f} Hz by t={spec.simulation.duration:g} s "
+        f"(insufficient from t={n.insufficient_from:.2f} s at {f_s:g} Hz)"
+        for n in rate_needs(spec)
+        if n.insufficient_from is not None
+    ]
+
+
+def prepare_out_dir(out: Path, force: bool) -> None:
+    """Create ``out``; refuse a non-empty one unless ``force`` (InvalidRunError)."""
+    try:
+        if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
+            raise InvalidRunError(f"output directory {out} exists and is not empty (use --force to overwrite)")
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InvalidRunError(f"output directory {out}: {exc.strerror or exc}") from None
+
+
+def preflight(
+    options: RunOptions,
+    default_out: Callable[[FormationSpec, RunOptions], Path] | None,
+) -> Prepared:
+    """Everything checked before a run starts; raises FormationSpecError or InvalidRunError.
+
+    ``default_out(spec, options)`` names OUT when ``--out`` is not given (None: no OUT).
+    """
+    spec = load_spec(options)
+    sim = spec.simulation
+    options = options.replace(mode=sim.mode, controller=sim.controller)
+    if options.command != HEADLESS and sim.mode == "lockstep" and options.measurement_qos != "reliable":
+        raise InvalidRunError(
+            f"--measurement-qos {options.measurement_qos} is for realtime runs only: "
+            "in lockstep a lost measurement stalls the step"
+        )
+    warnings: list[str] = []
+    if options.command != HEADLESS or sim.controller == "sampled":
+        problems = rate_problems(spec)
+        if problems and not (options.allow_low_rate or sim.rate_check == "warn"):
+            raise InvalidRunError(
+                "control rate too low (raise --control-rate or pass --allow-low-rate): " + "; ".join(problems)
+            )
+        warnings += problems
+    if spec.dropped_edges:
+        warnings.append("spanning tree: dropped edges " + ", ".join(f"({a}, {b})" for a, b in spec.dropped_edges))
+    out = options.out or (default_out(spec, options) if default_out is not None else None)
+    if out is not None:
+        prepare_out_dir(out, options.force)
+        options = options.replace(out=out)
+    return Prepared(spec, options, out, tuple(warnings))

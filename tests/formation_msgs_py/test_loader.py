@@ -1,0 +1,283 @@
+"""The catalogue of bad formation files: each class is one error (or several, all reported) with
+FILE:LINE:COL and the field, exit 2 from every command, never a traceback."""
+
+from __future__ import annotations
+
+import itertools
+import re
+import subprocess
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import pytest
+import yaml
+
+from formation_msgs_py import loader
+from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
+from formation_msgs_py.spec import load_formation
+
+REPO = Path(__file__).resolve().parents[2]
+PAPER = REPO / "config" / "paper_5agents.yaml"
+BIN = Path(sys.executable).parent
+
+MINIMAL = """\
+simulation:
+  duration: 1.0
+  physics_rate: 1000.0
+  control_rate: 1000.0
+agents:
+  - id: a
+    radius: 0.5
+    sensing_radius: 3.0
+    position: [0, 0, 0]
+    dynamics: {mass: 1.0, inertia: [0.1, 0.1, 0.1]}
+  - id: b
+    radius: 0.5
+    sensing_radius: 3.0
+    position: [2, 0, 0]
+    dynamics: {mass: 1.0, inertia: [0.1, 0.1, 0.1]}
+edges:
+  - {tail: a, head: b, distance: 1.5}
+"""
+
+
+def write(tmp_path: Path, text: str | bytes, name: str = "f.yaml") -> Path:
+    path = tmp_path / name
+    if isinstance(text, bytes):
+        path.write_bytes(text)
+    else:
+        path.write_text(text, encoding="utf-8")
+    return path
+
+
+def error_of(path: Path) -> FormationSpecError:
+    with pytest.raises(FormationSpecError) as info:
+        load_formation(path)
+    return info.value
+
+
+def billion_laughs(levels: int = 10, width: int = 10) -> str:
+    names = "abcdefghijklmnop"[:levels]
+    lines = [f"{names[0]}: &{names[0]} [" + ", ".join(['"lol"'] * width) + "]"]
+    for prev, name in itertools.pairwise(names):
+        lines.append(f"{name}: &{name} [" + ", ".join([f"*{prev}"] * width) + "]")
+    lines += [f"agents: *{names[-1]}", f"edges: *{names[-1]}"]
+    return "\n".join(lines) + "\n"
+
+
+def test_minimal_file_loads(tmp_path) -> None:
+    """The reference text of these tests is valid (each test below breaks one thing)."""
+    assert load_formation(write(tmp_path, MINIMAL)).agent_ids == ("a", "b")
+
+
+def test_binary_file_is_one_line_not_a_traceback(tmp_path) -> None:
+    """A PNG given by mistake: not UTF-8, with the position of the first bad byte."""
+    path = write(tmp_path, b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR")
+    err = error_of(path)
+    assert str(err) == f"{path}:1:1: not UTF-8 text (byte 0x89): a formation file is YAML text"
+    path = write(tmp_path, MINIMAL.encode() + b"name: caf\xe9\n", "latin1.yaml")
+    assert str(error_of(path)).startswith(f"{path}:18:10: not UTF-8 text (byte 0xe9)")
+
+
+def test_alias_bomb_is_refused_fast_and_small(tmp_path) -> None:
+    """10 levels of 10 aliases (10¹⁰ nodes once expanded, 1.3 kB): refused before construction.
+
+    Bounds: < 1 s and < 100 MB of Python allocations (measured here: a few ms, well under 1 MB).
+    """
+    path = write(tmp_path, billion_laughs())
+    tracemalloc.start()
+    started = time.perf_counter()
+    err = error_of(path)
+    elapsed = time.perf_counter() - started
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert elapsed < 1.0 and peak < 100e6, (elapsed, peak)
+    assert re.fullmatch(
+        rf"{re.escape(str(path))}:5:4: YAML aliases expand this document beyond 100000 nodes .*", str(err)
+    )
+
+
+def test_small_aliases_are_allowed(tmp_path) -> None:
+    """An anchor reused a few times is fine: only the expansion is bounded."""
+    text = MINIMAL.replace("    dynamics: {mass", "    dynamics: &dyn {mass", 1)
+    text = text.replace("    dynamics: {mass: 1.0, inertia: [0.1, 0.1, 0.1]}\n", "    dynamics: *dyn\n", 1)
+    assert text.count("*dyn") == 1
+    assert load_formation(write(tmp_path, text)).agents[1].dynamics.mass == 1.0
+
+
+def test_recursive_alias_is_refused(tmp_path) -> None:
+    path = write(tmp_path, "name: &x [*x]\n")
+    assert "recursive" in str(error_of(path)) or "not valid YAML" in str(error_of(path))
+
+
+def test_duplicate_key_names_both_lines(tmp_path) -> None:
+    """A second `duration:` (once silently a 500 s run): an error at the second, naming the first."""
+    path = write(tmp_path, MINIMAL.replace("  duration: 1.0\n", "  duration: 1.0\n  duration: 500.0\n"))
+    assert str(error_of(path)) == (
+        f"{path}:3:3: simulation.duration: duplicate key (first at line 2); YAML would silently keep the last one"
+    )
+
+
+def test_duplicate_block_is_an_error(tmp_path) -> None:
+    """A second `simulation:` block (once replaced the first, exit 0)."""
+    path = write(tmp_path, MINIMAL + "simulation:\n  duration: 2.0\n")
+    err = error_of(path)
+    assert str(err).startswith(f"{path}:18:1: simulation: duplicate key (first at line 1)")
+
+
+def test_exponent_without_dot_is_a_number(tmp_path) -> None:
+    """`physics_rate: 1e4` (YAML 1.1 reads a string) is 10000.0, as in YAML 1.2."""
+    path = write(tmp_path, MINIMAL.replace("physics_rate: 1000.0", "physics_rate: 1e4"))
+    assert load_formation(path).simulation.physics_rate == 10000.0
+
+
+def test_negative_seed_is_an_error(tmp_path) -> None:
+    """`simulation.seed: -1` (once accepted, then a crash in numpy) is refused at its line."""
+    path = write(tmp_path, MINIMAL.replace("  duration: 1.0\n", "  duration: 1.0\n  seed: -1\n"))
+    assert str(error_of(path)) == f"{path}:3:3: simulation.seed: -1 must be >= 0"
+
+
+@pytest.mark.parametrize(
+    ("matrix", "why"),
+    [
+        ("[[1, 0, 0], [0, 1, 0], [0, 0, -1]]", "det = -1.0000 <= 0"),
+        ("[[0, 0, 0], [0, 0, 0], [0, 0, 0]]", "det = 0.0000 <= 0"),
+        ("[[2, 0, 0], [0, 1, 0], [0, 0, 1]]", "‖RᵀR − I‖_F = 3 > 0.5"),
+    ],
+)
+def test_project_refuses_what_is_not_close_to_a_rotation(tmp_path, matrix, why) -> None:
+    """`project: true` projects only ‖RᵀR − I‖_F ≤ 0.5 with det > 0 (the paper's R_2(0) is 0.37 off)."""
+    text = MINIMAL.replace(
+        "    position: [2, 0, 0]\n", f"    position: [2, 0, 0]\n    orientation: {{matrix: {matrix}, project: true}}\n"
+    )
+    path = write(tmp_path, text)
+    err = error_of(path)
+    assert (
+        str(err)
+        == f"{path}:15:19: agents[1].orientation.matrix: is too far from a rotation to project ({why}): give a rotation"
+    )
+
+
+def test_reflection_without_project_does_not_suggest_it(tmp_path) -> None:
+    text = MINIMAL.replace(
+        "    position: [2, 0, 0]\n",
+        "    position: [2, 0, 0]\n    orientation: {matrix: [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}\n",
+    )
+    err = str(error_of(write(tmp_path, text)))
+    assert "is not a rotation" in err and "project" not in err
+
+
+def test_paper_preset_still_projects(paper_path) -> None:
+    assert load_formation(paper_path).agents[1].R_world_body.shape == (3, 3)
+
+
+def test_error_in_defaults_points_at_the_defaults(tmp_path) -> None:
+    """A typo in defaults.agent.controller: reported once, at the defaults' line, with the nearest key."""
+    text = MINIMAL.replace("agents:\n", "defaults:\n  agent:\n    controller: {gama: 3.0}\nagents:\n")
+    path = write(tmp_path, text)
+    err = error_of(path)
+    assert str(err).startswith(f"{path}:7:18: defaults.agent.controller.gama: unknown key (did you mean 'gamma'?)")
+    assert not isinstance(err, CollectedFormationSpecError)  # not once more per agent
+
+
+def test_bad_value_in_defaults_points_at_the_defaults(tmp_path) -> None:
+    text = MINIMAL.replace("agents:\n", "defaults:\n  agent:\n    radius: -1\nagents:\n").replace(
+        "    radius: 0.5\n", ""
+    )
+    path = write(tmp_path, text)
+    assert str(error_of(path)) == f"{path}:7:5: defaults.agent.radius: -1 must be > 0"
+
+
+def test_unknown_key_gets_the_nearest_valid_key(tmp_path) -> None:
+    path = write(tmp_path, MINIMAL.replace("  control_rate:", "  contol_rate:"))
+    err = error_of(path)
+    assert any(
+        str(e).startswith(f"{path}:4:3: simulation.contol_rate: unknown key (did you mean 'control_rate'?)")
+        for e in getattr(err, "errors", [err])
+    )
+
+
+def test_every_error_is_reported_up_to_a_cap(tmp_path) -> None:
+    """Three independent mistakes: three lines, in file order, each with its position."""
+    text = (
+        MINIMAL.replace("  duration: 1.0", "  duration: -1")
+        .replace("    radius: 0.5\n", "    radius: zero\n", 1)
+        .replace("distance: 1.5", "distance: far")
+    )
+    path = write(tmp_path, text)
+    err = error_of(path)
+    lines = str(err).splitlines()
+    assert len(lines) == 3, lines
+    assert lines[0] == f"{path}:2:3: simulation.duration: -1 must be > 0"
+    assert lines[1] == f"{path}:7:5: agents[0].radius: expected a number, got str 'zero'"
+    assert lines[2] == f"{path}:17:24: edges[0].distance: expected a number, got str 'far'"
+    many = MINIMAL.replace("edges:\n", "".join(f"  - {{id: x{k}}}\n" for k in range(30)) + "edges:\n")
+    lines = str(error_of(write(tmp_path, many, "many.yaml"))).splitlines()
+    assert len(lines) == 21 and re.fullmatch(r"… and \d+ more errors", lines[-1])
+
+
+def test_values_in_messages_are_shortened(tmp_path) -> None:
+    """A 10 000-element list where a number belongs: the message stays short."""
+    text = MINIMAL.replace("  duration: 1.0", "  duration: [" + ", ".join(["1"] * 10_000) + "]")
+    err = str(error_of(write(tmp_path, text)))
+    assert len(err) < 200 and "..." in err
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("", "the file is empty"),
+        ("- 1\n- 2\n", "a formation file is a mapping at the top level, got list"),
+        ("agents: [\n", "not valid YAML"),
+        ("a: b\n\tc: d\n", "not valid YAML"),
+    ],
+)
+def test_not_a_formation_at_all(tmp_path, text, expected) -> None:
+    path = write(tmp_path, text)
+    err = str(error_of(path))
+    assert err.startswith(f"{path}") and expected in err
+
+
+def test_directory_and_oversized_file(tmp_path) -> None:
+    assert "is a directory" in str(error_of(tmp_path))
+    big = write(tmp_path, b"#" * (loader.MAX_BYTES + 1), "big.yaml")
+    assert "more than any formation file" in str(error_of(big))
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["binary", "bomb", "duplicate", "seed", "reflection", "defaults"],
+)
+@pytest.mark.parametrize("script", ["formation-check", "formation-headless"])
+def test_commands_exit_2_without_traceback(tmp_path, case, script) -> None:
+    """Every class of bad file: exit 2, FILE:LINE:COL on stderr, no traceback, nothing written."""
+    texts = {
+        "binary": b"\x89PNG\r\n\x1a\n\x00",
+        "bomb": billion_laughs().encode(),
+        "duplicate": MINIMAL.replace("  duration: 1.0\n", "  duration: 1.0\n  duration: 500.0\n").encode(),
+        "seed": MINIMAL.replace("  duration: 1.0\n", "  duration: 1.0\n  seed: -1\n").encode(),
+        "reflection": MINIMAL.replace(
+            "    position: [2, 0, 0]\n",
+            "    position: [2, 0, 0]\n    orientation: {matrix: [[1, 0, 0], [0, 1, 0], [0, 0, -1]], project: true}\n",
+        ).encode(),
+        "defaults": MINIMAL.replace(
+            "agents:\n", "defaults:\n  agent:\n    controller: {gama: 3.0}\nagents:\n"
+        ).encode(),
+    }
+    path = write(tmp_path, texts[case])
+    out = [] if script == "formation-check" else ["--out", str(tmp_path / "out")]
+    started = time.monotonic()
+    r = subprocess.run([str(BIN / script), str(path), *out], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr + r.stdout
+    assert re.search(rf"{re.escape(str(path))}:\d+:\d+: ", r.stderr), r.stderr
+    assert not (tmp_path / "out").exists()
+    assert time.monotonic() - started < 30
+
+
+def test_yaml_loader_does_not_change_pyyaml_for_others() -> None:
+    """The 1e4 resolver is on the loader's own copy: yaml.safe_load still reads YAML 1.1."""
+    assert yaml.safe_load("x: 1e4") == {"x": "1e4"}
+    assert loader.parse_document(b"x: 1e4\n", "t").data == {"x": 10000.0}

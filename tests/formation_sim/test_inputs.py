@@ -1,0 +1,88 @@
+"""Simulator input checks (offline): every class of bad wrench is refused, counted per agent and kind."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from formation_sim import inputs
+
+NS = 1_000_000_000
+RATE = 1000.0  # Hz: steps every 1 ms
+GOOD = (1.0, 2.0, 3.0, 0.1, 0.2, 0.3)
+
+
+def check(lockstep: bool = True) -> inputs.WrenchCheck:
+    return inputs.WrenchCheck(("a", "b"), (100.0, 100.0), (50.0, 50.0), RATE, lockstep=lockstep)
+
+
+@pytest.mark.parametrize(
+    ("u", "kind"),
+    [
+        ((math.nan, 0, 0, 0, 0, 0), inputs.NON_FINITE),
+        ((0, 0, 0, 0, math.inf, 0), inputs.NON_FINITE),
+        ((1e308, 0, 0, 0, 0, 0), inputs.OVER_LIMIT),
+        ((1e8, 0, 0, 0, 0, 0), inputs.OVER_LIMIT),
+        ((60.0, 60.0, 60.0, 0, 0, 0), inputs.OVER_LIMIT),  # 104 N > 100 N
+        ((0, 0, 0, 0, 0, 50.001), inputs.OVER_LIMIT),
+    ],
+)
+def test_bad_wrench_value_is_refused(u, kind) -> None:
+    """Non-finite or beyond the actuator limits: refused, counted for that agent and kind."""
+    c = check()
+    assert c.check(1, 5 * NS // 1000, u, current_ns=5 * NS // 1000) == kind
+    assert c.report()["b"][kind]["count"] == 1
+
+
+def test_wrench_at_the_limit_is_accepted() -> None:
+    """A controller scaling to exactly its limit (rounding 1e-15) passes; so does a plain wrench."""
+    c = check()
+    at_limit = (100.0 * (1 + 1e-15), 0, 0, 0, 0, 50.0)
+    assert c.check(0, 0, at_limit, current_ns=0) is None
+    assert c.check(0, 0, GOOD, current_ns=0) is None
+    assert c.report() == {}
+
+
+@pytest.mark.parametrize(
+    ("ns", "current_ns", "lockstep", "kind"),
+    [
+        ((2**31 - 1) * NS, 5 * NS, False, inputs.FUTURE_STEP),  # once held for the rest of a realtime run
+        ((2**31 - 1) * NS, 5 * NS, True, inputs.FUTURE_STEP),  # once stalled a lockstep run
+        (5 * NS + 1_000_000, 5 * NS, True, inputs.FUTURE_STEP),
+        (5 * NS - 1_000_000, 5 * NS, True, inputs.PAST_STEP),
+        (5 * NS + 1, 6 * NS, False, inputs.UNKNOWN_STEP),
+    ],
+)
+def test_wrench_for_a_step_that_does_not_exist_is_refused(ns, current_ns, lockstep, kind) -> None:
+    c = check(lockstep)
+    assert c.check(0, ns, GOOD, current_ns) == kind
+    assert kind in inputs.STAMP_KINDS
+
+
+def test_realtime_accepts_a_late_answer_lockstep_does_not() -> None:
+    """Realtime holds the newest wrench, so an answer to an earlier step is valid; lockstep refuses it."""
+    assert check(lockstep=False).check(0, 4 * NS, GOOD, current_ns=5 * NS) is None
+    assert check(lockstep=True).check(0, 4 * NS, GOOD, current_ns=5 * NS) == inputs.PAST_STEP
+
+
+def test_report_is_strict_json_per_agent_and_kind() -> None:
+    c = check()
+    for k in range(3):
+        c.check(0, k * NS // 1000, (math.nan,) * 6, current_ns=k * NS // 1000)
+    c.check(1, 0, (1e9, 0, 0, 0, 0, 0), current_ns=0)
+    report = c.report()
+    assert report["a"]["non_finite"]["count"] == 3 and report["a"]["non_finite"]["first_t"] == 0.0
+    assert report["a"]["non_finite"]["last_t"] == pytest.approx(0.002, abs=1e-12)
+    assert report["b"]["over_limit"]["count"] == 1 and "1e+09 N" in report["b"]["over_limit"]["reason"]
+    json.dumps(report, allow_nan=False)
+
+
+def test_non_finite_state_names_the_agent() -> None:
+    p, R, v = np.zeros((3, 3)), np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 6))
+    assert inputs.non_finite_agents(("1", "2", "3"), p, R, v) == []
+    v[1, 4] = math.nan
+    R[2, 0, 0] = math.inf
+    assert inputs.non_finite_agents(("1", "2", "3"), p, R, v) == ["2", "3"]

@@ -6,13 +6,14 @@
 #   --secure KEYS    TLS over TCP only, with this process's key from KEYS (formation-keys init KEYS):
 #                    no UDP, no shared memory; every process of the run needs --secure (docs/security.md)
 #   --hosts FILE     with --secure: YAML mapping process name -> host (default: all on 127.0.0.1)
+#   --host NAME=ADDR with --secure: one process's host (repeat; wins over --hosts)
 #   --port-base N    with --secure: first port, the same on every host (default 7700)
 #
 # formation_network_options NAME FILE ARGS...: sets REST (the other arguments) and exports the
 # environment; NAME is the process's key name (simulator, agent_<id>).
 formation_network_options() {
   local name="$1" file="$2"; shift 2
-  local network="" keys="" hosts="" port_base=""
+  local network="" keys="" hosts="" port_base="" host_args=()
   REST=()
   while [ $# -gt 0 ]; do
     case "$1" in
@@ -22,6 +23,7 @@ formation_network_options() {
       --secure=*) keys="${1#*=}"; shift ;;
       --hosts) hosts="${2:?--hosts needs a file}"; shift 2 ;;
       --port-base) port_base="${2:?--port-base needs a number}"; shift 2 ;;
+      --host) host_args+=(--host "${2:?--host needs NAME=ADDR}"); shift 2 ;;
       --ros-args) REST+=("$@"); break ;;
       *) REST+=("$1"); shift ;;
     esac
@@ -36,10 +38,11 @@ formation_network_options() {
     local args=(profile "$keys" "$name" --formation "$file" --out "${FORMATION_PROFILE_DIR:-$keys/profiles}")
     [ -n "$hosts" ] && args+=(--hosts "$hosts")
     [ -n "$port_base" ] && args+=(--port-base "$port_base")
+    args+=("${host_args[@]+"${host_args[@]}"}")
     local lines
     lines="$("$ROOT/.venv/bin/formation-keys" "${args[@]}")" || return 2
     eval "$lines"
-  elif [ -n "$hosts$port_base" ]; then
-    echo "--hosts and --port-base need --secure KEYS" >&2; return 2
+  elif [ -n "$hosts$port_base${host_args[*]+x}" ]; then
+    echo "--hosts, --host and --port-base need --secure KEYS" >&2; return 2
   fi
 }

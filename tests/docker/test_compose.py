@@ -150,3 +150,27 @@ def test_compose_cli_accepts_the_file(host_network: bool) -> None:
         assert "agent_5" in result.stdout
     finally:
         out.unlink(missing_ok=True)
+
+
+def test_secure_compose_gives_each_service_only_its_own_key(tmp_path: Path) -> None:
+    """--secure KEYS: fixed addresses on a private network, sim.sh/agent.sh --secure with every host,
+    and each service mounts ca.pem and its own pair only."""
+    out = tmp_path / "compose.yaml"
+    keys = tmp_path / "keys"
+    assert main([str(PAPER), "--out", str(out), "--context", str(REPO), "--secure", str(keys)]) == 0
+    doc = yaml.safe_load(out.read_text())
+    assert doc["networks"]["formation"]["ipam"]["config"] == [{"subnet": "172.30.77.0/24"}]
+    sim, agent3 = doc["services"]["sim"], doc["services"]["agent_3"]
+    assert agent3["networks"]["formation"]["ipv4_address"] == "172.30.77.13"
+    assert agent3["command"][:5] == [
+        "agent.sh",
+        "/opt/formation/formations/paper_5agents.yaml",
+        "3",
+        "--secure",
+        "/opt/formation/keys",
+    ]
+    assert "simulator=172.30.77.10" in agent3["command"] and "agent_3=172.30.77.13" in sim["command"]
+    keyfiles = sorted(v.split(":")[0] for v in agent3["volumes"] if "/keys/" in v)
+    assert keyfiles == ["keys/agent_3.key", "keys/agent_3.pem", "keys/ca.pem"]
+    assert all(v.endswith(":ro") for v in agent3["volumes"])
+    assert main([str(PAPER), "--out", str(out), "--host-network", "--secure", str(keys), "--force"]) == 2

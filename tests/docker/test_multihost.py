@@ -119,18 +119,13 @@ needs_deployment = pytest.mark.skipif(
 )
 
 
+#: Options of formation-headless and sim.sh for the shortened scenario.
+SHORT = ("--duration", str(SHORT_DURATION), "--no-plots", "--quiet")
+
+
 def run_headless(out: Path) -> None:
     subprocess.run(
-        [
-            str(REPO / ".venv" / "bin" / "formation-headless"),
-            str(PAPER),
-            "--duration",
-            str(SHORT_DURATION),
-            "--no-plots",
-            "--quiet",
-            "--out",
-            str(out),
-        ],
+        [str(REPO / ".venv" / "bin" / "formation-headless"), str(PAPER), *SHORT, "--out", str(out)],
         check=True,
         timeout=300,
         capture_output=True,
@@ -138,13 +133,20 @@ def run_headless(out: Path) -> None:
 
 
 def run_deployment(
-    processes: Processes, out: Path, env: dict[str, str], netns: dict[str, str | None], timeout: float = 240
+    processes: Processes,
+    out: Path,
+    env: dict[str, str],
+    netns: dict[str, str | None],
+    timeout: float = 240,
+    extra: tuple[str, ...] = (),
 ) -> None:
-    """The simulator and one agent process each (``netns[name]``, None: this host); wait for the simulator."""
+    """The simulator and one agent process each (``netns[name]``, None: this host); wait for the simulator.
+
+    ``extra``: options of both sim.sh and agent.sh (e.g. ``--secure KEYS --hosts FILE``)."""
     agents = [
         processes.start(
             f"agent_{i}",
-            [str(AGENT_SH), str(PAPER), str(i)],
+            [str(AGENT_SH), str(PAPER), str(i), *extra],
             env=env,
             netns=netns[f"agent_{i}"],
         )
@@ -152,7 +154,7 @@ def run_deployment(
     ]
     sim = processes.start(
         "sim",
-        [str(SIM_SH), str(PAPER), "--duration", str(SHORT_DURATION), "--no-plots", "--quiet", "--out", str(out)],
+        [str(SIM_SH), str(PAPER), *SHORT, "--out", str(out), *extra],
         env=env,
         netns=netns["sim"],
     )
@@ -214,6 +216,30 @@ def test_paper_scenario_across_hosts_equals_one_host(
     run_deployment(processes, multi, discovery_env(ros_env, mode, net), {h.name: h.netns for h in net.hosts})
     assert_same_run(multi, one_host_runs["ros"])
     assert_same_run(multi, one_host_runs["headless"], exact=False)
+
+
+@needs_deployment
+def test_secure_scenario_across_hosts_equals_one_host(
+    private_network: type[PrivateNetwork],
+    processes: Processes,
+    ros_env: Callable[..., dict[str, str]],
+    one_host_runs: dict[str, Path],
+    tmp_path: Path,
+) -> None:
+    """sim.sh / agent.sh --secure KEYS --hosts FILE on six hosts: TLS over TCP between the hosts'
+    addresses (no multicast, no UDP), and exactly the run of one host."""
+    from formation_deploy.keys import init_keys, process_names
+
+    net = private_network.create(NAMES, multicast=False)
+    keys = tmp_path / "keys"
+    init_keys(keys, process_names([str(i) for i in range(1, 6)]))
+    hosts = tmp_path / "hosts.yaml"
+    hosts.write_text("".join(f"{'simulator' if h.name == 'sim' else h.name}: {h.address}\n" for h in net.hosts))
+    multi = tmp_path / "secure"
+    netns = {h.name: h.netns for h in net.hosts}
+    run_deployment(processes, multi, ros_env(), netns, extra=("--secure", str(keys), "--hosts", str(hosts)))
+    assert_same_run(multi, one_host_runs["ros"])
+    assert json.loads((multi / "summary.json").read_text())["security"]["intruders"] == []
 
 
 if __name__ == "__main__":

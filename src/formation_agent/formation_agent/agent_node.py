@@ -357,7 +357,9 @@ class AgentNode(Node):
 
     def _refuse(self, ns: int, refusal: Refusal, neighbour: str | None = None) -> None:
         """A refused measurement (formation_agent.inputs): ERROR, counted; a bad value answers zero."""
-        self.get_logger().error(f"refused ({refusal.kind}): {refusal.reason}", throttle_duration_sec=1.0)
+        n = self.inputs.counts[refusal.kind]
+        if n & (n - 1) == 0:  # the 1st, 2nd, 4th, 8th, … of each kind: every kind shows, the log stays small
+            self.get_logger().error(f"refused ({refusal.kind}, {n} so far): {refusal.reason}")
         if refusal.kind in STAMP_KINDS:  # names no step to answer: dropped
             w = self.sync.window
             w.level, w.message, w.faults = ERROR, f"refused: {refusal.reason}", w.faults + 1

@@ -33,6 +33,10 @@ FORMATION_MOUNT = f"{IMAGE_ROOT}/formations"
 #: Mount point of the host's results directory in the simulator's container.
 OUT_MOUNT = f"{IMAGE_ROOT}/out"
 DEFAULT_IMAGE = "formation:latest"
+#: Secure mode: where the key files are mounted, the compose network's subnet, profiles in the container.
+KEYS_MOUNT = f"{IMAGE_ROOT}/keys"
+DEFAULT_SUBNET = "172.30.77.0/24"
+PROFILE_DIR = "/tmp/formation-profiles"
 _SERVICE_NAME = re.compile(r"^[a-z0-9][a-z0-9_.-]*$")
 
 
@@ -50,6 +54,10 @@ class ComposeOptions:
     image: str = DEFAULT_IMAGE
     host_network: bool = False
     sim_args: tuple[str, ...] = field(default_factory=tuple)
+    #: secure mode: the key directory (formation-keys init), and the private subnet whose fixed
+    #: addresses the processes' TLS profiles name
+    keys: str | None = None
+    subnet: str = DEFAULT_SUBNET
 
 
 def agent_service(agent_id: str) -> str:
@@ -110,6 +118,7 @@ def render(spec: FormationSpec, options: ComposeOptions, *, source_label: str) -
         f"    ROS_DOMAIN_ID: {_q('${ROS_DOMAIN_ID:-0}')}",
         f"    ROS_AUTOMATIC_DISCOVERY_RANGE: {_q('${ROS_AUTOMATIC_DISCOVERY_RANGE:-SUBNET}')}",
         f"    ROS_STATIC_PEERS: {_q('${ROS_STATIC_PEERS:-}')}",
+        *([f"    FORMATION_PROFILE_DIR: {_q(PROFILE_DIR)}"] if options.keys is not None else []),
         "  volumes:",
         f"    - {_q(options.formation + ':' + in_image + ':ro')}",
     ]
@@ -117,22 +126,71 @@ def render(spec: FormationSpec, options: ComposeOptions, *, source_label: str) -
         # Containers on the host's network look like one host to Fast DDS, which then uses
         # shared memory between them: they must share the IPC namespace (/dev/shm) too.
         lines += ["  network_mode: host", "  ipc: host"]
+    if options.host_network and options.keys is not None:
+        raise ComposeError("--secure needs the compose network (fixed addresses): not with --host-network")
+    secure = _SecureServices(spec.agent_ids, options) if options.keys is not None else None
     lines += ["", "services:", "  sim:", "    <<: *formation", "    hostname: sim"]
-    lines.append(f"    command: {_flow(['sim.sh', in_image, '--out', run_out, *options.sim_args])}")
+    sim_cmd = ["sim.sh", in_image, "--out", run_out, *options.sim_args]
+    lines.append(f"    command: {_flow(sim_cmd + (secure.args if secure else []))}")
     lines += [
         "    volumes:",
         f"      - {_q(options.formation + ':' + in_image + ':ro')}",
         f"      - {_q(options.results + ':' + OUT_MOUNT)}",
+        *(secure.volumes("simulator") if secure else []),
         "    depends_on: " + _flow(services),
+        *(secure.network("simulator") if secure else []),
     ]
     for agent_id, service in zip(spec.agent_ids, services):
+        name = f"agent_{agent_id}"
         lines += [
             f"  {service}:",
             "    <<: *formation",
             f"    hostname: {_q(service.replace('_', '-'))}",
-            f"    command: {_flow(['agent.sh', in_image, agent_id])}",
+            f"    command: {_flow(['agent.sh', in_image, agent_id, *(secure.args if secure else [])])}",
+        ]
+        if secure is not None:
+            lines += [
+                "    volumes:",
+                f"      - {_q(options.formation + ':' + in_image + ':ro')}",
+                *secure.volumes(name),
+                *secure.network(name),
+            ]
+    if secure is not None:
+        lines += [
+            "",
+            "networks:",
+            "  formation:",
+            "    ipam:",
+            "      config:",
+            f"        - subnet: {_q(options.subnet)}",
         ]
     return "\n".join(lines) + "\n"
+
+
+class _SecureServices:
+    """Secure mode's additions: fixed addresses on a private subnet, each service's own key pair."""
+
+    def __init__(self, agent_ids: Sequence[str], options: ComposeOptions) -> None:
+        import ipaddress
+
+        try:
+            net = ipaddress.ip_network(options.subnet)
+        except ValueError as exc:
+            raise ComposeError(f"--subnet: {exc}") from exc
+        names = ["simulator", *(f"agent_{a}" for a in agent_ids)]
+        if net.num_addresses < len(names) + 12:
+            raise ComposeError(f"--subnet: {options.subnet} has no room for {len(names)} fixed addresses")
+        self.keys = options.keys or ""
+        self.address = {n: str(net.network_address + 10 + k) for k, n in enumerate(names)}
+        self.args = ["--secure", KEYS_MOUNT] + [a for n, ip in self.address.items() for a in ("--host", f"{n}={ip}")]
+
+    def volumes(self, name: str) -> list[str]:
+        """ca.pem and the service's own pair only (read-only): no container holds another's key."""
+        files = ["ca.pem", f"{name}.pem", f"{name}.key"]
+        return [f"      - {_q(f'{self.keys}/{f}:{KEYS_MOUNT}/{f}:ro')}" for f in files]
+
+    def network(self, name: str) -> list[str]:
+        return ["    networks:", "      formation:", f"        ipv4_address: {_q(self.address[name])}"]
 
 
 def _rel(path: Path, start: Path) -> str:
@@ -154,6 +212,8 @@ def generate(
     image: str = DEFAULT_IMAGE,
     host_network: bool = False,
     sim_args: Sequence[str] = (),
+    keys: Path | None = None,
+    subnet: str = DEFAULT_SUBNET,
 ) -> str:
     """Load ``file`` (validated) and render the compose file that will live at ``out``."""
     spec = load_formation(file)
@@ -167,6 +227,8 @@ def generate(
         image=image,
         host_network=host_network,
         sim_args=tuple(sim_args),
+        keys=_rel(keys, base) if keys is not None else None,
+        subnet=subnet,
     )
     label = _rel(file, context) if context is not None else file.name
     if label.startswith("../"):
@@ -208,6 +270,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="ARG",
         help="extra argument for sim.sh (repeat; e.g. --sim-arg=--duration --sim-arg=1.0)",
     )
+    p.add_argument(
+        "--secure",
+        type=Path,
+        metavar="KEYS",
+        help="secure mode (docs/security.md): every service gets ca.pem and its own key pair from KEYS "
+        "(formation-keys init), a fixed address on a private compose network, and sim.sh/agent.sh --secure",
+    )
+    p.add_argument("--subnet", default=DEFAULT_SUBNET, help=f"with --secure: the network's subnet ({DEFAULT_SUBNET})")
     p.add_argument("--check", action="store_true", help="do not write: exit 1 if --out differs from the output")
     p.add_argument("--force", action="store_true", help="overwrite --out even if formation-compose did not write it")
     return p
@@ -233,6 +303,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             image=args.image,
             host_network=args.host_network,
             sim_args=args.sim_arg,
+            keys=args.secure,
+            subnet=args.subnet,
         )
     except (FormationSpecError, ComposeError) as exc:
         print(f"formation-compose: error: {exc}", file=sys.stderr)

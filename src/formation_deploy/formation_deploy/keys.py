@@ -224,6 +224,13 @@ def build_parser() -> argparse.ArgumentParser:
     profile.add_argument("--formation", type=Path, required=True, help="formation file (ports follow its agents)")
     profile.add_argument("--out", type=Path, required=True, help="directory for the profile and openssl.cnf")
     profile.add_argument("--hosts", type=Path, help="YAML mapping process name -> host (default: all 127.0.0.1)")
+    profile.add_argument(
+        "--host",
+        action="append",
+        default=[],
+        metavar="NAME=ADDR",
+        help="one process's host (repeat; wins over --hosts)",
+    )
     profile.add_argument("--port-base", type=int, help="first port, the same on every host (default 7700)")
     profile.add_argument("--listen", help="local address to listen on (default: this process's host)")
     return p
@@ -243,6 +250,11 @@ def _profile(args: argparse.Namespace, agent_ids: Sequence[str]) -> str:
         if not isinstance(loaded, dict) or not all(isinstance(v, str) for v in loaded.values()):
             raise KeysError(f"{args.hosts}: expected a mapping of process name to host, got {loaded!r}")
         hosts = {str(k): v for k, v in loaded.items()}
+    for item in args.host:
+        name, sep, addr = item.partition("=")
+        if not sep or not name or not addr:
+            raise KeysError(f"--host: expected NAME=ADDR, got {item!r}")
+        hosts[name] = addr
     peers = peers_of(agent_ids, port_base=args.port_base or DEFAULT_PORT_BASE, hosts=hosts)
     if args.name not in peers:
         raise KeysError(f"process {args.name!r} is not one of {', '.join(peers)}")

@@ -114,7 +114,14 @@ def profile_xml(me: Peer, peers: Mapping[str, Peer], keys: Path, *, listen: str 
         for p in peers.values()
         if p.port < me.port
     )
-    builtin = f"<builtin><initialPeersList>{initial}</initialPeersList></builtin>" if initial else ""
+    peers_xml = f"<initialPeersList>{initial}</initialPeersList>" if initial else ""
+    # announcements sent while a TLS connection is still being set up are lost: repeat them often at
+    # first (20 × 0.25 s) instead of waiting for the periodic one (3 s)
+    announce = (
+        "<discovery_config><initialAnnouncements><count>20</count>"
+        "<period><nanosec>250000000</nanosec></period></initialAnnouncements></discovery_config>"
+    )
+    builtin = f"<builtin>{announce}{peers_xml}</builtin>"
     whitelist = f"<interfaceWhiteList><address>{escape(listen)}</address></interfaceWhiteList>" if listen else ""
     return f"""<?xml version="1.0" encoding="UTF-8" ?>
 <!-- formation secure mode: process {escape(me.name)} (generated; docs/security.md) -->

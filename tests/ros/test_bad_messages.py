@@ -1,0 +1,181 @@
+"""Bad messages published by a test into running processes: refused, counted, reported; nothing crashes."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from ros_helpers import PAPER, REALTIME, read_log, wait_for_line
+from rosgraph_msgs.msg import Clock
+
+from formation_msgs_py import conversions, qos, topics
+from formation_msgs_py.spec import load_formation, simulator_view
+from formation_sim.simulation import Simulation
+
+NS = 1_000_000_000
+IDENTITY_Q = (0.0, 0.0, 0.0, 1.0)
+
+
+@contextmanager
+def injector_node(ros_env: dict[str, str]) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
+    """A node of this test process in the run's domain (environment restored afterwards)."""
+    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    os.environ.update({k: ros_env[k] for k in saved})
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = Node("bad_input_injector", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        yield node, executor
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict[str, str]) -> None:
+    """Agent 5 (neighbour 3) gets a zero quaternion, (0,0,0,2), a NaN pose, a 1e6 m pose, a NaN velocity
+    and a pose from the future: zero wrench for the refused steps, nothing for the future stamp, a normal
+    wrench for the next good step, and the process stays alive."""
+    spec = load_formation(PAPER)
+    meas = Simulation(simulator_view(spec)).sense()
+    agent = procs.agent(PAPER, "5")
+    p, R = meas.relative_poses["5"]["3"]
+    good = conversions.relative_pose_values(p, R)
+    v = meas.velocities[spec.agent_ids.index("5")].tolist()
+    with injector_node(ros_env) as (node, executor):
+        clock = node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
+        vel = node.create_publisher(TwistStamped, topics.velocity("5"), qos.CONTROL)
+        pose = node.create_publisher(TransformStamped, topics.relative_pose("5", "3"), qos.CONTROL)
+        got: dict[int, tuple[float, ...]] = {}
+        codec = conversions.wrench_codec("5")
+        node.create_subscription(
+            WrenchStamped, topics.wrench("5"), lambda d: got.__setitem__(*codec.decode(d)), qos.CONTROL, raw=True
+        )
+        deadline = time.monotonic() + 60
+        while not (vel.get_subscription_count() and pose.get_subscription_count() and clock.get_subscription_count()):
+            assert time.monotonic() < deadline, read_log(agent)
+            time.sleep(0.1)
+        time.sleep(1.0)
+        pose_codec, vel_codec = conversions.relative_pose_codec("5", "3"), conversions.twist_codec("5")
+
+        def step(ns: int, pose_values, velocity, wait: float = 10.0, clock_ns: int = 0) -> tuple[float, ...] | None:
+            clock.publish(conversions.clock_bytes(clock_ns or ns))
+            time.sleep(0.05)
+            pose.publish(pose_codec.encode(ns, pose_values))
+            vel.publish(vel_codec.encode(ns, velocity))
+            end = time.monotonic() + wait
+            while ns not in got and time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.1)
+            return got.get(ns)
+
+        base = 10 * NS
+        assert any(step(base, good, v)), "a good step gets a non-zero wrench"
+        bad = {
+            "zero quaternion": ((*p, 0.0, 0.0, 0.0, 0.0), v),
+            "non-unit quaternion": ((*p, 0.0, 0.0, 0.0, 2.0), v),
+            "NaN pose": ((math.nan, *p[1:], *IDENTITY_Q), v),
+            "1e6 m": ((1e6, 0.0, 0.0, *IDENTITY_Q), v),
+            "NaN velocity": (good, [math.nan, *v[1:]]),
+        }
+        for k, (name, (pose_values, velocity)) in enumerate(bad.items(), start=1):
+            u = step(base + k * 1_000_000, pose_values, velocity)
+            assert u == (0.0,) * 6, (name, u, read_log(agent))
+        # from the future: dropped (it names no step to answer), counted
+        assert step((2**31 - 1) * NS, good, v, wait=1.0, clock_ns=base + 9_000_000) is None
+        u = step(base + 10_000_000, good, v)
+        assert u is not None and any(u) and all(math.isfinite(x) for x in u)
+        assert agent.poll() is None, read_log(agent)
+    log = read_log(agent)
+    for kind in ("bad_quaternion", "non_finite", "out_of_range", "future_stamp"):
+        assert f"refused ({kind}, " in log, log
+    assert "Traceback" not in log
+
+
+def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_env, tmp_path: Path) -> None:
+    """The acceptance run: NaN pose, zero quaternion, 1e6 m translation into agent 1; a NaN wrench and a
+    future-stamped wrench into the simulator. It runs its whole duration, reports each injection by agent
+    and kind, and no applied wrench exceeds the actuator limits."""
+    spec = load_formation(REALTIME)
+    for a in spec.agents:
+        procs.agent(REALTIME, a.id)
+    out = tmp_path / "out"
+    sim = procs.sim(REALTIME, out, "--duration", "4", "--physics-rate", "100", "--progress-period", "0.2")
+    refused: dict[str, dict[str, int]] = {}
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            agent = status.name.rsplit("/", 1)[-1]
+            for kv in status.values:
+                if kv.key.startswith("refused/"):
+                    refused.setdefault(agent, {})[kv.key[8:]] = int(kv.value)
+
+    with injector_node(ros_env) as (node, executor):
+        latest = [0]
+        node.create_subscription(
+            Clock, topics.CLOCK, lambda m: latest.__setitem__(0, m.clock.sec * NS + m.clock.nanosec), qos.CLOCK
+        )
+        node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diagnostics, qos.DIAGNOSTICS)
+        pose = node.create_publisher(TransformStamped, topics.relative_pose("1", "2"), qos.measurements("reliable"))
+        wrench = node.create_publisher(WrenchStamped, topics.wrench("1"), qos.CONTROL)
+        pose_codec, wrench_codec = conversions.relative_pose_codec("1", "2"), conversions.wrench_codec("1")
+        stop = threading.Event()
+
+        def spin() -> None:
+            while not stop.is_set():
+                executor.spin_once(timeout_sec=0.05)
+
+        spinner = threading.Thread(target=spin)
+        spinner.start()
+        try:
+            assert wait_for_line(sim, "progress t=", 120), read_log(sim)
+            deadline = time.monotonic() + 60
+            while latest[0] < NS // 2:  # half a second of sim time in
+                assert time.monotonic() < deadline and sim.poll() is None, read_log(sim)
+                time.sleep(0.05)
+            for _ in range(3):  # a few times, spread over a second of the run
+                ns = latest[0]
+                pose.publish(pose_codec.encode(ns, (math.nan, 0.0, 0.0, *IDENTITY_Q)))
+                pose.publish(pose_codec.encode(ns, (2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)))
+                pose.publish(pose_codec.encode(ns, (1e6, 0.0, 0.0, *IDENTITY_Q)))
+                wrench.publish(wrench_codec.encode(ns, (math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)))
+                wrench.publish(wrench_codec.encode((2**31 - 1) * NS, (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)))
+                time.sleep(0.3)
+            code = sim.wait(timeout=120)
+            time.sleep(0.5)  # the last /diagnostics of the agents
+        finally:
+            stop.set()
+            spinner.join(timeout=5)
+    log = read_log(sim)
+    assert code in (0, 1), log
+    assert "Traceback" not in log
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["duration"] == 4.0, summary
+    rw = summary["refused_wrenches"]["1"]
+    assert rw["non_finite"]["count"] >= 1 and rw["future_step"]["count"] >= 1, rw
+    assert set(summary["refused_wrenches"]) == {"1"}, summary["refused_wrenches"]
+    assert {"non_finite", "bad_quaternion", "out_of_range"} <= set(refused.get("1", {})), refused
+    assert all(n >= 1 for n in refused["1"].values()), refused
+    u = np.load(out / "trajectory.npz")["u"]
+    for i, a in enumerate(spec.agents):
+        assert np.all(np.isfinite(u[:, i]))
+        assert np.linalg.norm(u[:, i, :3], axis=1).max() <= a.dynamics.max_force * (1 + 1e-9)
+        assert np.linalg.norm(u[:, i, 3:], axis=1).max() <= a.dynamics.max_torque * (1 + 1e-9)
+        assert summary["agents"][a.id]["peak_force"] <= a.dynamics.max_force * (1 + 1e-9)

@@ -225,7 +225,7 @@ from rclpy.node import Node  # noqa: E402
 from formation_msgs_py import conversions, parameters, qos, topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
 from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
-from formation_msgs_py.hotloop import EXECUTORS, Spinner, hot_group  # noqa: E402
+from formation_msgs_py.hotloop import EXECUTORS, Spinner, check_kind  # noqa: E402
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport  # noqa: E402
@@ -267,7 +267,7 @@ class AgentNode(Node):
         self.diag_period = declare(self, "diagnostics_period", 0.1, DIAG_DOC, low=0.1, high=3600.0)
         self.measurement_qos = declare(self, "measurement_qos", "reliable", QOS_DOC, read_only=True)
         self.executor_kind = declare(self, "executor", "lean", EXECUTOR_DOC, read_only=True)
-        hot = hot_group(self.executor_kind)
+        check_kind(self.executor_kind)
         policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
         gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
         self.sync = StepSynchroniser(
@@ -291,7 +291,7 @@ class AgentNode(Node):
         self._velocity = _root(topics.velocity(view.agent_id))
         self._subs = {
             self._velocity: self.create_subscription(
-                TwistStamped, self._velocity, self._on_velocity, meas_qos, raw=True, callback_group=hot
+                TwistStamped, self._velocity, self._on_velocity, meas_qos, raw=True
             )
         }
         for j in view.neighbours:
@@ -303,7 +303,6 @@ class AgentNode(Node):
                 lambda data, j=j, codec=codec, topic=topic: self._on_pose(j, codec, topic, data),
                 meas_qos,
                 raw=True,
-                callback_group=hot,
             )
         self._clock = self.get_clock()
         self._jump_handle = self._clock.create_jump_callback(
@@ -379,7 +378,7 @@ class AgentNode(Node):
     def spin(self) -> None:
         sync = self.sync
         mono = time.monotonic
-        spinner = Spinner(self.executor_kind, self, list(self._subs.values()))
+        spinner = Spinner(self.executor_kind, self)
         ok = self.context.ok
         while ok():
             dl = sync.deadline()

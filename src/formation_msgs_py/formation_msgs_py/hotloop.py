@@ -2,13 +2,13 @@
 
 An rclpy executor's ``spin_once`` runs one callback per call: the EventsExecutor wakes the node
 once per message, the SingleThreadedExecutor also rebuilds its wait set from every entity of the
-node each time. ``lean`` (the default) instead waits once on the node's *hot* subscriptions (a
-step's measurements, wrenches, acknowledgements) and takes every message ready on them as CDR
-bytes (``take_message(raw)``), so a burst of one step's messages costs one wake-up
-(benchmarks/msg_cost_bench.py measures the three). Everything else of the node (parameter
-services, timers, ``/clock``) is left to a SingleThreadedExecutor spun once every
-:data:`SIDE_PERIOD`: hot subscriptions are created in :func:`hot_group`, which it never runs (it
-honours callback groups; the EventsExecutor does not, so it cannot be the side executor).
+node each time. ``lean`` (the default) instead waits once on every subscription of the node (a
+step's measurements, wrenches, acknowledgements, and ``/clock``) and takes every message then
+ready (CDR bytes for the raw per-step ones), so a burst of one step's messages costs one
+wake-up (benchmarks/msg_cost_bench.py measures the three). Services and timers (parameters,
+the graph watch) are left to a SingleThreadedExecutor turned every :data:`SIDE_PERIOD`; it
+honours callback groups, so the subscriptions are moved into a group it never runs (the
+EventsExecutor ignores groups and cannot be the side executor).
 
 :data:`FASTDDS_PROFILE` is the Fast DDS profile every non-secure process of a run loads
 (``FASTRTPS_DEFAULT_PROFILES_FILE``, set by the launcher): writers without positive
@@ -26,18 +26,12 @@ from typing import Any
 FASTDDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
 #: the ways a node can spin (``--executor`` / the ``executor`` parameter)
 EXECUTORS = ("lean", "events", "single")
-#: wall seconds between two turns of the side executor in ``lean`` (services, timers, /clock)
+#: wall seconds between two turns of the side executor in ``lean`` (services, timers)
 SIDE_PERIOD = 0.05
 
 
-def hot_group(kind: str) -> Any:
-    """The callback group of a node's hot subscriptions under executor ``kind`` (None: the default).
-
-    ``lean``: a group no executor runs (its subscriptions are taken by a :class:`Spinner`).
-    """
-    check_kind(kind)
-    if kind != "lean":
-        return None
+def _hot_group() -> Any:
+    """A callback group no executor runs: its subscriptions are taken by a :class:`HotLoop`."""
     from rclpy.callback_groups import CallbackGroup
 
     class HotGroup(CallbackGroup):
@@ -71,7 +65,8 @@ def make_executor(kind: str, context: Any) -> Any:
 
 
 class HotLoop:
-    """Wait on ``subscriptions`` (raw) and call each one's callback with every message taken (CDR bytes)."""
+    """Wait on ``subscriptions`` and call each one's callback with every message taken (CDR bytes
+    for a raw subscription, else the message)."""
 
     def __init__(self, context: Any, subscriptions: Sequence[Any]) -> None:
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -79,14 +74,14 @@ class HotLoop:
         self._rcl_error = _rclpy.RCLError
         self._context = context
         self._wait_set = _rclpy.WaitSet(len(subscriptions), 0, 0, 0, 0, 0, context.handle)
-        self._entries = [(s.handle, s.msg_type, s.callback) for s in subscriptions]
+        self._entries = [(s.handle, s.msg_type, s.raw, s.callback) for s in subscriptions]
 
     def spin_once(self, timeout_s: float) -> int:
         """Wait up to ``timeout_s`` (wall s) for a message; handle all that are ready; return how many."""
         ws = self._wait_set
         ws.clear_entities()
-        for handle, _, _ in self._entries:
-            ws.add_subscription(handle)
+        for entry in self._entries:
+            ws.add_subscription(entry[0])
         try:
             ws.wait(max(0, int(timeout_s * 1e9)))
         except self._rcl_error:
@@ -95,27 +90,35 @@ class HotLoop:
             raise
         ready = ws.get_ready_entities("subscription")
         n = 0
-        for handle, msg_type, callback in self._entries:
+        for handle, msg_type, raw, callback in self._entries:
             if handle.pointer in ready:
-                taken = handle.take_message(msg_type, True)
+                taken = handle.take_message(msg_type, raw)
                 while taken is not None:
                     callback(taken[0])
                     n += 1
-                    taken = handle.take_message(msg_type, True)
+                    taken = handle.take_message(msg_type, raw)
         return n
 
 
 class Spinner:
-    """Spins ``node`` with executor ``kind``; ``hot`` are its per-step (raw) subscriptions.
+    """Spins ``node`` with executor ``kind``.
 
-    ``lean``: :class:`HotLoop` over ``hot`` (created in :func:`hot_group`), the rest of the node
-    every :data:`SIDE_PERIOD`; ``events`` / ``single``: that executor's ``spin_once`` for everything.
+    ``lean``: a :class:`HotLoop` over every subscription the node has when the spinner is made
+    (moved into a callback group no executor runs), and a SingleThreadedExecutor for the rest
+    (services, timers) every :data:`SIDE_PERIOD`; ``events`` / ``single``: that executor's
+    ``spin_once`` for everything.
     """
 
-    def __init__(self, kind: str, node: Any, hot: Sequence[Any]) -> None:
+    def __init__(self, kind: str, node: Any) -> None:
         self.executor = make_executor(kind, node.context)
         self.executor.add_node(node)
-        self.hot = HotLoop(node.context, hot) if kind == "lean" else None
+        self.hot = None
+        if kind == "lean":
+            hot = list(node.subscriptions)
+            group = _hot_group()
+            for sub in hot:
+                sub.callback_group = group
+            self.hot = HotLoop(node.context, hot)
         self._next_side = 0.0
 
     def spin_once(self, timeout_sec: float) -> None:

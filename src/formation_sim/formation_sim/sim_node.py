@@ -41,7 +41,7 @@ from rosgraph_msgs.msg import Clock
 from formation_msgs_py import conversions, options, qos, topics
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.graph_watch import GraphWatch
-from formation_msgs_py.hotloop import Spinner, hot_group
+from formation_msgs_py.hotloop import Spinner
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import ExitCode
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
@@ -72,15 +72,8 @@ class SimNode(Node):
 
     display: DisplayPublisher | None = None
 
-    def __init__(
-        self,
-        spec: FormationSpec,
-        measurement_qos: str = "reliable",
-        intruder_policy: str = "report",
-        executor: str = "lean",
-    ) -> None:
+    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable", intruder_policy: str = "report") -> None:
         super().__init__(topics.SIM_NODE_NAME)
-        hot = hot_group(executor)
         meas_qos = qos.measurements(measurement_qos)
         self.spec = spec
         self.ids = spec.agent_ids
@@ -115,12 +108,7 @@ class SimNode(Node):
         self.timing = Timing(n)
         self.wrench_subs = [
             self.create_subscription(
-                WrenchStamped,
-                topics.wrench(a),
-                lambda data, i=i: self._on_wrench(i, data),
-                qos.CONTROL,
-                raw=True,
-                callback_group=hot,
+                WrenchStamped, topics.wrench(a), lambda data, i=i: self._on_wrench(i, data), qos.CONTROL, raw=True
             )
             for i, a in enumerate(self.ids)
         ]
@@ -476,12 +464,12 @@ def main(argv: list[str] | None = None) -> int:
     code = EXIT_OK
     extra: dict[str, Any] = {}
     try:
-        node = SimNode(spec, args.measurement_qos, args.intruder_policy, args.executor)
+        node = SimNode(spec, args.measurement_qos, args.intruder_policy)
         check_secure_transport()
         settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
         settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
         node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
-        executor = Spinner(args.executor, node, node.wrench_subs)
+        executor = Spinner(args.executor, node)
         runner = Runner(node, executor, spec, args)
         timeout = args.discovery_timeout or 30.0 + len(spec.agents)
         t_disc = time.monotonic()

@@ -17,7 +17,7 @@
 # Exit status: 0 stopped by a signal, 2 invalid file, agent id, option or parameter.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-case "${1:-}" in -h|--help) sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;; esac
+case "${1:-}" in -h|--help) awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"; exit 0 ;; esac
 if [ $# -lt 2 ]; then echo "agent.sh: usage: agent.sh FILE AGENT_ID [options] [--ros-args ...] (see --help)" >&2; exit 2; fi
 FILE="$1"; ID="$2"; shift 2
 [ -f "$FILE" ] || { echo "agent.sh: formation file '$FILE' does not exist" >&2; exit 2; }

@@ -1,28 +1,31 @@
 #!/usr/bin/env bash
-# Install (on first use) and run a formation through ROS 2: the simulator node and one process per
-# agent; the default is the paper's scenario (config/paper_5agents.yaml).
+# Install (on first use) and run a formation through ROS 2: the simulator node, one process per
+# agent and a bag recorder; the default is the paper's scenario (config/paper_5agents.yaml).
 #
 #   ros2_ws/run.sh [FILE] [--mode lockstep|realtime] [--out DIR] [--duration S] [--control-rate HZ]
-#                  [--record] [--netns auto|on|off] [--headless] [other options, see below]
+#                  [--no-record] [--animate] [--netns auto|on|off] [--headless] [options below]
 #
 # Validates FILE first (exit 2, nothing started, if invalid); starts every process in its own process
 # group with a log in OUT/logs/; shows progress (sim time, real-time factor, worst funnel margin);
 # stops everything on completion, Ctrl-C, SIGTERM or the death of a process; prints the summary and
 # writes OUT (default out/<formation>-ros2-<mode>-<time>): summary.json, trajectory.npz, errors.png,
-# orientation_errors.png, inputs.png, logs/ (and bag/ with --record).
+# orientation_errors.png, inputs.png, velocity_errors.png, logs/, bag/ (unless --no-record) and,
+# with --animate, animation.gif (docs/outputs.md).
 # Discovery stays on this host: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless set; a free
 # ROS_DOMAIN_ID is picked unless set; runs above 30 processes use a private network namespace.
-# --headless runs the same formation in one process without ROS (formation-headless, its options).
+# --headless runs the same formation in one process without ROS: formation-headless FILE with the
+# other options (see formation-headless --help).
 # Exit status: 0 every funnel held, 1 a funnel was violated or a fault reported, 2 invalid file or
 # settings, 3 a process died or an agent was missing, 130 interrupted. Details: docs/ros2.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case "${1:-}" in
   -h|--help)
-    sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'
+    awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"
     echo
     "$ROOT/ros2_ws/setup.sh"
-    "$ROOT/.venv/bin/formation-launch" --help | sed -n '/^options:/,$p'
+    echo "Options (formation-launch):"
+    "$ROOT/.venv/bin/formation-launch" --help | sed -n '/^options:/,$p' | tail -n +2
     exit 0 ;;
 esac
 "$ROOT/ros2_ws/setup.sh"

@@ -13,10 +13,11 @@ VENV="$ROOT/.venv"
 REQ="$ROOT/ros2_ws/requirements.txt"
 LOG="$VENV/setup-pip.log"
 FORCE=0
+INSTALLED=0
 
 case "${1:-}" in
   -h|--help)
-    sed -n '2,9p' "$0" | sed 's/^# \{0,1\}//'
+    awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"
     exit 0 ;;
   --force) FORCE=1 ;;
   "") ;;
@@ -73,6 +74,7 @@ if [ "$FORCE" = 1 ] || [ "$(cat "$REQ_STAMP" 2>/dev/null || true)" != "$req_hash
   say "installing requirements (ros2_ws/requirements.txt; the first time takes one to three minutes)…"
   : >"$LOG"
   run_pip install -r "$REQ"
+  INSTALLED=1
   echo "$req_hash" >"$REQ_STAMP"
   rm -f "$VENV/.stamp-src"   # packages are re-checked against the new requirements
 fi
@@ -96,8 +98,9 @@ if [ "${#pkgs[@]}" -gt 0 ] && { [ "$FORCE" = 1 ] || [ "$(cat "$SRC_STAMP" 2>/dev
   say "installing src packages (editable): ${names[*]}…"
   : >"$LOG"
   run_pip install --no-build-isolation --use-pep517 "${edit_args[@]}"
+  INSTALLED=1
   echo "$src_hash" >"$SRC_STAMP"
 fi
 
-[ "$SECONDS" -gt 2 ] && say "done in ${SECONDS} s"
+[ "$INSTALLED" = 1 ] && say "done in ${SECONDS} s"
 exit 0

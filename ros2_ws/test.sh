@@ -8,7 +8,7 @@
 # (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST); see tests/README.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-case "${1:-}" in -h|--help) sed -n '2,8p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;; esac
+case "${1:-}" in -h|--help) awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"; exit 0 ;; esac
 "$ROOT/ros2_ws/setup.sh"
 cd "$ROOT"
 echo "test: ruff check" >&2

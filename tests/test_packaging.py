@@ -201,3 +201,18 @@ def test_colcon_install_runs_a_formation(tmp_path: Path, ros_domain_id: int) -> 
     assert str(install / "formation_agent" / "lib" / "formation_agent" / "formation-agent") in table
     assert str(install / "formation_bag" / "lib" / "formation_bag" / "formation-record") in table
     assert (out / "summary.json").is_file() and (out / "bag").is_dir()
+
+
+def test_every_doc_link_and_help_pointer_exists() -> None:
+    """Markdown links (README, docs/, tests/, BENCHMARKS) and ``docs/*.md`` named in code and scripts exist."""
+    missing = []
+    for md in [REPO / "README.md", REPO / "BENCHMARKS.md", REPO / "tests" / "README.md", *(REPO / "docs").glob("*.md")]:
+        for target in re.findall(r"\]\(([^)\s#]+)(?:#[^)]*)?\)", md.read_text(encoding="utf-8")):
+            if "://" not in target and not (md.parent / target).exists():
+                missing.append(f"{md.relative_to(REPO)} -> {target}")
+    sources = [*(REPO / "src").rglob("*.py"), *(REPO / "ros2_ws").glob("*.sh")]
+    for path in sources:
+        for target in set(re.findall(r"\b(docs/[\w./-]+\.md|tests/README\.md)", path.read_text(encoding="utf-8"))):
+            if not (REPO / target).exists():
+                missing.append(f"{path.relative_to(REPO)} -> {target}")
+    assert not missing, missing

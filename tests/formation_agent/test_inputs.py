@@ -106,3 +106,10 @@ def test_refused_measurement_answers_its_step_with_zero_and_error() -> None:
     sync.on_pose("3", 2000, p, R, now=0.0)
     sync.on_velocity(2000, v, now=0.0)
     assert sent[-1][0] == 2000 and any(x != 0.0 for x in sent[-1][1])
+
+
+def test_bytes_that_are_no_message_are_refused_and_dropped() -> None:
+    c = check()
+    refusal = c.malformed("relative pose of 3")
+    assert refusal.kind == inputs.MALFORMED and refusal.kind in inputs.DROPPED_KINDS
+    assert c.counts == {inputs.MALFORMED: 1}

@@ -59,7 +59,7 @@ def test_wrench_at_the_limit_is_accepted() -> None:
 def test_wrench_for_a_step_that_does_not_exist_is_refused(ns, current_ns, lockstep, kind) -> None:
     c = check(lockstep)
     assert c.check(0, ns, GOOD, current_ns) == kind
-    assert kind in inputs.STAMP_KINDS
+    assert kind in inputs.DROPPED_KINDS
 
 
 def test_realtime_accepts_a_late_answer_lockstep_does_not() -> None:
@@ -86,3 +86,42 @@ def test_non_finite_state_names_the_agent() -> None:
     v[1, 4] = math.nan
     R[2, 0, 0] = math.inf
     assert inputs.non_finite_agents(("1", "2", "3"), p, R, v) == ["2", "3"]
+
+
+def test_blown_up_plant_ends_the_run_incomplete_naming_the_agent(tmp_path) -> None:
+    """An initial spin of 1e200 rad/s overflows the integrator: INCOMPLETE (exit 4), agent named, strict JSON."""
+    import yaml
+
+    from formation_msgs_py.outcome import ExitCode
+    from formation_sim import headless
+
+    agent = {"radius": 0.5, "sensing_radius": 3.0, "dynamics": {"mass": 1.0, "inertia": [0.1, 0.2, 0.3]}}
+    doc = {
+        "simulation": {"duration": 0.01, "physics_rate": 1000.0, "control_rate": 1000.0, "rate_check": "warn"},
+        "agents": [
+            {"id": "a", "position": [0, 0, 0], "angular_velocity": [1e200, 1e200, 0], **agent},
+            {"id": "b", "position": [2, 0, 0], **agent},
+        ],
+        "edges": [{"tail": "a", "head": "b", "distance": 1.5}],
+    }
+    path = tmp_path / "spin.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "out"
+    assert headless.main([str(path), "--out", str(out), "--no-plots", "--quiet"]) == ExitCode.INCOMPLETE
+    summary = json.loads((out / "summary.json").read_text())
+    # the compiled plant never raises: the overflow shows as a non-finite state of agent a
+    assert "non-finite plant state of agent(s) a" in summary["incomplete_reason"]
+    json.dumps(summary, allow_nan=False)
+
+
+def test_bytes_that_are_no_wrench_are_refused() -> None:
+    """Raw bytes on a wrench topic that do not decode: counted as malformed for that agent."""
+    import struct
+
+    from formation_msgs_py import wire
+
+    c = check()
+    with pytest.raises(struct.error):
+        wire.wrench_codec("b").decode(b"\x00\x01\x00\x00garbage")
+    assert c.malformed(1, 0) == inputs.MALFORMED and inputs.MALFORMED in inputs.DROPPED_KINDS
+    assert c.report()["b"]["malformed"]["count"] == 1

@@ -66,3 +66,20 @@ def test_funnel_values_match_the_report(scene_and_state) -> None:
     start = scene.funnels(0.0, state.p, state.R)  # the paper starts inside every funnel
     assert np.all(start["margin_e"] > 0) and np.all(start["margin_psi"] > 0)
     assert np.any(f["margin_e"] < 0)  # the initial poses held still until 0.7 s leave a distance funnel
+
+
+def test_foxglove_layout_reads_the_display_topics(paper_path) -> None:
+    """foxglove/formation_layout.json: a 3D view of the markers; plots of every paper edge's e, ψ and bounds."""
+    import json
+    import re
+
+    from formation_msgs_py import topics
+
+    layout = json.loads((paper_path.parents[1] / "foxglove" / "formation_layout.json").read_text())
+    panels = layout["configById"]
+    assert panels["3D!formation"]["topics"]["/" + topics.MARKERS]["visible"] is True
+    paths = [p["value"] for cfg in panels.values() for p in cfg.get("paths", [])]
+    indices = sorted(int(re.fullmatch(r"/formation/funnels\.data\[(\d+)\]", v)[1]) for v in paths)
+    assert "/" + topics.FUNNELS == "/formation/funnels"
+    edges = len(load_formation(paper_path).edges)
+    assert indices == list(range(5 * edges))  # e, −C_col·ρ_e, C_con·ρ_e, ψ, ρ_ψ of every edge, once

@@ -6,6 +6,8 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,6 +16,27 @@ BIN = REPO / ".venv" / "bin"
 RUN_SH = REPO / "ros2_ws" / "run.sh"
 PAPER = REPO / "config" / "paper_5agents.yaml"
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
+
+
+@contextmanager
+def ros_context(ros_env: dict[str, str]) -> Iterator:
+    """An rclpy context of the test itself in the test's domain (this host only); shut down and the
+    environment restored on exit."""
+    import rclpy
+
+    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    os.environ.update({k: ros_env[k] for k in saved})
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        yield context
+    finally:
+        rclpy.try_shutdown(context=context)
+        for k, value in saved.items():
+            if value is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = value
 
 
 @dataclass

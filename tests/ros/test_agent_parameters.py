@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import BIN, PAPER, read_log
+from ros_helpers import BIN, PAPER, read_log, ros_context
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics
@@ -35,11 +33,7 @@ def test_agent_parameters_read_only_live_and_checked(procs, ros_env: dict[str, s
     )
     spec = load_formation(PAPER)
     meas = Simulation(simulator_view(spec)).sense()
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    os.environ.update({k: ros_env[k] for k in saved})
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
+    with ros_context(ros_env) as context:
         node = Node("parameter_driver", context=context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
@@ -99,10 +93,3 @@ def test_agent_parameters_read_only_live_and_checked(procs, ros_env: dict[str, s
         assert np.linalg.norm(u_12) > 1e-5  # ~2e-4 at the first step: ρ_v0 = 2|e_v(0)| + 1 keeps ξ_v small
         np.testing.assert_allclose(u_24, 2.0 * u_12, rtol=1e-5)
         node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=context)
-        for k, value in saved.items():
-            if value is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = value

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import os
 import time
 
-import rclpy
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from ros_helpers import PAPER, read_log, wait_for_line
+from ros_helpers import PAPER, read_log, ros_context, wait_for_line
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics
@@ -24,11 +22,7 @@ def test_agent_answers_each_stamp_and_resets_on_a_backward_clock_jump(procs, ros
     spec = load_formation(PAPER)
     meas = Simulation(simulator_view(spec)).sense()
     agent = procs.agent(PAPER, "5")
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    os.environ.update({k: ros_env[k] for k in saved})
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
+    with ros_context(ros_env) as context:
         node = Node("agent_driver", context=context)
         clock = node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         vel = node.create_publisher(TwistStamped, topics.velocity("5"), qos.CONTROL)
@@ -64,10 +58,3 @@ def test_agent_answers_each_stamp_and_resets_on_a_backward_clock_jump(procs, ros
         assert got[-1] == 1 * NS, got
         assert wait_for_line(agent, "clock jumped back", 10), read_log(agent)
         node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=context)
-        for k, value in saved.items():
-            if value is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = value

@@ -98,21 +98,23 @@ def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict
         for k, (name, (pose_values, velocity)) in enumerate(bad.items(), start=1):
             u = step(base + k * 1_000_000, pose_values, velocity)
             assert u == (0.0,) * 6, (name, u, read_log(agent))
+        # bytes that are no TransformStamped (anyone may publish raw CDR): dropped, counted, no crash
+        pose.publish(b"\x00\x01\x00\x00garbage")
         # from the future: dropped (it names no step to answer), counted
         assert step((2**31 - 1) * NS, good, v, wait=1.0, clock_ns=base + 9_000_000) is None
         u = step(base + 10_000_000, good, v)
         assert u is not None and any(u) and all(math.isfinite(x) for x in u)
         assert agent.poll() is None, read_log(agent)
     log = read_log(agent)
-    for kind in ("bad_quaternion", "non_finite", "out_of_range", "future_stamp"):
+    for kind in ("bad_quaternion", "non_finite", "out_of_range", "future_stamp", "malformed"):
         assert f"refused ({kind}, " in log, log
     assert "Traceback" not in log
 
 
 def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_env, tmp_path: Path) -> None:
-    """The acceptance run: NaN pose, zero quaternion, 1e6 m translation into agent 1; a NaN wrench and a
-    future-stamped wrench into the simulator. It runs its whole duration, reports each injection by agent
-    and kind, and no applied wrench exceeds the actuator limits."""
+    """The acceptance run: NaN pose, zero quaternion, 1e6 m translation into agent 1; a NaN wrench, a
+    future-stamped wrench and bytes that are no wrench into the simulator. It runs its whole duration,
+    reports each injection by agent and kind, and no applied wrench exceeds the actuator limits."""
     spec = load_formation(REALTIME)
     for a in spec.agents:
         procs.agent(REALTIME, a.id)
@@ -157,6 +159,7 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
                 pose.publish(pose_codec.encode(ns, (1e6, 0.0, 0.0, *IDENTITY_Q)))
                 wrench.publish(wrench_codec.encode(ns, (math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)))
                 wrench.publish(wrench_codec.encode((2**31 - 1) * NS, (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)))
+                wrench.publish(b"\x00\x01\x00\x00garbage")
                 time.sleep(0.3)
             code = sim.wait(timeout=120)
             time.sleep(0.5)  # the last /diagnostics of the agents
@@ -169,7 +172,7 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
     summary = json.loads((out / "summary.json").read_text())
     assert summary["duration"] == 4.0, summary
     rw = summary["refused_wrenches"]["1"]
-    assert rw["non_finite"]["count"] >= 1 and rw["future_step"]["count"] >= 1, rw
+    assert min(rw[k]["count"] for k in ("non_finite", "future_step", "malformed")) >= 1, rw
     assert set(summary["refused_wrenches"]) == {"1"}, summary["refused_wrenches"]
     assert {"non_finite", "bad_quaternion", "out_of_range"} <= set(refused.get("1", {})), refused
     assert all(n >= 1 for n in refused["1"].values()), refused
@@ -179,3 +182,32 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
         assert np.linalg.norm(u[:, i, :3], axis=1).max() <= a.dynamics.max_force * (1 + 1e-9)
         assert np.linalg.norm(u[:, i, 3:], axis=1).max() <= a.dynamics.max_torque * (1 + 1e-9)
         assert summary["agents"][a.id]["peak_force"] <= a.dynamics.max_force * (1 + 1e-9)
+
+
+def test_lockstep_run_is_not_stalled_by_a_future_stamped_wrench(procs, ros_env, tmp_path: Path) -> None:
+    """Lockstep: wrenches stamped 2³¹−1 s and NaN wrenches for agent 2 all through the run (once, one such
+    wrench stalled the run and blamed the healthy agent): the run completes and reports them for agent 2."""
+    spec = load_formation(REALTIME)
+    for a in spec.agents:
+        procs.agent(REALTIME, a.id)
+    out = tmp_path / "out"
+    sim = procs.sim(REALTIME, out, "--mode", "lockstep", "--duration", "1", "--physics-rate", "100")
+    with injector_node(ros_env) as (node, executor):
+        latest = [0]
+        node.create_subscription(
+            Clock, topics.CLOCK, lambda m: latest.__setitem__(0, m.clock.sec * NS + m.clock.nanosec), qos.CLOCK
+        )
+        wrench = node.create_publisher(WrenchStamped, topics.wrench("2"), qos.CONTROL)
+        codec = conversions.wrench_codec("2")
+        deadline = time.monotonic() + 180
+        while sim.poll() is None:
+            assert time.monotonic() < deadline, read_log(sim)
+            executor.spin_once(timeout_sec=0.02)
+            wrench.publish(codec.encode((2**31 - 1) * NS, (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)))
+            wrench.publish(codec.encode(latest[0], (math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)))
+    log = read_log(sim)
+    assert sim.returncode in (0, 1), log
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["duration"] == 1.0 and summary["steps"] == 100, summary
+    assert summary["refused_wrenches"]["2"]["future_step"]["count"] >= 1, summary["refused_wrenches"]
+    assert set(summary["refused_wrenches"]) == {"2"}

@@ -3,17 +3,22 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import signal
+import subprocess
 import time
+from pathlib import Path
 
+import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from ros_helpers import BIN, PAPER, read_log
+from ros_helpers import BIN, PAPER, REALTIME, read_log
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics
@@ -37,18 +42,19 @@ def _reported_at(proc, topic: str, node: str, deadline: float) -> float | None:
 
 @pytest.mark.parametrize("policy", ["report", "refuse"])
 def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: dict[str, str], policy: str) -> None:
-    """Outsider on agent 5's wrench and relative-pose topics: named within 1 s; refuse: no wrench answers it."""
+    """Outsider on /agent_3/wrench and /agent_3/relative_pose/agent_1: named by agent 3 within 1 s; under
+    refuse, no wrench answers the measurements it then plays."""
     spec = load_formation(PAPER)
     meas = Simulation(simulator_view(spec)).sense()
     agent = procs.start(
-        "agent_5",
+        "agent_3",
         [
             str(BIN / "formation-agent"),
             "--ros-args",
             "-p",
             f"formation_file:={PAPER}",
             "-p",
-            "agent_id:='5'",
+            "agent_id:='3'",
             "-p",
             f"intruder_policy:={policy}",
         ],
@@ -60,9 +66,9 @@ def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: 
     try:
         node = Node("outsider", context=context)
         got: list[int] = []
-        codec = conversions.wrench_codec("5")
+        codec = conversions.wrench_codec("3")
         node.create_subscription(
-            WrenchStamped, topics.wrench("5"), lambda d: got.append(codec.decode(d)[0]), qos.CONTROL, raw=True
+            WrenchStamped, topics.wrench("3"), lambda d: got.append(codec.decode(d)[0]), qos.CONTROL, raw=True
         )
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
@@ -75,31 +81,31 @@ def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: 
             executor.spin_once(timeout_sec=0.1)
         time.sleep(0.5)
         created = time.monotonic()
-        fake_wrench = node.create_publisher(WrenchStamped, topics.wrench("5"), qos.CONTROL)
-        pose = node.create_publisher(TransformStamped, topics.relative_pose("5", "3"), qos.CONTROL)
-        wrench_seen = _reported_at(agent, "/agent_5/wrench", "outsider", created + 10)
-        pose_seen = _reported_at(agent, "/agent_5/relative_pose/agent_3", "outsider", created + 10)
+        fake_wrench = node.create_publisher(WrenchStamped, topics.wrench("3"), qos.CONTROL)
+        pose = node.create_publisher(TransformStamped, topics.relative_pose("3", "1"), qos.CONTROL)
+        wrench_seen = _reported_at(agent, "/agent_3/wrench", "outsider", created + 10)
+        pose_seen = _reported_at(agent, "/agent_3/relative_pose/agent_1", "outsider", created + 10)
         assert wrench_seen is not None and pose_seen is not None, read_log(agent)
         assert wrench_seen - created <= REPORT_WITHIN, (wrench_seen - created, read_log(agent))
         assert pose_seen - created <= REPORT_WITHIN, (pose_seen - created, read_log(agent))
 
-        # the outsider now plays the simulator for agent 5: clock, pose, velocity stamped 7 s
+        # the outsider now plays the simulator for agent 3: clock, pose, velocity stamped 7 s
         clock = node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
-        vel = node.create_publisher(TwistStamped, topics.velocity("5"), qos.CONTROL)
+        vel = node.create_publisher(TwistStamped, topics.velocity("3"), qos.CONTROL)
         deadline = time.monotonic() + 30
         while not (vel.get_subscription_count() and pose.get_subscription_count() and clock.get_subscription_count()):
             assert time.monotonic() < deadline, read_log(agent)
             time.sleep(0.1)
         fake_wrench.publish(codec.encode(1, [50.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
-        p, R = meas.relative_poses["5"]["3"]
+        p, R = meas.relative_poses["3"]["1"]
         pose_values = conversions.relative_pose_values(p, R)
-        v = meas.velocities[spec.agent_ids.index("5")].tolist()
+        v = meas.velocities[spec.agent_ids.index("3")].tolist()
         stamp = 7 * NS
         end = time.monotonic() + 3.0
         while time.monotonic() < end and stamp not in got:
             clock.publish(conversions.clock_bytes(stamp))
-            pose.publish(conversions.relative_pose_codec("5", "3").encode(stamp, pose_values))
-            vel.publish(conversions.twist_codec("5").encode(stamp, v))
+            pose.publish(conversions.relative_pose_codec("3", "1").encode(stamp, pose_values))
+            vel.publish(conversions.twist_codec("3").encode(stamp, v))
             executor.spin_once(timeout_sec=0.2)
         if policy == "report":
             assert stamp in got, read_log(agent)  # the outsider's measurements were used: the threat is real
@@ -113,3 +119,62 @@ def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: 
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = value
+
+
+@pytest.mark.parametrize("policy", ["report", "refuse"])
+def test_simulator_applies_an_outsiders_wrench_only_when_reporting(
+    ros_env: dict[str, str], tmp_path: Path, policy: str
+) -> None:
+    """Realtime run with an outsider answering each of agent 3's velocities with 50 N on /agent_3/wrench
+    (the same stamp: plausible): the simulator names it in summary.json; report applies its 50 N (the
+    threat), refuse never does and counts what it refused."""
+    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    os.environ.update({k: ros_env[k] for k in saved})
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    out = tmp_path / "out"
+    cmd = [str(BIN / "formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd += ["--duration", "3", "--physics-rate", "100", "--intruder-policy", policy]
+    launch = subprocess.Popen(
+        cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+    )
+    try:
+        node = Node("outsider", context=context)
+        pub = node.create_publisher(WrenchStamped, topics.wrench("3"), qos.CONTROL)
+        wrench, twist = conversions.wrench_codec("3"), conversions.twist_codec("3")
+        force = [50.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+        node.create_subscription(
+            TwistStamped,
+            topics.velocity("3"),
+            lambda data: pub.publish(wrench.encode(twist.decode(data)[0], force)),
+            qos.CONTROL,
+            raw=True,
+        )
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        deadline = time.monotonic() + 240
+        while launch.poll() is None:
+            assert time.monotonic() < deadline
+            executor.spin_once(timeout_sec=0.05)
+        node.destroy_node()
+    finally:
+        if launch.poll() is None:
+            os.killpg(launch.pid, signal.SIGINT)
+            launch.wait(timeout=60)
+        rclpy.try_shutdown(context=context)
+        for k, value in saved.items():
+            if value is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = value
+    log = launch.stdout.read().decode(errors="replace") if launch.stdout else ""
+    assert launch.returncode in (0, 1), log  # the verdict may be FAIL: agent 3's command is lost or wrong
+    summary = json.loads((out / "summary.json").read_text())
+    assert ("/agent_3/wrench", "/outsider") in {(i["topic"], i["node"]) for i in summary["security"]["intruders"]}
+    u = np.load(out / "trajectory.npz")["u"]
+    applied = np.any(u[:, load_formation(REALTIME).agent_ids.index("3"), 0] == 50.0)
+    if policy == "report":
+        assert applied, log
+    else:
+        assert not applied, log
+        assert summary["security"]["refused_messages"]["/agent_3/wrench"] > 0

@@ -11,9 +11,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from rclpy.node import Node
-from ros_helpers import PAPER, REALTIME, RUN_SH, processes_mentioning, read_log, wait_for_line
+from ros_helpers import PAPER, REALTIME, RUN_SH, processes_mentioning, read_log, ros_context, wait_for_line
 
 from formation_msgs_py.spec import agent_view, load_formation
 
@@ -47,11 +46,7 @@ def test_agents_subscribe_to_exactly_their_contract(procs, ros_env: dict[str, st
     spec = load_formation(PAPER)
     for a in spec.agents:
         procs.agent(PAPER, a.id)
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    os.environ.update({k: ros_env[k] for k in saved})
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
+    with ros_context(ros_env) as context:
         node = Node("graph_query", context=context)
         names = {("formation_agent", f"/agent_{a.id}") for a in spec.agents}
         deadline = time.monotonic() + 60
@@ -69,13 +64,6 @@ def test_agents_subscribe_to_exactly_their_contract(procs, ros_env: dict[str, st
             assert pubs == {f"/agent_{a.id}/wrench", "/diagnostics", "/rosout", "/parameter_events"}, pubs
         assert node.get_subscriptions_info_by_topic("/formation/ground_truth") == []
         node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=context)
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def test_sigint_to_run_sh_leaves_no_process(ros_env: dict[str, str], tmp_path: Path) -> None:

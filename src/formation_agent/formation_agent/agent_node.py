@@ -19,6 +19,7 @@ controller and the watchdogs. Non-finite measurements, and a velocity older than
 from __future__ import annotations
 
 import math
+import struct
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -26,7 +27,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController, ControlOutput
-from formation_agent.inputs import STAMP_KINDS, InputCheck, Refusal
+from formation_agent.inputs import DROPPED_KINDS, InputCheck, Refusal
 from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.spec import AgentView
 
@@ -334,7 +335,11 @@ class AgentNode(Node):
     def _on_velocity(self, data: bytes) -> None:
         if not self._watch.accept(self._velocity, self._subs[self._velocity]):
             return
-        ns, v = self._twist_codec.decode(data)
+        try:
+            ns, v = self._twist_codec.decode(data)
+        except struct.error:
+            self._refuse(0, self.inputs.malformed("velocity"))
+            return
         clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
         refusal = self.inputs.velocity(ns, v, clock_ns)
         if refusal is not None:
@@ -345,7 +350,11 @@ class AgentNode(Node):
     def _on_pose(self, j: str, codec: conversions.StampedCodec, topic: str, data: bytes) -> None:
         if not self._watch.accept(topic, self._subs[topic]):
             return
-        ns, values = codec.decode(data)
+        try:
+            ns, values = codec.decode(data)
+        except struct.error:
+            self._refuse(0, self.inputs.malformed(f"relative pose of {j}"))
+            return
         clock_ns = self._clock.now().nanoseconds if self._use_sim_time else 0
         refusal = self.inputs.pose(j, ns, values, clock_ns)
         if refusal is not None:
@@ -359,7 +368,7 @@ class AgentNode(Node):
         n = self.inputs.counts[refusal.kind]
         if n & (n - 1) == 0:  # the 1st, 2nd, 4th, 8th, … of each kind: every kind shows, the log stays small
             self.get_logger().error(f"refused ({refusal.kind}, {n} so far): {refusal.reason}")
-        if refusal.kind in STAMP_KINDS:  # names no step to answer: dropped
+        if refusal.kind in DROPPED_KINDS:  # names no step to answer: dropped
             w = self.sync.window
             w.level, w.message, w.faults = ERROR, f"refused: {refusal.reason}", w.faults + 1
             return
@@ -493,8 +502,6 @@ def main(args: list[str] | None = None) -> int:
         return 0
     if not _cli_sets(argv, "use_sim_time"):
         argv += ["--ros-args", "-p", "use_sim_time:=true"]
-    if "best-effort" in argv or "measurement_qos:=best_effort" in argv:
-        argv = [a.replace("measurement_qos:=best_effort", "measurement_qos:=best-effort") for a in argv]
     rclpy.init(args=argv)
     node = None
     try:

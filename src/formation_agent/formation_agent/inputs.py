@@ -10,6 +10,7 @@ when it cannot be a measurement:
   a command of 1e8 N·m);
 - the translation is longer than the agent's sensing radius by more than
   :data:`SENSING_SLACK` (relative): the neighbour could not have been sensed there;
+- its bytes do not decode as the message type (``malformed``: anyone may publish raw bytes);
 - its stamp leads the agent's /clock by more than :data:`MAX_LEAD_NS` (a stamp from the future
   would be taken as the newest step, and every real step after it as a clock jump back), or
   trails it by more than the measurement timeout. The lead allowed is generous because /clock
@@ -36,15 +37,16 @@ SENSING_SLACK = 0.1
 #: a stamp more than this ahead of /clock (ns of sim time) is from the future.
 MAX_LEAD_NS = 1_000_000_000
 
-NON_FINITE, BAD_QUATERNION, OUT_OF_RANGE, FUTURE_STAMP, OLD_STAMP = (
+NON_FINITE, BAD_QUATERNION, OUT_OF_RANGE, FUTURE_STAMP, OLD_STAMP, MALFORMED = (
     "non_finite",
     "bad_quaternion",
     "out_of_range",
     "future_stamp",
     "old_stamp",
+    "malformed",
 )
 #: kinds that name no step to answer: the message is dropped
-STAMP_KINDS = frozenset({FUTURE_STAMP, OLD_STAMP})
+DROPPED_KINDS = frozenset({FUTURE_STAMP, OLD_STAMP, MALFORMED})
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,12 @@ class InputCheck:
                 Refusal(OUT_OF_RANGE, f"{what}: {dist:.4g} m is beyond the sensing radius {self.sensing_radius:g} m")
             )
         return self._count(self._stamp(what, ns, clock_ns))
+
+    def malformed(self, what: str) -> Refusal:
+        """Bytes that do not decode as the topic's message type (raw CDR published by anyone)."""
+        refusal = Refusal(MALFORMED, f"{what}: bytes that are not a well-formed message")
+        self.counts[MALFORMED] += 1
+        return refusal
 
     def velocity(self, ns: int, values: Sequence[float], clock_ns: int = 0) -> Refusal | None:
         """Check the 6 doubles of the agent's own body twist."""

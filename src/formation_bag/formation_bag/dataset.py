@@ -15,12 +15,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from formation_bag import messages as m
 from formation_bag.errors import BagFormatError, BagTopicError, OverrideError
 from formation_bag.reader import Bag
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.loader import parse_document, read_document
 from formation_msgs_py.spec import FormationSpec, formation_from_dict
 
 #: custom_data keys the recorder writes
@@ -78,13 +77,8 @@ class RunData:
 def formation_document(bag: Bag, formation: str | Path | None) -> tuple[dict[str, Any], str]:
     """The formation file's YAML document and its name (``--formation`` wins over the bag's copy)."""
     if formation is not None:
-        path = Path(formation)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            msg = f"cannot read formation file {str(path)!r}: {exc.strerror}"
-            raise FormationSpecError("", msg, str(path)) from None
-        name = str(path)
+        document = read_document(formation)  # the one reader of formation files (FILE:LINE:COL errors)
+        name = str(formation)
     else:
         text = bag.custom_data.get(KEY_FORMATION_YAML)
         if not text:
@@ -92,10 +86,8 @@ def formation_document(bag: Bag, formation: str | Path | None) -> tuple[dict[str
                 f"bag {bag.path} carries no formation file (custom_data.{KEY_FORMATION_YAML}); pass --formation FILE"
             )
         name = bag.custom_data.get(KEY_FORMATION_FILE, "formation.yaml")
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise FormationSpecError("", f"{name}: not valid YAML: {exc}") from None
+        document = parse_document(text.encode("utf-8"), name)
+    doc = document.data
     if not isinstance(doc, dict):
         raise FormationSpecError("", f"{name}: a formation file is a mapping at the top level")
     return doc, name

@@ -36,7 +36,7 @@ def measurements(kind: str) -> QoSProfile:
     """QoS of relative poses and velocities: ``reliable`` (default, CONTROL) or ``best-effort``."""
     if kind == "reliable":
         return CONTROL
-    if kind in ("best-effort", "best_effort"):
+    if kind == "best-effort":
         return MEASUREMENTS_BEST_EFFORT
     raise ValueError(f"measurement QoS {kind!r} is not 'reliable' or 'best-effort'")
 

@@ -1,16 +1,20 @@
-"""The formation-file schema: one declaration that validates, fills defaults and documents.
+"""The formation-file schema: one declaration that validates, fills defaults, documents and builds.
 
-Every field has a kind, a default (or ``REQUIRED``) and a description. ``parse`` walks a
-YAML document against the schema and returns plain Python values with defaults filled in;
-it rejects unknown keys and wrong types with a :class:`FormationSpecError` that names the
-field path. ``schema_markdown`` renders the same declaration as the reference table of
-``docs/formation_file.md`` (a test keeps the two in step).
+Every field has a kind, a default (or ``REQUIRED``), a unit and a description.
+:func:`parse_mapping` walks a YAML document against the schema and returns plain Python values
+with defaults filled in; it reports every unknown key (with the nearest valid one) and wrong
+type of a mapping as :class:`FormationSpecError` naming the field path (shortened values).
+:func:`record` makes the frozen dataclass a block builds (``SimulationSpec``,
+``ControllerGains``, ``VelocityFunnel``, ``Dynamics`` in :mod:`formation_msgs_py.spec`), and
+:func:`schema_markdown` renders the reference table of ``docs/formation_file.md`` (a test keeps
+the two in step): no second list of fields anywhere.
 
-Semantic checks (tree, distance bounds, funnels) live in :mod:`formation_msgs_py.spec`.
+Semantic checks (tree, distance bounds, funnels) and the derived objects (``AgentSpec``,
+``EdgeSpec``) live in :mod:`formation_msgs_py.spec`.
 """
-
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import re
@@ -532,6 +536,49 @@ def check_partial(node: Any, fields: tuple[Field, ...], path: str) -> list[Forma
             except FormationSpecError as exc:
                 errors.extend(exc.errors if isinstance(exc, CollectedFormationSpecError) else [exc])
     return errors
+
+
+# --- built objects ----------------------------------------------------------------------------
+
+_KIND_TYPES = {
+    "float": "float",
+    "optional_float": "float | None",
+    "int": "int",
+    "bool": "bool",
+    "str": "str",
+    "enum": "str",
+    "agent_id": "str",
+    "float_or_vec6": "tuple[float, ...]",
+    "auto_or_vec6": "tuple[float, ...] | None",
+}
+
+
+def block(fields: tuple[Field, ...], *names: str) -> tuple[Field, ...]:
+    """The children of the nested mapping ``names`` (e.g. ``block(AGENT_FIELDS, "controller")``)."""
+    for name in names:
+        fields = next(f for f in fields if f.name == name).children
+    return fields
+
+
+def record(
+    name: str, fields: tuple[Field, ...], doc: str, *, module: str, namespace: Mapping[str, Any] | None = None
+) -> type:
+    """The frozen dataclass one block of the file builds: an attribute per field, in declaration order.
+
+    The schema is the one declaration of a block: validation, the reference table and this class
+    come from it (its docstring lists the fields with their units and meaning).
+    """
+    lines = [doc, "", "Attributes (declared in formation_msgs_py.schema):"]
+    lines += [f"    {f.name}{f' [{f.unit}]' if f.unit else ''}: {f.doc}" for f in fields]
+    cls = dataclasses.make_dataclass(
+        name,
+        [(f.name, _KIND_TYPES.get(f.kind, "Any")) for f in fields],
+        frozen=True,
+        namespace=dict(namespace or {}),
+    )
+    cls.__module__ = module  # pickles by name, as a class written there would
+    cls.__doc__ = "\n".join(lines)
+    return cls
 
 
 # --- documentation ----------------------------------------------------------------------------

@@ -23,7 +23,17 @@ import numpy as np
 from formation_msgs_py import funnels
 from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
 from formation_msgs_py.loader import locate, read_document, split_path
-from formation_msgs_py.schema import TOP_FIELDS, check_partial, parse_mapping, short, unknown_key
+from formation_msgs_py.schema import (
+    AGENT_FIELDS,
+    SIMULATION_FIELDS,
+    TOP_FIELDS,
+    block,
+    check_partial,
+    parse_mapping,
+    record,
+    short,
+    unknown_key,
+)
 from formation_msgs_py.so3 import (
     is_rotation,
     matrix_from_axis_angle,
@@ -36,33 +46,26 @@ from formation_msgs_py.so3 import (
 #: R_2(0) is 0.37 off (NOTES.md); a reflection (det −1) or a zero matrix has no nearest rotation
 #: worth taking.
 PROJECT_TOLERANCE = 0.5
+_SIGNALS = ("disturbance", "velocity_noise")
 
 # --- result objects ---------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class VelocityFunnel:
-    """ρ_v per channel [vx, vy, vz, wx, wy, wz]; ``rho_0 is None`` means auto."""
-
-    rho_0: tuple[float, ...] | None
-    auto_scale: float
-    auto_offset: float
-    rho_inf: tuple[float, ...]
-    decay: tuple[float, ...]
-
-
-@dataclass(frozen=True)
-class ControllerGains:
-    """What agent i knows of itself (paper: δ_i, γ_i, ρ_v,i)."""
-
-    delta: float
-    gamma: float
-    velocity_funnel: VelocityFunnel
-    saturation_margin: float
-    #: norm limits of the commanded force (N) and torque (N·m): never above the actuators'
-    max_force: float
-    max_torque: float
-    measurement_timeout: float
+# The blocks that the file declares field for field are built as records of the schema (one
+# declaration: schema.py); AgentSpec and EdgeSpec below hold what is derived from them.
+VelocityFunnel = record(
+    "VelocityFunnel",
+    block(AGENT_FIELDS, "controller", "velocity_funnel"),
+    "ρ_v per channel [vx, vy, vz, wx, wy, wz]; ``rho_0 is None`` means auto.",
+    module=__name__,
+)
+ControllerGains = record(
+    "ControllerGains",
+    block(AGENT_FIELDS, "controller"),
+    "What agent i knows of itself (paper: δ_i, γ_i, ρ_v,i); max_force / max_torque resolved (N, N·m; "
+    "never above the actuators').",
+    module=__name__,
+)
 
 
 @dataclass(frozen=True)
@@ -73,17 +76,13 @@ class SignalModel:
     params: Mapping[str, Any]
 
 
-@dataclass(frozen=True)
-class Dynamics:
-    """True plant of one agent (simulator only). Inertia in the body frame, kg·m²."""
-
-    mass: float
-    inertia: np.ndarray
-    #: actuator limits: the plant saturates the force (N) and torque (N·m) norms to them
-    max_force: float
-    max_torque: float
-    disturbance: SignalModel
-    velocity_noise: SignalModel
+Dynamics = record(
+    "Dynamics",
+    block(AGENT_FIELDS, "dynamics"),
+    "True plant of one agent (simulator only): inertia a 3×3 array (body frame, kg·m²), disturbance and "
+    "velocity_noise SignalModels.",
+    module=__name__,
+)
 
 
 @dataclass(frozen=True)
@@ -141,11 +140,11 @@ class EdgeSpec:
 
     def rho_e(self, t):
         """Normalised distance performance function ρ_e(t)."""
-        return funnels.rho_e(t, self.c_col, self.c_con, self.rho_e_inf, self.decay_e)
+        return funnels.rho(t, 1.0, funnels.rho_e_floor(self.c_col, self.c_con, self.rho_e_inf), self.decay_e)
 
     def rho_psi(self, t):
         """Orientation performance function ρ_ψ(t)."""
-        return funnels.exp_decay(self.rho_psi_0, self.rho_psi_inf, self.decay_psi, t)
+        return funnels.rho(t, self.rho_psi_0, self.rho_psi_inf, self.decay_psi)
 
     def e_bounds(self, t):
         """(lower, upper) bounds of e_k(t) in m²."""
@@ -153,25 +152,17 @@ class EdgeSpec:
         return -self.c_col * r, self.c_con * r
 
 
-@dataclass(frozen=True)
-class SimulationSpec:
-    mode: str
-    duration: float
-    physics_rate: float
-    control_rate: float
-    controller: str
-    record_rate: float
-    seed: int
-    gravity: np.ndarray
-    spanning_tree: bool
-    rate_check: str
-    step_timeout: float
-    command_timeout: float
-
-    @property
-    def substeps(self) -> int:
-        """Integrator steps per control period."""
-        return round(self.physics_rate / self.control_rate)
+SimulationSpec = record(
+    "SimulationSpec",
+    SIMULATION_FIELDS,
+    "Run settings (gravity a numpy 3-vector).",
+    module=__name__,
+    namespace={
+        "substeps": property(
+            lambda self: round(self.physics_rate / self.control_rate), doc="Integrator steps per control period."
+        )
+    },
+)
 
 
 @dataclass(frozen=True)
@@ -569,15 +560,12 @@ def _make_agent(index: int, a: Mapping[str, Any], path: str) -> AgentSpec:
         else:
             limits[key] = c[key]
     gains = ControllerGains(
-        delta=c["delta"],
-        gamma=c["gamma"],
-        velocity_funnel=VelocityFunnel(
-            rho_0, vf["auto_scale"], vf["auto_offset"], tuple(vf["rho_inf"]), tuple(vf["decay"])
-        ),
-        saturation_margin=c["saturation_margin"],
-        max_force=limits["max_force"],
-        max_torque=limits["max_torque"],
-        measurement_timeout=c["measurement_timeout"],
+        **{
+            **c,
+            "velocity_funnel": VelocityFunnel(**{**vf, "rho_0": rho_0}),
+            "max_force": limits["max_force"],
+            "max_torque": limits["max_torque"],
+        }
     )
     J = np.array(d["inertia"], dtype=np.float64)
     if not np.allclose(J, J.T, atol=1e-12):
@@ -589,16 +577,8 @@ def _make_agent(index: int, a: Mapping[str, Any], path: str) -> AgentSpec:
             f"{J.tolist()} is not positive definite (eigenvalues {eig.round(6).tolist()})",
             d["inertia"],
         )
-    dyn = Dynamics(
-        mass=d["mass"],
-        inertia=J,
-        max_force=d["max_force"],
-        max_torque=d["max_torque"],
-        disturbance=SignalModel(d["disturbance"]["model"], {k: v for k, v in d["disturbance"].items() if k != "model"}),
-        velocity_noise=SignalModel(
-            d["velocity_noise"]["model"], {k: v for k, v in d["velocity_noise"].items() if k != "model"}
-        ),
-    )
+    signals = {k: SignalModel(d[k]["model"], {p: v for p, v in d[k].items() if p != "model"}) for k in _SIGNALS}
+    dyn = Dynamics(**{**d, "inertia": J, **signals})
     return AgentSpec(
         index=index,
         id=a["id"],

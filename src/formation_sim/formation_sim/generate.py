@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation
 
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import formation_from_dict
@@ -25,6 +24,8 @@ from formation_msgs_py.spec import formation_from_dict
 def _random_rotation(rng: np.random.Generator, max_angle: float) -> list[list[float]]:
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
+    from scipy.spatial.transform import Rotation  # ~0.4 s to import: not for --help
+
     return Rotation.from_rotvec(axis * rng.uniform(0, max_angle)).as_matrix().round(12).tolist()
 
 

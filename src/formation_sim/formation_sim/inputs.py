@@ -7,13 +7,18 @@ sim time) from agent i is refused, counted per agent and kind, and never integra
 - its force or torque norm exceeds the agent's actuator limits, ``dynamics.max_force`` /
   ``max_torque``, by more than rounding (``over_limit``: a healthy controller scales its wrench
   to at most these limits);
+- its bytes do not decode as a WrenchStamped (``malformed``);
 - its stamp is no step of the run, i.e. not k / control_rate for an integer k (``unknown_step``),
   is later than the newest published step (``future_step``: once, a wrench stamped 2³¹−1 s was
   held for the rest of a run), or, in lockstep, is earlier than the current step (``past_step``:
   that step has been integrated already).
 
-A refused value for the current step counts as that agent's answer with a zero wrench (a lockstep
-run goes on; the fault is in the report); a refused stamp is no answer at all.
+A refused value for a step not yet answered counts as that agent's answer with a zero wrench (a
+lockstep run goes on; the fault is in the report); for a step already answered it changes
+nothing; a refused stamp is no answer at all.
+
+A plant state that is no longer finite (:func:`advance_checked`) ends the run as INCOMPLETE with
+the agents named; it is never recorded, so no NaN reaches summary.json.
 """
 
 from __future__ import annotations
@@ -21,18 +26,20 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-NON_FINITE, OVER_LIMIT, UNKNOWN_STEP, FUTURE_STEP, PAST_STEP = (
+NON_FINITE, OVER_LIMIT, UNKNOWN_STEP, FUTURE_STEP, PAST_STEP, MALFORMED = (
     "non_finite",
     "over_limit",
     "unknown_step",
     "future_step",
     "past_step",
+    "malformed",
 )
-#: refusals of the stamp: the wrench answers no step
-STAMP_KINDS = frozenset({UNKNOWN_STEP, FUTURE_STEP, PAST_STEP})
+#: refusals of the stamp (or of bytes that are no message): the wrench answers no step
+DROPPED_KINDS = frozenset({UNKNOWN_STEP, FUTURE_STEP, PAST_STEP, MALFORMED})
 #: relative rounding allowed above a limit (a controller scaling to the limit lands within 1e-15)
 LIMIT_ROUNDING = 1e-9
 _NS = 1_000_000_000
@@ -89,12 +96,19 @@ class WrenchCheck:
                 )
         if kind is None:
             return None
+        return self._log(i, kind, reason or "", current_ns)
+
+    def malformed(self, i: int, current_ns: int) -> str:
+        """Bytes on agent i's wrench topic that do not decode as a WrenchStamped (raw CDR from anyone)."""
+        return self._log(i, MALFORMED, "bytes that are not a well-formed WrenchStamped", current_ns)
+
+    def _log(self, i: int, kind: str, reason: str, current_ns: int) -> str:
         entry = self.log.setdefault((self.agent_ids[i], kind), RefusalLog())
         t_now = current_ns / _NS
         entry.count += 1
         entry.first_t = t_now if entry.count == 1 else entry.first_t
         entry.last_t = t_now
-        entry.reason = reason or ""
+        entry.reason = reason
         return kind
 
     def report(self) -> dict[str, dict[str, dict[str, object]]]:
@@ -108,6 +122,20 @@ class WrenchCheck:
                 "reason": e.reason,
             }
         return out
+
+
+def advance_checked(sim: Any, u: Any) -> str:
+    """``sim.advance(u)`` (a :class:`formation_sim.simulation.Simulation`); "" when the new plant
+    state is finite, else why the run cannot go on, naming the agents (never raises on overflow)."""
+    ids = sim.agent_ids
+    try:
+        sim.advance(u)
+    except (ValueError, OverflowError, FloatingPointError, ZeroDivisionError) as exc:
+        speed = np.abs(sim.state.v).max(axis=1)
+        worst = ids[int(np.argmax(speed))]
+        return f"t={sim.t:.6f} s: integration failed ({exc}); fastest agent {worst} (|v| up to {speed.max():.3g})"
+    bad = non_finite_agents(ids, sim.state.p, sim.state.R, sim.state.v)
+    return f"t={sim.t:.6f} s: non-finite plant state of agent(s) {', '.join(bad)}" if bad else ""
 
 
 def non_finite_agents(agent_ids: Sequence[str], p: np.ndarray, R: np.ndarray, v: np.ndarray) -> list[str]:

@@ -26,6 +26,7 @@ or settings, 3 an agent missing (discovery or step timeout), 130 interrupted.
 
 from __future__ import annotations
 
+import struct
 import sys
 import time
 from pathlib import Path
@@ -124,15 +125,18 @@ class SimNode(Node):
         if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
             return
         self.received += 1
-        ns, u = self.wrench_codecs[i].decode(data)
-        refused = self.wrench_check.check(i, ns, u, self.current_ns)
+        try:
+            ns, u = self.wrench_codecs[i].decode(data)
+            refused = self.wrench_check.check(i, ns, u, self.current_ns)
+        except struct.error:
+            refused = self.wrench_check.malformed(i, self.current_ns)
         if refused is not None:
             if (self.ids[i], refused) not in self._refusals_printed:
                 self._refusals_printed.add((self.ids[i], refused))
                 reason = self.wrench_check.log[(self.ids[i], refused)].reason
                 print(f"formation-sim: agent {self.ids[i]}: wrench refused ({refused}): {reason}", flush=True)
-            if refused in inputs.STAMP_KINDS:
-                return  # answers no step
+            if refused in inputs.DROPPED_KINDS or ns == self.u_ns[i]:
+                return  # answers no step, or the step has its answer already: nothing changes
             u = (0.0,) * 6  # a refused value answers its step with zero: never integrated
         if ns < self.u_ns[i]:
             return  # out of date (a re-sent step answered twice)
@@ -277,17 +281,9 @@ class Runner:
             self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.u_val))
 
     def advance(self, u: np.ndarray) -> bool:
-        """Integrate one control period; False (and a recorded fault) if the state blew up."""
-        sim = self.sim
-        try:
-            sim.advance(u)
-        except (ValueError, OverflowError, FloatingPointError, ZeroDivisionError) as exc:
-            self.recorder.fault(sim.t, "plant", "all", f"integration failed: {exc}")
-            print(f"formation-sim: plant integration failed at t={sim.t:.4f} s: {exc}", flush=True)
-            return False
-        bad = inputs.non_finite_agents(self.spec.agent_ids, sim.state.p, sim.state.R, sim.state.v)
-        if bad:
-            self.incomplete_reason = f"t={sim.t:.6f} s: non-finite plant state of agent(s) {', '.join(bad)}"
+        """Integrate one control period; False (run INCOMPLETE, agents named) if the state blew up."""
+        self.incomplete_reason = inputs.advance_checked(self.sim, u)
+        if self.incomplete_reason:
             print(f"formation-sim: ERROR: {self.incomplete_reason}: run stopped", flush=True)
             return False
         return True

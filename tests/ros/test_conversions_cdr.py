@@ -61,7 +61,7 @@ def test_ground_truth_bytes_deserialize_in_rclpy() -> None:
     rng = np.random.default_rng(2)
     for n in (0, 1, 5, 50):
         p = rng.normal(size=(n, 3)).tolist()
-        R = exp_so3(rng.normal(size=(n, 3))).tolist() if n else []
+        R = [exp_so3(theta).tolist() for theta in rng.normal(size=(n, 3))]
         msg = deserialize_message(cv.ground_truth_bytes(12_345_678_901, p, R), PoseArray)
         assert cv.stamp_ns(msg.header.stamp) == 12_345_678_901
         assert msg.header.frame_id == "world"

@@ -19,7 +19,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "formation-agent = formation_agent.agent_node:main",
+            "formation-agent = formation_agent.process:main",
         ],
     },
 )

@@ -20,6 +20,8 @@ setup(
         "scipy",
         "PyYAML",
         "pillow",
+        "numba",
+        "distributed",
     ],
     extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
@@ -34,6 +36,7 @@ setup(
             "formation-sim = formation_sim.sim_node:main",
             "formation-launch = formation_sim.launch:main",
             "formation-generate = formation_sim.generate:main",
+            "formation-campaign = formation_sim.campaign:main",
         ],
     },
 )

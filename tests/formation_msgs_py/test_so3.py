@@ -15,12 +15,27 @@ def random_rotations(n: int) -> np.ndarray:
     return Rotation.random(n, random_state=7).as_matrix()
 
 
-def test_hat_vee_round_trip_and_cross() -> None:
-    """hat(w) x equals w × x and vee inverts hat."""
+def exp_rows(theta: np.ndarray) -> np.ndarray:
+    """exp_so3 of every row of (n, 3) rotation vectors."""
+    return np.array([so3.exp_so3(row) for row in theta])
+
+
+def test_small_products_and_vee() -> None:
+    """cross3, matvec3, matTvec3, matmul3_into, matTmul3_into equal numpy's to rounding; vee inverts S(w)."""
     w, x = RNG.normal(size=(2, 50, 3))
-    np.testing.assert_allclose(so3.hat(w) @ x[..., None], np.cross(w, x)[..., None], atol=1e-14)
-    np.testing.assert_allclose(so3.vee(so3.hat(w)), w, atol=0)
-    np.testing.assert_allclose(so3.cross(w, x), np.cross(w, x), atol=1e-14)
+    A, B = RNG.normal(size=(2, 50, 3, 3))
+    for k in range(50):
+        np.testing.assert_allclose(so3.cross3(w[k], x[k]), np.cross(w[k], x[k]), atol=1e-14)
+        np.testing.assert_allclose(so3.matvec3(A[k], x[k]), A[k] @ x[k], atol=1e-14)
+        np.testing.assert_allclose(so3.matTvec3(A[k], x[k]), A[k].T @ x[k], atol=1e-14)
+        out = np.empty((3, 3))
+        so3.matmul3_into(A[k], B[k], out)
+        np.testing.assert_allclose(out, A[k] @ B[k], atol=1e-14)
+        so3.matTmul3_into(A[k], B[k], out)
+        np.testing.assert_allclose(out, A[k].T @ B[k], atol=1e-14)
+        S = np.cross(np.eye(3), -w[k]).T  # S(w): column j is w × e_j
+        np.testing.assert_allclose(S @ x[k], np.cross(w[k], x[k]), atol=1e-14)
+        np.testing.assert_allclose(so3.vee(S), w[k], atol=0)
 
 
 @pytest.mark.parametrize("scale", [1e-12, 1e-6, 1e-3, 1.0, np.pi - 1e-9])
@@ -28,8 +43,8 @@ def test_exp_matches_scipy(scale: float) -> None:
     """exp_so3 agrees with scipy to rounding, from tiny angles to near π."""
     axes = RNG.normal(size=(20, 3))
     theta = axes / np.linalg.norm(axes, axis=1, keepdims=True) * scale
-    np.testing.assert_allclose(so3.exp_so3(theta), Rotation.from_rotvec(theta).as_matrix(), atol=2e-15)
-    assert so3.orthonormality_error(so3.exp_so3(theta)) < 1e-14
+    np.testing.assert_allclose(exp_rows(theta), Rotation.from_rotvec(theta).as_matrix(), atol=2e-15)
+    assert so3.orthonormality_error(exp_rows(theta)) < 1e-14
 
 
 def test_log_exp_round_trip_near_pi() -> None:
@@ -38,7 +53,7 @@ def test_log_exp_round_trip_near_pi() -> None:
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     for angle in (1e-10, 0.3, 3.0, np.pi - 1e-9):
         theta = axes * angle
-        back = np.array([so3.log_so3(R) for R in so3.exp_so3(theta)])
+        back = np.array([so3.log_so3(R) for R in exp_rows(theta)])
         np.testing.assert_allclose(back, theta, atol=1e-7 if angle > 3.1 else 1e-12)
 
 
@@ -46,12 +61,14 @@ def test_dexpinv_is_the_rate_of_the_exponential_coordinates() -> None:
     """exp(Θ + h·dexpinv(Θ, ω)) = exp(Θ)·exp(hω) + O(h²): the RKMK chart is right-trivialised."""
     theta, omega = RNG.normal(size=(2, 30, 3))
     for h in (1e-4, 1e-5):
-        lhs = so3.exp_so3(theta + h * so3.dexpinv_so3(theta, omega))
-        rhs = so3.exp_so3(theta) @ so3.exp_so3(h * omega)
+        rates = np.array([so3.dexpinv_so3(a, b) for a, b in zip(theta, omega)])
+        lhs = exp_rows(theta + h * rates)
+        rhs = exp_rows(theta) @ exp_rows(h * omega)
         # second-order remainder: error / h² stays bounded (tolerance 10 h²)
         assert np.abs(lhs - rhs).max() < 10 * h * h
     tiny = theta * 1e-9
-    np.testing.assert_allclose(so3.dexpinv_so3(tiny, omega), omega + 0.5 * np.cross(tiny, omega), atol=1e-15)
+    rates = np.array([so3.dexpinv_so3(a, b) for a, b in zip(tiny, omega)])
+    np.testing.assert_allclose(rates, omega + 0.5 * np.cross(tiny, omega), atol=1e-15)
 
 
 def test_quaternion_round_trip_all_branches() -> None:

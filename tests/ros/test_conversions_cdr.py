@@ -35,7 +35,7 @@ def test_relative_pose_round_trip_through_rclpy() -> None:
     for obs, tgt in (("1", "2"), ("10", "3"), ("abc", "defgh")):
         codec = cv.relative_pose_codec(obs, tgt)
         p = rng.normal(size=3).tolist()
-        R = exp_so3(rng.normal(size=(1, 3)))[0].tolist()
+        R = exp_so3(rng.normal(size=3)).tolist()
         data = codec.encode(5_000_100, cv.relative_pose_values(p, R))
         msg = deserialize_message(data, TransformStamped)
         ref = cv.relative_pose_to_msg(0.0050001, obs, tgt, p, R)

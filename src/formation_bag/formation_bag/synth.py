@@ -5,8 +5,9 @@ control step k (t_k = k / control_rate) writes, in this order, what the ROS 2 lo
 publishes: ``/clock``, ``/formation/ground_truth``, every relative pose, every velocity
 (all stamped t_k), then every agent's wrench stamped t_k. Each agent's controller computes
 from the *decoded* messages (quaternion -> matrix as the agent node does), so the recorded
-wrenches are what an agent node would publish. Log times are synthetic: ``wall_step`` seconds
-per step from ``start_ns``, ``message_spacing`` apart within a step.
+wrenches are what an agent node would publish; the agents are stepped by
+:class:`formation_sim.team.AgentTeam`, with the fault policy of every other run. Log times are
+synthetic: ``wall_step`` seconds per step from ``start_ns``, ``message_spacing`` apart within a step.
 
 :func:`write_run_bag` returns the run's own summary (a RunRecorder filled as run_headless fills
 it), which ``formation-analyze`` must reproduce from the bag.
@@ -21,14 +22,14 @@ from typing import Any
 
 import numpy as np
 
-from formation_agent.controller import ERROR, AgentController, MissingMeasurementError
 from formation_bag import messages as m
 from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py import topics
-from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
+from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.report import RunRecorder
-from formation_sim.simulation import Simulation
+from formation_sim.simulation import Measurements, Simulation
+from formation_sim.team import AgentTeam
 
 
 @dataclass
@@ -55,7 +56,7 @@ def write_run_bag(
     """Run ``spec`` (sampled control, lockstep) and record every docs/topics.md message in ``bag``."""
     sim_spec = spec.simulation
     sim = Simulation(simulator_view(spec))
-    ctrls = [AgentController(agent_view(spec, a.id)) for a in spec.agents]
+    team = AgentTeam(spec)
     ids = [a.id for a in spec.agents]
     n_steps = round(sim_spec.duration * sim_spec.control_rate) if steps is None else steps
     record_every = max(1, round(sim_spec.control_rate / sim_spec.record_rate))
@@ -109,20 +110,11 @@ def write_run_bag(
                 put(m.absolute(topics.velocity(a)), data)
                 vels.append(m.decode_twist(m.deserialize(data, m.TWIST_STAMPED)))
             t = m.seconds(stamp)
-            outs = []
-            for idx, (a, c) in enumerate(zip(ids, ctrls)):
-                try:
-                    out = c.compute(t, received[a], vels[idx])
-                except MissingMeasurementError as exc:
-                    out = c.fault_output(t, str(exc))
-                    recorder.fault(t, "measurement", a, ",".join(exc.neighbours))
-                outs.append(out)
+            u, margin_v, outs = team.evaluate(Measurements(t, k, received, np.array(vels)), recorder)
+            for a, out in zip(ids, outs):
                 put(m.absolute(topics.wrench(a)), enc.wrench(stamp, a, out.wrench))
-            u = np.array([o.wrench for o in outs])
-            recorder.add(t, s.p, s.R, s.v, u, np.array([o.margin_v for o in outs]))
-            if any(o.level == ERROR for o in outs) and recorder.first_violation is None:
-                bad = next(o for o in outs if o.level == ERROR)
-                recorder.fault(t, "controller", ids[outs.index(bad)], bad.message)
+            recorder.add(t, s.p, s.R, s.v, u, margin_v)
+            team.note_errors(t, outs, recorder)
             if k == n_steps or (stop_on_violation and recorder.first_violation is not None):
                 break
             sim.advance(u)

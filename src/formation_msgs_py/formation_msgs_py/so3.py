@@ -1,11 +1,12 @@
 """SO(3) helpers for the controller, the plant and the formation files.
 
-Conventions: ``hat(w) @ x == cross(w, x)``; ``vee`` is its inverse on skew matrices;
-rotation vectors are axis * angle in radians; quaternions are (x, y, z, w), scalar last,
-the order of geometry_msgs and of scipy's default; :func:`quaternion_from_matrix` and
+Conventions: ``vee`` gives the 3-vector of a skew matrix (S(w) x = w × x); rotation vectors
+are axis * angle in radians; quaternions are (x, y, z, w), scalar last, the order of
+geometry_msgs and of scipy's default; :func:`quaternion_from_matrix` and
 :func:`matrix_from_quaternion` are the only quaternion conversions of the project (pure
-Python: they run per message). The plant's functions (``exp_so3``, ``dexpinv_so3``, ``cross``)
-are vectorised numpy; parsing uses scipy's ``Rotation``.
+Python: they run per message). The maps of the controller, the plant and the measurement
+model (``exp_so3``, ``dexpinv_so3`` and 3×3 products) are compiled kernels on one 3-vector or
+3×3 matrix; parsing uses scipy's ``Rotation``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from formation_msgs_py.compiled import kernel
 from formation_msgs_py.errors import RotationError
 
 FloatArray = NDArray[np.float64]
@@ -23,68 +25,131 @@ FloatArray = NDArray[np.float64]
 ROTATION_TOLERANCE = 1e-6
 
 
-def hat(w: ArrayLike) -> FloatArray:
-    """Skew matrix S(w) of a 3-vector (or a stack (..., 3) -> (..., 3, 3))."""
-    w = np.asarray(w, dtype=np.float64)
-    S = np.zeros((*w.shape[:-1], 3, 3))
-    S[..., 0, 1] = -w[..., 2]
-    S[..., 0, 2] = w[..., 1]
-    S[..., 1, 0] = w[..., 2]
-    S[..., 1, 2] = -w[..., 0]
-    S[..., 2, 0] = -w[..., 1]
-    S[..., 2, 1] = w[..., 0]
-    return S
-
-
 def vee(S: ArrayLike) -> FloatArray:
     """S⁻¹: the 3-vector of a skew matrix (or a stack)."""
     S = np.asarray(S, dtype=np.float64)
     return np.stack([S[..., 2, 1], S[..., 0, 2], S[..., 1, 0]], axis=-1)
 
 
-def vee_antisym(A: FloatArray) -> FloatArray:
-    """S⁻¹(A − Aᵀ) for a 3×3 matrix A (not necessarily skew)."""
-    return np.array([A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]])
+# --- compiled 3-vector / 3×3 kernels: vectors as tuples (x, y, z), no heap allocation -------
 
 
-#: Levi-Civita tensor: cross(a, b)_i = EPS[i, j, k] a_j b_k, and hat(w)_ij = −EPS[i, j, k] w_k.
-EPS = np.zeros((3, 3, 3))
-EPS[0, 1, 2] = EPS[1, 2, 0] = EPS[2, 0, 1] = 1.0
-EPS[0, 2, 1] = EPS[2, 1, 0] = EPS[1, 0, 2] = -1.0
-_HAT = -np.transpose(EPS, (2, 0, 1)).copy()  # hat(w) = einsum("kij,...k->...ij", _HAT, w)
+@kernel
+def add3(a, b):
+    """a + b."""
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
 
-def cross(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Row-wise cross product of stacks (..., 3); one einsum, far cheaper than np.cross."""
-    return np.einsum("ijk,...j,...k->...i", EPS, a, b)
+@kernel
+def sub3(a, b):
+    """a − b."""
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-def exp_so3(theta: ArrayLike) -> FloatArray:
-    """exp(S(θ)) by Rodrigues' formula, for θ of shape (..., 3); exact to rounding near 0.
+@kernel
+def scale3(s, a):
+    """s·a."""
+    return (s * a[0], s * a[1], s * a[2])
 
-    R = cos θ·I + (sin θ/θ)·S(θ) + ((1 − cos θ)/θ²)·θθᵀ.
+
+@kernel
+def cross3(a, b):
+    """a × b."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@kernel
+def matvec3(A, x):
+    """A x for a 3×3 array A."""
+    return (
+        A[0, 0] * x[0] + A[0, 1] * x[1] + A[0, 2] * x[2],
+        A[1, 0] * x[0] + A[1, 1] * x[1] + A[1, 2] * x[2],
+        A[2, 0] * x[0] + A[2, 1] * x[1] + A[2, 2] * x[2],
+    )
+
+
+@kernel
+def matTvec3(A, x):
+    """Aᵀ x for a 3×3 array A."""
+    return (
+        A[0, 0] * x[0] + A[1, 0] * x[1] + A[2, 0] * x[2],
+        A[0, 1] * x[0] + A[1, 1] * x[1] + A[2, 1] * x[2],
+        A[0, 2] * x[0] + A[1, 2] * x[1] + A[2, 2] * x[2],
+    )
+
+
+@kernel
+def matmul3_into(A, B, out):
+    """out = A B for 3×3 A and B (arrays, or B as rows of tuples); out must not alias A or B."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0][j] + A[i, 1] * B[1][j] + A[i, 2] * B[2][j]
+
+
+@kernel
+def matTmul3_into(A, B, out):
+    """out = Aᵀ B for 3×3 arrays; out must not alias A or B."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
+
+
+@kernel
+def exp_rows(theta):
+    """exp(S(θ)) of a rotation vector θ [rad] as three row tuples, by Rodrigues' formula.
+
+    R = cos θ·I + (sin θ/θ)·S(θ) + ((1 − cos θ)/θ²)·θθᵀ, by its series near 0.
     """
-    theta = np.asarray(theta, dtype=np.float64)
-    angle2 = np.einsum("...i,...i->...", theta, theta)
-    if np.min(angle2, initial=1.0) < 1e-8:
-        # Taylor series near 0, where the closed forms lose digits.
-        small = angle2 < 1e-8
-        safe2 = np.where(small, 1.0, angle2)
-        safe = np.sqrt(safe2)
-        a = np.where(small, 1.0 - angle2 / 6.0 + angle2 * angle2 / 120.0, np.sin(safe) / safe)
-        b = np.where(small, 0.5 - angle2 / 24.0 + angle2 * angle2 / 720.0, (1.0 - np.cos(safe)) / safe2)
-        c = np.where(small, 1.0 - angle2 / 2.0 + angle2 * angle2 / 24.0, np.cos(safe))
+    tx, ty, tz = theta[0], theta[1], theta[2]
+    a2 = tx * tx + ty * ty + tz * tz
+    if a2 < 1e-8:  # the closed forms lose digits near 0
+        A = 1.0 - a2 / 6.0 + a2 * a2 / 120.0
+        B = 0.5 - a2 / 24.0 + a2 * a2 / 720.0
+        C = 1.0 - a2 / 2.0 + a2 * a2 / 24.0
     else:
-        angle = np.sqrt(angle2)
-        a = np.sin(angle) / angle
-        c = np.cos(angle)
-        b = (1.0 - c) / angle2
-    R = np.einsum("...,...i,...j->...ij", b, theta, theta)
-    R += np.einsum("kij,...k->...ij", _HAT, a[..., None] * theta)
-    R[..., 0, 0] += c
-    R[..., 1, 1] += c
-    R[..., 2, 2] += c
-    return R
+        a = np.sqrt(a2)
+        A = np.sin(a) / a
+        C = np.cos(a)
+        B = (1.0 - C) / a2
+    return (
+        (C + B * tx * tx, B * tx * ty - A * tz, B * tx * tz + A * ty),
+        (B * ty * tx + A * tz, C + B * ty * ty, B * ty * tz - A * tx),
+        (B * tz * tx - A * ty, B * tz * ty + A * tx, C + B * tz * tz),
+    )
+
+
+@kernel
+def exp_so3(theta):
+    """exp(S(θ)) (3,3) of a rotation vector θ (3,) [rad]."""
+    out = np.empty((3, 3))
+    rows = exp_rows(theta)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = rows[i][j]
+    return out
+
+
+@kernel
+def dexpinv(theta, omega):
+    """Θ̇ such that R0·exp(S(Θ)) moves with body rate ω: Θ̇ = dexp⁻¹_{−Θ}(ω) (RKMK chart).
+
+    dexp⁻¹_{−Θ}(ω) = ω + ½ Θ×ω + c·Θ×(Θ×ω), c = (1 − (θ/2)cot(θ/2))/θ² (series near 0).
+    """
+    a2 = theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2]
+    if a2 < 1e-6:
+        c = 1.0 / 12.0 + a2 / 720.0
+    else:
+        half = 0.5 * np.sqrt(a2)
+        c = (1.0 - half / np.tan(half)) / a2
+    txw = cross3(theta, omega)
+    return add3(add3(omega, scale3(0.5, txw)), scale3(c, cross3(theta, txw)))
+
+
+@kernel
+def dexpinv_so3(theta, omega):
+    """:func:`dexpinv` as a (3,) array."""
+    x = dexpinv(theta, omega)
+    return np.array([x[0], x[1], x[2]])
 
 
 def log_so3(R: ArrayLike) -> FloatArray:
@@ -92,25 +157,6 @@ def log_so3(R: ArrayLike) -> FloatArray:
     from scipy.spatial.transform import Rotation  # scipy takes ~0.4 s to import: only when used
 
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
-
-
-def dexpinv_so3(theta: FloatArray, omega: FloatArray) -> FloatArray:
-    """Θ̇ such that R0·exp(S(Θ)) moves with body rate ω: Θ̇ = dexp⁻¹_{−Θ}(ω).
-
-    Exact closed form, vectorised over a leading axis; used by the RKMK integrator.
-    """
-    angle2 = np.einsum("...i,...i->...", theta, theta)
-    if np.min(angle2, initial=1.0) < 1e-6:
-        small = angle2 < 1e-6
-        safe2 = np.where(small, 1.0, angle2)
-        half = 0.5 * np.sqrt(safe2)
-        # c = (1 − (θ/2) cot(θ/2)) / θ², series 1/12 + θ²/720 near 0
-        c = np.where(small, 1.0 / 12.0 + angle2 / 720.0, (1.0 - half / np.tan(half)) / safe2)
-    else:
-        half = 0.5 * np.sqrt(angle2)
-        c = (1.0 - half / np.tan(half)) / angle2
-    txw = cross(theta, omega)
-    return omega + 0.5 * txw + c[..., None] * cross(theta, txw)
 
 
 def is_rotation(R: ArrayLike, tol: float = ROTATION_TOLERANCE) -> bool:

@@ -140,11 +140,11 @@ class EdgeSpec:
 
     def rho_e(self, t):
         """Normalised distance performance function ρ_e(t)."""
-        return funnels.rho_e(t, self.c_col, self.c_con, self.rho_e_inf, self.decay_e)
+        return funnels.rho(t, 1.0, funnels.rho_e_floor(self.c_col, self.c_con, self.rho_e_inf), self.decay_e)
 
     def rho_psi(self, t):
         """Orientation performance function ρ_ψ(t)."""
-        return funnels.exp_decay(self.rho_psi_0, self.rho_psi_inf, self.decay_psi, t)
+        return funnels.rho(t, self.rho_psi_0, self.rho_psi_inf, self.decay_psi)
 
     def e_bounds(self, t):
         """(lower, upper) bounds of e_k(t) in m²."""

@@ -162,7 +162,7 @@ def velocity_errors(spec: FormationSpec, arrays: dict[str, np.ndarray]) -> tuple
             R_i = R[s, i]
             rel = {j: (R_i.T @ (p[s, n] - p[s, i]), R_i.T @ R[s, n]) for j, n in zip(ctrl.view.neighbours, others)}
             out = ctrl.compute(float(t[s]), rel, v[s, i])
-            rho = funnels.exp_decay(np.array(ctrl.rho_v0), np.array(vf.rho_inf), np.array(vf.decay), t[s] - ctrl.t0)
+            rho = funnels.rho(t[s] - ctrl.t0, np.array(ctrl.rho_v0), np.array(vf.rho_inf), np.array(vf.decay))
             rho_v[s, i] = rho
             e_v[s, i] = np.array(out.xi_v) * rho
     return e_v, rho_v

@@ -9,27 +9,18 @@ evaluates them at every integrator stage, as the paper's continuous-time law ass
 from __future__ import annotations
 
 import sys
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser
 from formation_msgs_py.outcome import ExitCode
-from formation_msgs_py.spec import FormationSpec, simulator_view
-from formation_sim.inputs import advance_checked
-from formation_sim.plant import PlantState
+from formation_msgs_py.spec import FormationSpec
+from formation_sim.loop import ProgressFn, run_closed_loop
 from formation_sim.preflight import preflight
 from formation_sim.report import RunRecorder, format_summary, report_animation, write_outputs
-from formation_sim.simulation import Measurements, Simulation
-from formation_sim.team import AgentTeam
-
-ProgressFn = Callable[[float, float, float], None]
 
 
 @dataclass
@@ -50,35 +41,11 @@ def run_headless(
     if mode not in ("sampled", "continuous"):
         raise ValueError(f"controller mode {mode!r} is not sampled or continuous")
     sim_spec = spec.simulation
-    sim = Simulation(simulator_view(spec))
-    team = AgentTeam(spec)
-    n_steps = round(sim_spec.duration * sim_spec.control_rate)
     record_every = max(1, round(sim_spec.control_rate / sim_spec.record_rate))
     recorder = RunRecorder(spec, record_every=record_every, mode=f"headless-{mode}", control_rate=sim_spec.control_rate)
-    started = time.perf_counter()
-    last_report = started
-
-    def stage_wrench(t: float, state: PlantState) -> np.ndarray:
-        meas = Measurements(t, -1, sim.sensors.measure(state.p, state.R), sim.plant.measured_velocity(t, state))
-        return team.evaluate(meas, None)[0]
-
-    incomplete = ""
-    for k in range(n_steps + 1):
-        meas = sim.sense()
-        u, margin_v, outputs = team.evaluate(meas, recorder)
-        s = sim.state
-        recorder.add(meas.t, s.p, s.R, s.v, u, margin_v)
-        team.note_errors(meas.t, outputs, recorder)
-        if k == n_steps or (stop_on_violation and recorder.first_violation is not None):
-            break
-        incomplete = advance_checked(sim, stage_wrench if mode == "continuous" else u)
-        if incomplete:  # the run stops; the non-finite state is never recorded
-            break
-        now = time.perf_counter()
-        if progress is not None and now - last_report > 1.0:
-            progress(sim.t, sim.t / (now - started), recorder.worst_margin())
-            last_report = now
-    wall = time.perf_counter() - started
+    wall, incomplete = run_closed_loop(
+        spec, recorder, continuous=mode == "continuous", stop_on_violation=stop_on_violation, progress=progress
+    )
     extra: dict[str, Any] = {"controller": mode, "physics_rate": sim_spec.physics_rate}
     if incomplete:
         extra["incomplete_reason"] = incomplete

@@ -99,8 +99,8 @@ class FormationScene:
         e = np.sum(d * d, axis=-1) - self.d_des**2
         A = R[self.head] @ self.R_des
         psi = 0.5 * (3.0 - np.sum(A * R[self.tail], axis=(-2, -1)))
-        rho_e = funnels.exp_decay(1.0, self._floor_e, self._decay_e, t)
-        rho_psi = funnels.exp_decay(self._psi[:, 0], self._psi[:, 1], self._psi[:, 2], t)
+        rho_e = funnels.rho(t, 1.0, self._floor_e, self._decay_e)
+        rho_psi = funnels.rho(t, self._psi[:, 0], self._psi[:, 1], self._psi[:, 2])
         return {
             "e": e,
             "e_lower": -self.c_col * rho_e,

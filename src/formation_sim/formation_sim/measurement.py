@@ -8,71 +8,111 @@ i's sensing radius::
 
 optionally with seeded Gaussian noise (position_std [m] per axis; rotation_std [rad], a
 rotation vector applied on the right) of the receiving agent.
+
+Measurements are indexed by *edge end* (agent i's view of one of its edges, grouped by agent in
+the order of ``agent_view(spec, i).edges``), the order the controller kernels read. The noise is
+drawn per *link*, two per edge in file order (tail observes head, then head observes tail), for
+every link at every measurement whether in range or not, so the stream does not depend on range.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from formation_msgs_py.so3 import exp_so3
+from formation_msgs_py.compiled import kernel
+from formation_msgs_py.so3 import exp_rows, matmul3_into, matTmul3_into, matTvec3
 from formation_msgs_py.spec import SimulatorView
 
-#: {agent_id: {neighbour_id: (p_i_j_in_i [3], R_i_j [3][3])}} as Python lists
+#: {agent_id: {neighbour_id: (p_i_j_in_i (3,), R_i_j (3,3))}}
 RelativePoses = dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]
 
 
-@dataclass(frozen=True)
-class Link:
-    """Directed sensing link: observer i measures target j."""
+class Sensing(NamedTuple):
+    """Per edge end: who observes whom, the link whose noise it takes, range and noise constants."""
 
-    observer: int
-    target: int
-    observer_id: str
-    target_id: str
-    sensing_radius: float
-    position_std: float
-    rotation_std: float
+    observer: np.ndarray  # (n_ends,) agent index
+    target: np.ndarray  # (n_ends,) agent index
+    link: np.ndarray  # (n_ends,) row of the noise draws: 2·edge + (0 tail, 1 head)
+    radius2: np.ndarray  # sensing radius² of the observer [m²]
+    position_std: np.ndarray  # [m]
+    rotation_std: np.ndarray  # [rad]
+
+
+def sensing(view: SimulatorView) -> Sensing:
+    """The edge ends of ``view``'s formation in the controllers' order."""
+    index = {a.id: a.index for a in view.agents}
+    rows = []
+    for a in view.agents:
+        for e in view.edges:  # the order of agent_view(spec, a).edges
+            if a.id in (e.tail, e.head):
+                link, neighbour = (2 * e.index, e.head) if e.tail == a.id else (2 * e.index + 1, e.tail)
+                noise = (a.position_noise_std, a.rotation_noise_std)
+                rows.append((a.index, index[neighbour], link, a.sensing_radius**2, *noise))
+    cols = list(zip(*rows))
+    return Sensing(
+        np.array(cols[0], dtype=np.int64),
+        np.array(cols[1], dtype=np.int64),
+        np.array(cols[2], dtype=np.int64),
+        np.array(cols[3], dtype=np.float64),
+        np.array(cols[4], dtype=np.float64),
+        np.array(cols[5], dtype=np.float64),
+    )
+
+
+@kernel
+def relative_poses(p, R, sens, noise, p_rel, R_rel, in_range):
+    """Fill p_rel (n_ends,3), R_rel (n_ends,3,3), in_range (n_ends,) from world poses p (N,3), R (N,3,3).
+
+    ``noise`` is (2, n_links, 3) standard normal draws (position, rotation) or empty (no noise).
+    """
+    noisy = noise.shape[0] > 0
+    for k in range(sens.observer.shape[0]):
+        i, j = sens.observer[k], sens.target[k]
+        d_world = (p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2])
+        in_range[k] = d_world[0] ** 2 + d_world[1] ** 2 + d_world[2] ** 2 <= sens.radius2[k]
+        p_i_j_in_i = matTvec3(R[i], d_world)
+        for x in range(3):
+            p_rel[k, x] = p_i_j_in_i[x]
+        matTmul3_into(R[i], R[j], R_rel[k])
+        if noisy:
+            lk = sens.link[k]
+            for x in range(3):
+                p_rel[k, x] += noise[0, lk, x] * sens.position_std[k]
+            R_clean = R_rel[k].copy()
+            matmul3_into(R_clean, exp_rows(noise[1, lk] * sens.rotation_std[k]), R_rel[k])
 
 
 class MeasurementModel:
     """Relative-pose measurements along the tree, in both directions of every edge."""
 
     def __init__(self, view: SimulatorView, rng: np.random.Generator) -> None:
-        index = {a.id: a.index for a in view.agents}
-        links = []
-        for e in view.edges:
-            for obs, tgt in ((e.tail, e.head), (e.head, e.tail)):
-                a = view.agents[index[obs]]
-                links.append(
-                    Link(index[obs], index[tgt], obs, tgt, a.sensing_radius, a.position_noise_std, a.rotation_noise_std)
-                )
-        self.links = tuple(links)
+        self.sensing = sensing(view)
         self.agent_ids = tuple(a.id for a in view.agents)
-        self._obs = np.array([lk.observer for lk in links])
-        self._tgt = np.array([lk.target for lk in links])
-        self._radius = np.array([lk.sensing_radius for lk in links])
-        self._pos_std = np.array([lk.position_std for lk in links])
-        self._rot_std = np.array([lk.rotation_std for lk in links])
-        self._noisy = bool(np.any(self._pos_std > 0) or np.any(self._rot_std > 0))
+        self.n_links = 2 * len(view.edges)
+        self.noisy = bool(np.any(self.sensing.position_std > 0) or np.any(self.sensing.rotation_std > 0))
         self.rng = rng
+        n = len(self.sensing.observer)
+        self.p_rel = np.zeros((n, 3))
+        self.R_rel = np.zeros((n, 3, 3))
+        self.in_range = np.zeros(n, dtype=np.bool_)
+
+    def draw_noise(self, count: int) -> np.ndarray:
+        """The noise of ``count`` measurements (count, 2, n_links, 3), in the stream's order."""
+        if not self.noisy:
+            return np.zeros((count, 0, 0, 3))
+        return self.rng.standard_normal((count, 2, self.n_links, 3))
 
     def measure(self, p: np.ndarray, R: np.ndarray) -> RelativePoses:
         """Relative poses every agent receives now, from world poses p (N,3), R (N,3,3)."""
-        Ri_T = np.swapaxes(R[self._obs], 1, 2)
-        d_world = p[self._tgt] - p[self._obs]
-        p_rel = np.einsum("lij,lj->li", Ri_T, d_world)
-        R_rel = Ri_T @ R[self._tgt]
-        in_range = np.einsum("li,li->l", d_world, d_world) <= self._radius**2
-        if self._noisy:
-            # Drawn for every link, in a fixed order, so the stream does not depend on range.
-            p_rel = p_rel + self.rng.standard_normal(p_rel.shape) * self._pos_std[:, None]
-            R_rel = R_rel @ exp_so3(self.rng.standard_normal(p_rel.shape) * self._rot_std[:, None])
+        relative_poses(p, R, self.sensing, self.draw_noise(1)[0], self.p_rel, self.R_rel, self.in_range)
         out: RelativePoses = {aid: {} for aid in self.agent_ids}
-        # Python lists: what the controller reads fastest (and what messages carry).
-        p_list, R_list, ok = p_rel.tolist(), R_rel.tolist(), in_range.tolist()
-        for k, lk in enumerate(self.links):
-            if ok[k]:
-                out[lk.observer_id][lk.target_id] = (p_list[k], R_list[k])
+        s = self.sensing
+        for k in range(len(s.observer)):
+            if self.in_range[k]:
+                out[self.agent_ids[s.observer[k]]][self.agent_ids[s.target[k]]] = (
+                    self.p_rel[k].copy(),
+                    self.R_rel[k].copy(),
+                )
         return out

@@ -1,4 +1,4 @@
-"""Newton-Euler plant of N rigid bodies and its structure-preserving integrator.
+"""Newton-Euler plant of N rigid bodies and its structure-preserving integrator (compiled kernels).
 
 Per agent, in the body frame (paper eq. system)::
 
@@ -6,33 +6,28 @@ Per agent, in the body frame (paper eq. system)::
     M = diag(m I₃, J),  C(v) v = [m ω×v_L ; ω×Jω],  g(x) = −[m Rᵀ g_world ; 0]
 
 The actuators saturate: each agent's force and torque norms are scaled down to its
-``dynamics.max_force`` / ``max_torque`` before they enter the dynamics (:meth:`Plant.saturate`).
+``dynamics.max_force`` / ``max_torque`` before they enter the dynamics (:func:`saturate_into`).
 
 Integration is RKMK4 (Runge-Kutta-Munthe-Kaas, order 4): R is advanced as R₀·exp(S(Θ)) with
 Θ̇ = dexp⁻¹_{−Θ}(ω), so it stays in SO(3) to rounding; p and v take the classical RK4 weights
-with the same stages. Units: m, s, kg, kg·m², N, N·m; p in the world frame, v and u in the
-body frame.
-
-The step is written with Python floats, agent by agent: for 3-vectors numpy's per-call
-overhead costs several times the arithmetic, and the simulator runs this at up to 20 kHz. The
-public state (:class:`PlantState`) stays numpy.
+with the same stages (:func:`rkmk4_stage`, :func:`chart_rates`, :func:`rkmk4_combine`:
+:func:`rkmk4_step` with the wrench held, the run core with the controller evaluated at every
+stage). The kernels work in place on preallocated arrays (:class:`Workspace`): no allocation per
+step. Units: m, s, kg,
+kg·m², N, N·m; p in the world frame, v and u in the body frame.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
+from formation_msgs_py.compiled import kernel
+from formation_msgs_py.so3 import cross3, dexpinv, exp_rows, matmul3_into, matTvec3, matvec3, sub3
 from formation_msgs_py.spec import SimulatorView
-from formation_sim.signals import SignalBank
-
-#: u(t, state) for a controller evaluated at every integrator stage.
-WrenchFunction = Callable[[float, "PlantState"], np.ndarray]
-
-_sin, _cos, _sqrt, _tan = math.sin, math.cos, math.sqrt, math.tan
+from formation_sim.signals import NONE, SignalParams, l1_norm, signal_params, signal_value, signals_at, signals_into
 
 
 @dataclass
@@ -47,78 +42,175 @@ class PlantState:
         return PlantState(self.p.copy(), self.R.copy(), self.v.copy())
 
 
-def _exp(tx: float, ty: float, tz: float) -> tuple[float, ...]:
-    """exp(S(θ)) row-major: cos·I + (sin θ/θ)·S(θ) + ((1 − cos)/θ²)·θθᵀ (series near 0)."""
-    a2 = tx * tx + ty * ty + tz * tz
-    if a2 < 1e-8:
-        A = 1.0 - a2 / 6.0 + a2 * a2 / 120.0
-        B = 0.5 - a2 / 24.0 + a2 * a2 / 720.0
-        C = 1.0 - a2 / 2.0 + a2 * a2 / 24.0
-    else:
-        a = _sqrt(a2)
-        A = _sin(a) / a
-        C = _cos(a)
-        B = (1.0 - C) / a2
-    return (
-        C + B * tx * tx, B * tx * ty - A * tz, B * tx * tz + A * ty,
-        B * ty * tx + A * tz, C + B * ty * ty, B * ty * tz - A * tx,
-        B * tz * tx - A * ty, B * tz * ty + A * tx, C + B * tz * tz,
-    )  # fmt: skip
+class PlantParams(NamedTuple):
+    """The true dynamics (what only the simulator knows), arrays over agents."""
+
+    mass: np.ndarray  # (N,) [kg]
+    inertia: np.ndarray  # (N, 3, 3) [kg·m²]
+    inertia_inv: np.ndarray  # (N, 3, 3)
+    gravity: np.ndarray  # (3,) world frame [m/s²]
+    max_force: np.ndarray  # (N,) actuator limit on ‖force‖ [N]
+    max_torque: np.ndarray  # (N,) actuator limit on ‖torque‖ [N·m]
+    disturbance: SignalParams
+    noise: SignalParams
 
 
-def _dexpinv(tx: float, ty: float, tz: float, wx: float, wy: float, wz: float) -> tuple[float, float, float]:
-    """dexp⁻¹_{−Θ}(ω) = ω + ½ Θ×ω + c·Θ×(Θ×ω), c = (1 − (θ/2)cot(θ/2))/θ²."""
-    a2 = tx * tx + ty * ty + tz * tz
-    if a2 < 1e-6:
-        c = 1.0 / 12.0 + a2 / 720.0
-    else:
-        half = 0.5 * _sqrt(a2)
-        c = (1.0 - half / _tan(half)) / a2
-    cx, cy, cz = ty * wz - tz * wy, tz * wx - tx * wz, tx * wy - ty * wx
-    return (
-        wx + 0.5 * cx + c * (ty * cz - tz * cy),
-        wy + 0.5 * cy + c * (tz * cx - tx * cz),
-        wz + 0.5 * cz + c * (tx * cy - ty * cx),
+class Workspace(NamedTuple):
+    """Scratch arrays of one RKMK4 step: the applied wrench and the four stages' rates and states."""
+
+    u: np.ndarray  # (N, 6) the saturated wrench
+    p_dot: np.ndarray  # (4, N, 3)
+    v_dot: np.ndarray  # (4, N, 6)
+    theta_dot: np.ndarray  # (4, N, 3)
+    p: np.ndarray  # (N, 3) the current stage's state
+    R: np.ndarray  # (N, 3, 3)
+    v: np.ndarray  # (N, 6)
+    theta: np.ndarray  # (N, 3)
+
+
+def new_workspace(n: int) -> Workspace:
+    return Workspace(
+        np.zeros((n, 6)),
+        np.zeros((4, n, 3)),
+        np.zeros((4, n, 6)),
+        np.zeros((4, n, 3)),
+        np.zeros((n, 3)),
+        np.zeros((n, 3, 3)),
+        np.zeros((n, 6)),
+        np.zeros((n, 3)),
     )
 
 
-def _rot(R0: list[list[float]], E: tuple[float, ...]) -> tuple[float, ...]:
-    """R0 @ E for R0 nested rows and E row-major (9 floats)."""
-    (a, b, c), (d, e, f), (g, h, i) = R0
-    e0, e1, e2, e3, e4, e5, e6, e7, e8 = E
-    return (
-        a * e0 + b * e3 + c * e6, a * e1 + b * e4 + c * e7, a * e2 + b * e5 + c * e8,
-        d * e0 + e * e3 + f * e6, d * e1 + e * e4 + f * e7, d * e2 + e * e5 + f * e8,
-        g * e0 + h * e3 + i * e6, g * e1 + h * e4 + i * e7, g * e2 + h * e5 + i * e8,
-    )  # fmt: skip
+@kernel
+def saturate_into(u, plant, out):
+    """out (N,6) = the wrenches the actuators apply: force and torque norms at most their limits.
+
+    Directions are kept; a wrench within the limits is copied unchanged (bit for bit).
+    """
+    out[:] = u
+    for i in range(u.shape[0]):
+        for lo, limit in ((0, plant.max_force[i]), (3, plant.max_torque[i])):
+            norm2 = u[i, lo] ** 2 + u[i, lo + 1] ** 2 + u[i, lo + 2] ** 2
+            if norm2 > limit * limit:
+                scale = limit / np.sqrt(norm2)
+                for c in range(lo, lo + 3):
+                    out[i, c] = scale * u[i, c]
+
+
+@kernel
+def body_rates(t, p, R, v, u, plant, p_dot, v_dot):
+    """Fill ṗ = R v_L (N,3) and v̇ = M⁻¹(u − C(v)v − g(x) − w(x, v, t)) (N,6) (eq. system)."""
+    ref_first = l1_norm(p, 0)
+    for i in range(p.shape[0]):
+        force = (u[i, 0], u[i, 1], u[i, 2])
+        torque = (u[i, 3], u[i, 4], u[i, 5])
+        if plant.disturbance.kind[i] != NONE:
+            trace = R[i, 0, 0] + R[i, 1, 1] + R[i, 2, 2]
+            w = signal_value(plant.disturbance, i, t, ref_first, l1_norm(p, i), trace, v[i])
+            force = (force[0] - w[0], force[1] - w[1], force[2] - w[2])
+            torque = (torque[0] - w[3], torque[1] - w[4], torque[2] - w[5])
+        lin = (v[i, 0], v[i, 1], v[i, 2])
+        ang = (v[i, 3], v[i, 4], v[i, 5])
+        velocity_world = matvec3(R[i], lin)
+        # m v̇_L = f − m ω×v_L + m Rᵀ g_world
+        spin = cross3(ang, lin)
+        gravity_body = matTvec3(R[i], plant.gravity)
+        # J ω̇ = τ − ω×Jω
+        alpha = matvec3(plant.inertia_inv[i], sub3(torque, cross3(ang, matvec3(plant.inertia[i], ang))))
+        for c in range(3):
+            p_dot[i, c] = velocity_world[c]
+            v_dot[i, c] = force[c] / plant.mass[i] - spin[c] + gravity_body[c]
+            v_dot[i, 3 + c] = alpha[c]
+
+
+@kernel
+def rkmk4_stage(c, p0, R0, v0, k, work):
+    """The next stage's state at offset c [s] from stage k's rates, into ``work``.
+
+    Θ = c·Θ̇_k, p = p₀ + c·ṗ_k, R = R₀ exp(S(Θ)), v = v₀ + c·v̇_k.
+    """
+    for i in range(p0.shape[0]):
+        for x in range(3):
+            work.theta[i, x] = c * work.theta_dot[k, i, x]
+            work.p[i, x] = p0[i, x] + c * work.p_dot[k, i, x]
+        matmul3_into(R0[i], exp_rows(work.theta[i]), work.R[i])
+        for x in range(6):
+            work.v[i, x] = v0[i, x] + c * work.v_dot[k, i, x]
+
+
+@kernel
+def chart_rates(k, work):
+    """Θ̇_k = dexp⁻¹_{−Θ}(ω) of every agent at the current stage."""
+    for i in range(work.theta.shape[0]):
+        rate = dexpinv(work.theta[i], (work.v[i, 3], work.v[i, 4], work.v[i, 5]))
+        for x in range(3):
+            work.theta_dot[k, i, x] = rate[x]
+
+
+@kernel
+def rkmk4_combine(h, p, R, v, work):
+    """Advance (p, R, v) in place from the four stages' rates (classical weights 1, 2, 2, 1)."""
+    w6 = h / 6.0
+    pd, vd, td = work.p_dot, work.v_dot, work.theta_dot
+    for i in range(p.shape[0]):
+        for x in range(3):
+            p[i, x] = p[i, x] + w6 * (pd[0, i, x] + 2 * pd[1, i, x] + 2 * pd[2, i, x] + pd[3, i, x])
+            work.theta[i, x] = w6 * (td[0, i, x] + 2 * td[1, i, x] + 2 * td[2, i, x] + td[3, i, x])
+        for x in range(6):
+            v[i, x] = v[i, x] + w6 * (vd[0, i, x] + 2 * vd[1, i, x] + 2 * vd[2, i, x] + vd[3, i, x])
+        matmul3_into(R[i], exp_rows(work.theta[i]), work.R[i])
+        R[i] = work.R[i]
+
+
+@kernel
+def rkmk4_step(t, p, R, v, u, h, plant, work):
+    """One RKMK4 step of length h [s] with the commanded wrench u (N,6) held: (p, R, v) advance in place."""
+    half = 0.5 * h
+    saturate_into(u, plant, work.u)
+    body_rates(t, p, R, v, work.u, plant, work.p_dot[0], work.v_dot[0])
+    work.theta_dot[0] = v[:, 3:]
+    for k in range(3):
+        c = h if k == 2 else half
+        rkmk4_stage(c, p, R, v, k, work)
+        body_rates(t + c, work.p, work.R, work.v, work.u, plant, work.p_dot[k + 1], work.v_dot[k + 1])
+        chart_rates(k + 1, work)
+    rkmk4_combine(h, p, R, v, work)
+
+
+@kernel
+def measured_velocity_into(t, p, R, v, noise, out):
+    """out (N,6) = ṽ = v + n(x, t): the noisy body twists the agents receive."""
+    out[:] = v
+    signals_into(noise, t, p, R, v, out)
 
 
 class Plant:
-    """The true dynamics of every agent of a formation (what only the simulator knows)."""
+    """The true dynamics of every agent of a formation, with its integrator."""
 
     def __init__(self, view: SimulatorView, rng: np.random.Generator | None = None) -> None:
         rng = rng if rng is not None else np.random.default_rng(view.simulation.seed)
         agents = view.agents
         self.n = len(agents)
-        self.mass = np.array([a.dynamics.mass for a in agents])
-        self.inertia = np.array([a.dynamics.inertia for a in agents])
-        self.inertia_inv = np.linalg.inv(self.inertia)
-        self._limits = [(a.dynamics.max_force, a.dynamics.max_torque) for a in agents]
-        self.gravity = np.asarray(view.simulation.gravity, dtype=np.float64)
-        self.has_gravity = bool(np.any(self.gravity != 0))
-        self.disturbance = SignalBank([a.dynamics.disturbance for a in agents], rng)
-        self.noise = SignalBank([a.dynamics.velocity_noise for a in agents], rng)
-        # per agent, as floats: m, J (9), J⁻¹ (9), disturbance evaluator
-        self._agents = [
-            (
-                float(self.mass[i]),
-                tuple(self.inertia[i].ravel().tolist()),
-                tuple(self.inertia_inv[i].ravel().tolist()),
-                self.disturbance.signals[i],
-            )
-            for i in range(self.n)
-        ]
-        self._g = tuple(self.gravity.tolist())
+        inertia = np.array([a.dynamics.inertia for a in agents], dtype=np.float64).reshape(self.n, 3, 3)
+        self.params = PlantParams(
+            np.array([a.dynamics.mass for a in agents], dtype=np.float64),
+            inertia,
+            np.linalg.inv(inertia),
+            np.asarray(view.simulation.gravity, dtype=np.float64),
+            np.array([a.dynamics.max_force for a in agents], dtype=np.float64),
+            np.array([a.dynamics.max_torque for a in agents], dtype=np.float64),
+            signal_params([a.dynamics.disturbance for a in agents], rng),
+            signal_params([a.dynamics.velocity_noise for a in agents], rng),
+        )
+        self._work = new_workspace(self.n)
+
+    @property
+    def mass(self) -> np.ndarray:
+        return self.params.mass
+
+    @property
+    def inertia(self) -> np.ndarray:
+        return self.params.inertia
 
     def initial_state(self, view: SimulatorView) -> PlantState:
         return PlantState(
@@ -127,120 +219,30 @@ class Plant:
             np.array([a.twist for a in view.agents], dtype=np.float64),
         )
 
-    def saturate(self, U: list[list[float]]) -> list[list[float]]:
-        """The wrenches (N rows of 6) the actuators apply: force and torque norms at most their limits."""
-        out = U
-        for i, (max_f, max_t) in enumerate(self._limits):
-            fx, fy, fz, tx, ty, tz = U[i]
-            f2 = fx * fx + fy * fy + fz * fz
-            t2 = tx * tx + ty * ty + tz * tz
-            if f2 > max_f * max_f or t2 > max_t * max_t:
-                if out is U:
-                    out = list(U)
-                kf = max_f / _sqrt(f2) if f2 > max_f * max_f else 1.0
-                kt = max_t / _sqrt(t2) if t2 > max_t * max_t else 1.0
-                out[i] = [kf * fx, kf * fy, kf * fz, kt * tx, kt * ty, kt * tz]
+    def measured_velocity(self, t: float, s: PlantState) -> np.ndarray:
+        """ṽ = v + n(x, t) (N,6)."""
+        out = np.empty_like(s.v)
+        measured_velocity_into(float(t), s.p, s.R, s.v, self.params.noise, out)
         return out
 
-    def measured_velocity(self, t: float, s: PlantState) -> np.ndarray:
-        """ṽ = v + n(x, t): the noisy body twists the agents receive (N,6)."""
-        if not self.noise.active:
-            return s.v.copy()
-        return s.v + self.noise.evaluate(t, s.p, s.R, s.v)
+    def disturbance(self, t: float, s: PlantState) -> np.ndarray:
+        """w(x, v, t) (N,6)."""
+        return signals_at(self.params.disturbance, float(t), s.p, s.R, s.v)
+
+    def saturate(self, u: np.ndarray) -> np.ndarray:
+        """The wrenches (N,6) the actuators apply for the commanded ``u``."""
+        out = np.empty((self.n, 6))
+        saturate_into(np.asarray(u, dtype=np.float64), self.params, out)
+        return out
 
     def acceleration(self, t: float, s: PlantState, u: np.ndarray) -> np.ndarray:
-        """v̇ (N,6) = M⁻¹(u − C(v)v − g(x) − w(x,v,t)), body frame."""
-        P = s.p.tolist()
-        Rf = [r[0] + r[1] + r[2] for r in s.R.tolist()]
-        U = self.saturate(np.asarray(u, dtype=np.float64).tolist())
-        _, acc = self._rates(t, P, Rf, s.v.tolist(), U)
-        return np.array(acc)
+        """v̇ (N,6) = M⁻¹(sat(u) − C(v)v − g(x) − w(x,v,t)), body frame."""
+        p_dot, v_dot = np.empty((self.n, 3)), np.empty((self.n, 6))
+        body_rates(float(t), s.p, s.R, s.v, self.saturate(u), self.params, p_dot, v_dot)
+        return v_dot
 
-    def _rates(
-        self, t: float, P: list[list[float]], Rf: list, V: list[list[float]], U: list[list[float]]
-    ) -> tuple[list[tuple[float, float, float]], list[tuple[float, ...]]]:
-        """(ṗ, v̇) of every agent; Rf holds row-major 9-sequences."""
-        p1 = P[0]
-        ref_first = abs(p1[0]) + abs(p1[1]) + abs(p1[2])
-        gx, gy, gz = self._g
-        gravity = self.has_gravity
-        pdots = []
-        accs = []
-        for i, (m, J, Ji, dist) in enumerate(self._agents):
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = Rf[i]
-            v = V[i]
-            vx, vy, vz, wx, wy, wz = v
-            fx, fy, fz, tx, ty, tz = U[i]
-            if dist is not None:
-                pi = P[i]
-                w = dist(t, ref_first, abs(pi[0]) + abs(pi[1]) + abs(pi[2]), r00 + r11 + r22, v)
-                fx, fy, fz, tx, ty, tz = fx - w[0], fy - w[1], fz - w[2], tx - w[3], ty - w[4], tz - w[5]
-            pdots.append(
-                (r00 * vx + r01 * vy + r02 * vz, r10 * vx + r11 * vy + r12 * vz, r20 * vx + r21 * vy + r22 * vz)
-            )
-            ax = fx / m - (wy * vz - wz * vy)
-            ay = fy / m - (wz * vx - wx * vz)
-            az = fz / m - (wx * vy - wy * vx)
-            if gravity:  # Rᵀ g_world
-                ax += r00 * gx + r10 * gy + r20 * gz
-                ay += r01 * gx + r11 * gy + r21 * gz
-                az += r02 * gx + r12 * gy + r22 * gz
-            j0, j1, j2, j3, j4, j5, j6, j7, j8 = J
-            hx, hy, hz = j0 * wx + j1 * wy + j2 * wz, j3 * wx + j4 * wy + j5 * wz, j6 * wx + j7 * wy + j8 * wz
-            tx -= wy * hz - wz * hy
-            ty -= wz * hx - wx * hz
-            tz -= wx * hy - wy * hx
-            k0, k1, k2, k3, k4, k5, k6, k7, k8 = Ji
-            accs.append(
-                (ax, ay, az, k0 * tx + k1 * ty + k2 * tz, k3 * tx + k4 * ty + k5 * tz, k6 * tx + k7 * ty + k8 * tz)
-            )
-        return pdots, accs
-
-    def step(self, t: float, s: PlantState, u: np.ndarray | WrenchFunction, h: float) -> PlantState:
-        """One RKMK4 step of length h (s). ``u`` is held (N,6) or evaluated per stage."""
-        P0 = s.p.tolist()
-        R0 = s.R.tolist()
-        V0 = s.v.tolist()
-        n = self.n
-        if callable(u):
-
-            def wrench(ts: float, P: list, Rf: list, V: list) -> list:
-                st = PlantState(np.array(P), np.array(Rf).reshape(n, 3, 3), np.array(V))
-                return self.saturate(np.asarray(u(ts, st), dtype=np.float64).tolist())
-        else:
-            U = self.saturate(np.asarray(u, dtype=np.float64).tolist())
-
-            def wrench(ts: float, P: list, Rf: list, V: list) -> list:
-                return U
-
-        Rf0 = [r[0] + r[1] + r[2] for r in R0]
-        p1, a1 = self._rates(t, P0, Rf0, V0, wrench(t, P0, Rf0, V0))
-        K1 = [v[3:] for v in V0]
-
-        def stage(c: float, pd, ac, K):
-            th = [(c * k[0], c * k[1], c * k[2]) for k in K]
-            P = [[p[0] + c * d[0], p[1] + c * d[1], p[2] + c * d[2]] for p, d in zip(P0, pd)]
-            Rs = [_rot(R0[i], _exp(*th[i])) for i in range(n)]
-            V = [[x + c * y for x, y in zip(v, a)] for v, a in zip(V0, ac)]
-            return th, P, Rs, V
-
-        half = 0.5 * h
-        th2, P2, R2, V2 = stage(half, p1, a1, K1)
-        p2, a2 = self._rates(t + half, P2, R2, V2, wrench(t + half, P2, R2, V2))
-        K2 = [_dexpinv(*th2[i], *V2[i][3:]) for i in range(n)]
-        th3, P3, R3, V3 = stage(half, p2, a2, K2)
-        p3, a3 = self._rates(t + half, P3, R3, V3, wrench(t + half, P3, R3, V3))
-        K3 = [_dexpinv(*th3[i], *V3[i][3:]) for i in range(n)]
-        th4, P4, R4, V4 = stage(h, p3, a3, K3)
-        p4, a4 = self._rates(t + h, P4, R4, V4, wrench(t + h, P4, R4, V4))
-        K4 = [_dexpinv(*th4[i], *V4[i][3:]) for i in range(n)]
-        w6 = h / 6.0
-        P_new = []
-        R_new = []
-        V_new = []
-        for i in range(n):
-            P_new.append([P0[i][c] + w6 * (p1[i][c] + 2 * p2[i][c] + 2 * p3[i][c] + p4[i][c]) for c in range(3)])
-            V_new.append([V0[i][c] + w6 * (a1[i][c] + 2 * a2[i][c] + 2 * a3[i][c] + a4[i][c]) for c in range(6)])
-            k1, k2, k3, k4 = K1[i], K2[i], K3[i], K4[i]
-            R_new.append(_rot(R0[i], _exp(*(w6 * (k1[c] + 2 * k2[c] + 2 * k3[c] + k4[c]) for c in range(3)))))
-        return PlantState(np.array(P_new), np.array(R_new).reshape(n, 3, 3), np.array(V_new))
+    def step(self, t: float, s: PlantState, u: np.ndarray, h: float) -> PlantState:
+        """One RKMK4 step of length h (s) with the wrenches u (N,6) held; a new state."""
+        new = s.copy()
+        rkmk4_step(float(t), new.p, new.R, new.v, np.asarray(u, dtype=np.float64), float(h), self.params, self._work)
+        return new

@@ -2,9 +2,9 @@
 
 Near ξ_v = 0 the wrench is u ≈ −4γ ρ_v⁻² e_v per channel, so agent i's velocity loop is
 v̇ ≈ −M⁻¹ K(t) v with K = diag(4γ/ρ_v,ℓ(t)²). A zero-order-hold controller at rate f_s is
-stable only if f_s > λ_max(M⁻¹K(t))/2. ρ_v decreases, so the need grows over the run and is
-largest at the end. ``auto`` velocity funnels are evaluated as the agent will: from e_v(0),
-computed with the agent core on the initial measurements.
+stable only if f_s > λ_max(M⁻¹K(t))/2 (:func:`rate_need`). ρ_v decreases, so the need grows over
+the run and is largest at the end. ``auto`` velocity funnels are evaluated as the agent will:
+from e_v(0), computed by the agents' controllers on the initial measurements.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from formation_agent.controller import AgentController
 from formation_msgs_py import funnels
-from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
+from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.simulation import Simulation
+from formation_sim.team import AgentTeam
 
 
 @dataclass(frozen=True)
@@ -31,35 +31,50 @@ class RateNeed:
     insufficient_from: float | None
 
 
-def _need(M_inv: np.ndarray, gamma: float, rho: np.ndarray) -> float:
-    K = np.diag(4.0 * gamma / rho**2)
-    return float(np.max(np.abs(np.linalg.eigvals(M_inv @ K)))) / 2.0
+def rate_need(M: np.ndarray, gamma: float, rho_v: np.ndarray) -> np.ndarray:
+    """f_s [Hz] = λ_max(M⁻¹ diag(4γ/ρ_v²))/2 for a (6,6) inertia matrix M and ρ_v of shape (..., 6)."""
+    rho_v = np.asarray(rho_v, dtype=np.float64)
+    with np.errstate(over="ignore"):  # a huge e_v(0) gives a huge ρ_v0: its need is 0, not a warning
+        K = 4.0 * gamma / rho_v**2
+    A = np.linalg.inv(M) * K[..., None, :]  # M⁻¹ diag(K): column ℓ scaled by K_ℓ
+    return np.max(np.abs(np.linalg.eigvals(A)), axis=-1) / 2.0
+
+
+def mass_matrix(mass: float, inertia: np.ndarray) -> np.ndarray:
+    """M = diag(m I₃, J) (6,6)."""
+    M = np.zeros((6, 6))
+    M[:3, :3] = np.eye(3) * mass
+    M[3:, 3:] = inertia
+    return M
+
+
+def initial_rho_v0(spec: FormationSpec) -> np.ndarray:
+    """ρ_v0 (N,6) as every agent sets it at its first step, on the initial measurements.
+
+    An agent that misses a neighbour at t = 0 answers the fault wrench and sets no funnel then;
+    its ``auto`` funnel is taken as the offset alone (e_v(0) = 0).
+    """
+    sim = Simulation(simulator_view(spec))
+    team = AgentTeam(spec)
+    team.evaluate(sim.sense(), None)
+    rho_v0 = team.start.rho_v0.copy()
+    for i, a in enumerate(spec.agents):
+        if np.isnan(rho_v0[i, 0]):
+            vf = a.controller.velocity_funnel
+            rho_v0[i] = vf.auto_offset if vf.rho_0 is None else vf.rho_0
+    return rho_v0
 
 
 def rate_needs(spec: FormationSpec) -> list[RateNeed]:
     """The control rate every agent of ``spec`` needs over ``simulation.duration``."""
-    sim = Simulation(simulator_view(spec))
-    meas = sim.sense()
     T = spec.simulation.duration
     f_s = spec.simulation.control_rate
     grid = np.linspace(0.0, T, 401)
     out = []
-    for i, a in enumerate(spec.agents):
-        ctrl = AgentController(agent_view(spec, a.id))
-        try:
-            ctrl.compute(0.0, meas.relative_poses[a.id], meas.velocities[i])
-            rho_v0 = np.array(ctrl.rho_v0)
-        except Exception:
-            rho_v0 = np.full(6, a.controller.velocity_funnel.auto_offset)
+    for a, rho_v0 in zip(spec.agents, initial_rho_v0(spec)):
         vf = a.controller.velocity_funnel
-        M = np.zeros((6, 6))
-        M[:3, :3] = np.eye(3) * a.dynamics.mass
-        M[3:, 3:] = a.dynamics.inertia
-        M_inv = np.linalg.inv(M)
-        rho = funnels.exp_decay(
-            rho_v0[None, :], np.array(vf.rho_inf)[None, :], np.array(vf.decay)[None, :], grid[:, None]
-        )
-        needs = np.array([_need(M_inv, a.controller.gamma, r) for r in rho])
+        rho = funnels.rho(grid[:, None], rho_v0[None, :], np.array(vf.rho_inf)[None, :], np.array(vf.decay)[None, :])
+        needs = rate_need(mass_matrix(a.dynamics.mass, np.asarray(a.dynamics.inertia)), a.controller.gamma, rho)
         over = np.nonzero(needs > f_s)[0]
         out.append(RateNeed(a.id, needs[0], float(needs.max()), rho_v0, float(grid[over[0]]) if over.size else None))
     return out

@@ -59,8 +59,8 @@ class EdgeErrors:
         """(ρ_e, ρ_ψ) of every edge at t: (K,) or (T,K)."""
         t = np.asarray(t, dtype=np.float64)[..., None]
         return (
-            funnels.exp_decay(1.0, self._floor_e, self._decay_e, t),
-            funnels.exp_decay(self._rho_psi_0, self._rho_psi_inf, self._decay_psi, t),
+            funnels.rho(t, 1.0, self._floor_e, self._decay_e),
+            funnels.rho(t, self._rho_psi_0, self._rho_psi_inf, self._decay_psi),
         )
 
     def steady_band(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -167,6 +167,69 @@ class RunRecorder:
         self.samples += 1
         self.t_last = t
         return e, psi
+
+    def add_many(
+        self,
+        t: np.ndarray,
+        p: np.ndarray,
+        R: np.ndarray,
+        v: np.ndarray,
+        u: np.ndarray,
+        margin_v: np.ndarray,
+        *,
+        stop_at_violation: bool = False,
+    ) -> int:
+        """:meth:`add` of T consecutive samples at once (arrays with a leading axis T); returns how many.
+
+        The same checks in the same order, vectorised over the samples (the run core's path).
+        With ``stop_at_violation`` the samples after the first violation are not added.
+        """
+        e, psi = self.edges.errors(p, R)
+        rho_e, rho_psi = self.edges.rho(t)
+        xi_e = e / rho_e
+        m_e = funnels.margin_e(xi_e, self.edges.c_col, self.edges.c_con)
+        m_psi = funnels.margin_psi(psi / rho_psi)
+        mv = margin_v.min(axis=2)
+        n = len(t)
+        if self.first_violation is None:
+            bad = np.flatnonzero((m_e.min(axis=1) <= 0) | (m_psi.min(axis=1) <= 0) | (mv.min(axis=1) <= 0))
+            if bad.size:
+                j = int(bad[0])
+                if m_e[j].min() <= 0 or m_psi[j].min() <= 0:
+                    k = int(np.argmin(np.minimum(m_e[j], m_psi[j])))
+                    if m_e[j, k] <= m_psi[j, k]:
+                        channel = "collision" if xi_e[j, k] < 0 else "connectivity"
+                        self.first_violation = Violation(float(t[j]), "distance", self.edges.names[k], channel)
+                    else:
+                        self.first_violation = Violation(float(t[j]), "orientation", self.edges.names[k], "psi")
+                else:
+                    i = int(np.argmin(mv[j]))
+                    ch = VELOCITY_CHANNELS[int(np.argmin(margin_v[j, i]))]
+                    self.first_violation = Violation(float(t[j]), "velocity", self.spec.agents[i].id, ch)
+                if stop_at_violation:
+                    n = j + 1
+        np.minimum(self.min_margin_e, m_e[:n].min(axis=0), out=self.min_margin_e)
+        np.minimum(self.min_margin_psi, m_psi[:n].min(axis=0), out=self.min_margin_psi)
+        np.minimum(self.min_margin_v, mv[:n].min(axis=0), out=self.min_margin_v)
+        np.maximum(self.peak_force, np.linalg.norm(u[:n, :, :3], axis=2).max(axis=0), out=self.peak_force)
+        np.maximum(self.peak_torque, np.linalg.norm(u[:n, :, 3:], axis=2).max(axis=0), out=self.peak_torque)
+        in_e = (e[:n] >= self.band_lo) & (e[:n] <= self.band_hi)
+        in_psi = psi[:n] <= self.band_psi
+        for settle, inside in ((self._settle_e, in_e), (self._settle_psi, in_psi)):
+            for k in range(inside.shape[1]):
+                out = np.flatnonzero(~inside[:, k])
+                if out.size == 0:
+                    settle[k] = settle[k] if settle[k] is not None else float(t[0])
+                else:
+                    settle[k] = float(t[out[-1] + 1]) if out[-1] + 1 < n else None
+        rows = np.flatnonzero((self.samples + np.arange(n)) % self.record_every == 0)
+        for key, arr in (("t", t), ("p", p), ("R", R), ("v", v), ("u", u), ("e", e), ("psi", psi)):
+            self._rows[key].extend(np.array(arr[rows], dtype=np.float64))
+        self._rows["rho_e"].extend(rho_e[rows])
+        self._rows["rho_psi"].extend(rho_psi[rows])
+        self.samples += n
+        self.t_last = float(t[n - 1])
+        return n
 
     def set_inputs(self, u: np.ndarray) -> None:
         """Wrenches (N,6) applied from the sample added last (which was added with ``u=None``).

@@ -3,7 +3,8 @@ simulator node, so both produce the same trajectory from the same file and seed.
 
 One control period: :meth:`Simulation.sense` gives every agent's measurements at t_k, the
 agents answer with wrenches, :meth:`Simulation.advance` integrates ``substeps`` physics steps
-with the wrenches held (zero-order hold) and moves to t_{k+1}.
+with the wrenches held (zero-order hold) and moves to t_{k+1}. The run core
+(:mod:`formation_sim.loop`) steps the same plant and measurement kernels many steps at a time.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 
 from formation_msgs_py.spec import SimulatorView
 from formation_sim.measurement import MeasurementModel, RelativePoses
-from formation_sim.plant import Plant, PlantState, WrenchFunction
+from formation_sim.plant import Plant, PlantState
 
 
 @dataclass(frozen=True)
@@ -65,8 +66,8 @@ class Simulation:
             self.t, self.step_index, self.sensors.measure(s.p, s.R), self.plant.measured_velocity(self.t, s)
         )
 
-    def advance(self, wrench: np.ndarray | WrenchFunction) -> None:
-        """Integrate one control period with ``wrench`` (N,6) held, or evaluated per stage."""
+    def advance(self, wrench: np.ndarray) -> None:
+        """Integrate one control period with ``wrench`` (N,6) held (zero-order hold)."""
         t0 = self.t
         for i in range(self.substeps):
             self.state = self.plant.step(t0 + i * self.h, self.state, wrench, self.h)

@@ -1,52 +1,113 @@
-"""Every agent's controller core stepped together on one step's measurements (no ROS).
+"""Every agent's controller stepped together on one step's measurements (no ROS), and the fault policy.
 
-The headless runner uses it as the agents; the simulator node uses it as a *shadow* of the
-agents (the same cores on exactly the measurements it published: in lockstep these are what
-the agents answer, so the velocity-funnel margins and faults it records are the agents' own).
-Both record faults the same way, so their summaries agree.
+:func:`team_step` is the one closed-loop control step: the run core (headless runs, campaigns)
+calls it compiled on its measurement arrays; :class:`AgentTeam` calls it on the measurements the
+simulator node published (its *shadow* of the agents: in lockstep these are what the agents
+answer, so the velocity-funnel margins and faults it records are the agents' own) and on the
+decoded messages of a synthesised bag. The fault policy is the same everywhere: an agent missing
+a neighbour's pose answers a zero wrench at ERROR (:func:`fault_wrench`) and is a ``measurement``
+fault (:func:`note_missing`); otherwise the first agent at ERROR (saturated: outside a funnel) is a
+``controller`` fault (:func:`note_errors`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+
 import numpy as np
 
-from formation_agent.controller import ERROR, AgentController, ControlOutput, MissingMeasurementError
+from formation_agent.controller import (
+    ERROR,
+    REASON_MISSING,
+    ControlOutput,
+    agent_step,
+    control_output,
+    fault_wrench,
+    gains,
+    new_funnel_start,
+    new_outputs,
+)
+from formation_msgs_py.compiled import kernel
 from formation_msgs_py.spec import FormationSpec, agent_view
 from formation_sim.report import RunRecorder
 from formation_sim.simulation import Measurements
 
 
+@kernel
+def team_step(t, p_rel, R_rel, in_range, v_measured, agents, ends, start, out):
+    """Every agent's step at t [s] on end-indexed measurements; an agent missing a pose gets the fault wrench."""
+    for i in range(v_measured.shape[0]):
+        lo, hi = agents.first_end[i], agents.first_end[i + 1]
+        if np.all(in_range[lo:hi]):
+            agent_step(t, i, p_rel, R_rel, v_measured[i], agents, ends, start, out)
+        else:
+            fault_wrench(i, lo, hi, REASON_MISSING, out)
+
+
+def note_missing(
+    recorder: RunRecorder, t: float, agent_ids: Sequence[str], missing: Mapping[int, Sequence[str]]
+) -> None:
+    """Agents missing a neighbour's pose ({agent index: neighbour ids}) are ``measurement`` faults.
+
+    Recorded before the step's funnel check (``recorder.add``), so they come first at equal times.
+    """
+    for i, neighbours in missing.items():
+        recorder.fault(t, "measurement", agent_ids[i], ",".join(neighbours))
+
+
+def note_errors(
+    recorder: RunRecorder, t: float, agent_ids: Sequence[str], levels: Sequence[int], messages: Sequence[str]
+) -> None:
+    """The first agent at ERROR (saturated: outside a funnel) is a ``controller`` fault (after the check)."""
+    if recorder.first_violation is None:
+        for aid, level, message in zip(agent_ids, levels, messages):
+            if level == ERROR:
+                recorder.fault(t, "controller", aid, message)
+                return
+
+
 class AgentTeam:
-    """One :class:`AgentController` per agent of ``spec``, in formation-file order."""
+    """Every agent's controller of ``spec``, in formation-file order."""
 
     def __init__(self, spec: FormationSpec) -> None:
         self.ids = spec.agent_ids
-        self.controllers = [AgentController(agent_view(spec, a)) for a in self.ids]
+        views = [agent_view(spec, a) for a in self.ids]
+        self.agents, self.ends = gains(views)
+        self.end_neighbours = [ie.neighbour for v in views for ie in v.edges]
+        self.start = new_funnel_start(len(self.ids))
+        self.out = new_outputs(len(self.ids), len(self.end_neighbours))
+        n = len(self.end_neighbours)
+        self._p = np.zeros((n, 3))
+        self._R = np.tile(np.eye(3), (n, 1, 1))
+        self._in_range = np.zeros(n, dtype=np.bool_)
 
     def evaluate(
         self, meas: Measurements, recorder: RunRecorder | None
     ) -> tuple[np.ndarray, np.ndarray, list[ControlOutput]]:
-        """(u (N,6), margin_v (N,6), outputs) at ``meas.t``.
-
-        A missing neighbour gives that agent a zero wrench (level ERROR) and, with a recorder, a
-        ``measurement`` fault naming the agent and the neighbours.
-        """
+        """(u (N,6), margin_v (N,6), outputs) at ``meas.t``; with a recorder, its ``measurement`` faults."""
+        missing: dict[int, list[str]] = {}
+        first = self.agents.first_end
+        for i, aid in enumerate(self.ids):
+            poses = meas.relative_poses[aid]
+            for k in range(first[i], first[i + 1]):
+                pose = poses.get(self.end_neighbours[k])
+                self._in_range[k] = pose is not None
+                if pose is None:
+                    missing.setdefault(i, []).append(self.end_neighbours[k])
+                else:
+                    self._p[k], self._R[k] = pose
+        v = np.asarray(meas.velocities, dtype=np.float64)
+        team_step(meas.t, self._p, self._R, self._in_range, v, self.agents, self.ends, self.start, self.out)
+        if recorder is not None:
+            note_missing(recorder, meas.t, self.ids, missing)
         outputs = []
-        for i, ctrl in enumerate(self.controllers):
-            try:
-                out = ctrl.compute(meas.t, meas.relative_poses[ctrl.agent_id], meas.velocities[i])
-            except MissingMeasurementError as exc:
-                out = ctrl.fault_output(meas.t, str(exc))
-                if recorder is not None:
-                    recorder.fault(meas.t, "measurement", ctrl.agent_id, ",".join(exc.neighbours))
-            outputs.append(out)
-        u = np.array([o.wrench for o in outputs])
-        return u, np.array([o.margin_v for o in outputs]), outputs
+        for i, aid in enumerate(self.ids):
+            msg = None
+            if i in missing:
+                msg = f"agent {aid}: no relative pose of neighbour(s) {', '.join(missing[i])}"
+            outputs.append(control_output(meas.t, i, first[i], first[i + 1], self.out, msg))
+        return self.out.u.copy(), self.out.margin_v.copy(), outputs
 
     def note_errors(self, t: float, outputs: list[ControlOutput], recorder: RunRecorder) -> None:
-        """The first agent at ERROR (saturated: outside a funnel) is a ``controller`` fault."""
-        if recorder.first_violation is None:
-            for aid, o in zip(self.ids, outputs):
-                if o.level == ERROR:
-                    recorder.fault(t, "controller", aid, o.message)
-                    return
+        """The first agent at ERROR is a ``controller`` fault."""
+        note_errors(recorder, t, self.ids, [o.level for o in outputs], [o.message for o in outputs])

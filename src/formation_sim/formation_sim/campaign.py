@@ -1,0 +1,533 @@
+"""Monte Carlo campaigns of headless runs: ``formation-campaign CAMPAIGN.yaml --out DIR``.
+
+A campaign file names a base formation and what varies between samples::
+
+    formation: paper_5agents.yaml      # relative to the campaign file
+    samples: 200                       # N random plants (and initial orientations)
+    seed: 1                            # sample i draws from SeedSequence(seed).spawn(N)[i]
+    control_rates: [1000, 2000, 5000, 10000]   # every sample runs at every rate (paired)
+    duration: 5.0                      # optional: overrides simulation.duration
+    vary:                              # all optional
+      mass: [0.5, 1.5]                 # per agent: m ← m·U(lo, hi)
+      inertia: [0.5, 1.5]              # per agent: J ← J·U(lo, hi)
+      disturbance_amplitude: [0.0, 0.1]   # per agent, 'paper' models: A_w ← U(lo, hi)
+      noise_amplitude: [0.0, 0.1]         # per agent, 'paper' models: A_n ← U(lo, hi)
+      initial_rotation: 0.1            # per agent: R(0) ← R(0)·exp(S(θ)), θ uniform in a ball [rad]
+
+Each run is the compiled headless runner (sampled control) with its own plant; the physics rate is
+the file's, rounded to a multiple of the control rate. Runs go to a local process pool
+(``--workers``, default the cores) or to a Dask distributed cluster (``--scheduler ADDRESS``; the
+formation file must be readable at the same path on the workers). Every finished run is appended
+to ``DIR/runs.jsonl`` at once, so an interrupted campaign resumes where it stopped. At the end
+``DIR`` holds ``runs.csv`` (one row per sample and rate: verdict, first violation, worst margins,
+peak wrench), ``summary.json`` (pass rate and its 95 % Wilson interval per control rate) and the
+figures ``pass_rate.png`` and ``worst_margin.png``.
+
+``formation-campaign --sweep-rate FILE RATE…`` runs the file's own plant at each rate and prints
+the pass/fail table next to the rate each agent needs (:mod:`formation_sim.rates`).
+
+Exit status: 0 done, 2 invalid campaign or formation file (naming the field), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Iterable, Mapping
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.so3 import exp_so3
+from formation_msgs_py.spec import FormationSpec, SignalModel, load_formation
+
+VARY_KEYS = ("mass", "inertia", "disturbance_amplitude", "noise_amplitude", "initial_rotation")
+TOP_KEYS = ("formation", "samples", "seed", "control_rates", "duration", "vary")
+COLUMNS = (
+    "sample",
+    "control_rate",
+    "seed",
+    "verdict",
+    "violation_t",
+    "violation_kind",
+    "violation_where",
+    "violation_channel",
+    "worst_margin_e",
+    "worst_margin_psi",
+    "worst_margin_v",
+    "peak_force",
+    "peak_torque",
+    "wall_time",
+)
+
+
+class CampaignError(ValueError):
+    """An invalid campaign file: the message names the field and the value."""
+
+    def __init__(self, field: str, message: str) -> None:
+        self.field = field
+        super().__init__(f"{field}: {message}")
+
+
+@dataclass(frozen=True)
+class Campaign:
+    """A validated campaign file."""
+
+    formation: Path
+    samples: int
+    seed: int
+    control_rates: tuple[float, ...]
+    duration: float | None
+    vary: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Task:
+    """One headless run: sample ``sample`` of the campaign at ``control_rate``."""
+
+    formation: str
+    sample: int
+    control_rate: float
+    duration: float | None
+    vary: Mapping[str, Any]
+    entropy: int
+    spawn_key: tuple[int, ...]
+
+    @property
+    def key(self) -> tuple[int, float]:
+        return self.sample, self.control_rate
+
+
+# --- the campaign file ---------------------------------------------------------------------------
+
+
+def _number(field: str, value: Any, *, positive: bool = False, integer: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and not isinstance(value, int)):
+        kind = "an integer" if integer else "a number"
+        raise CampaignError(field, f"expected {kind}, got {type(value).__name__} {value!r}")
+    if not math.isfinite(value) or (positive and value <= 0):
+        raise CampaignError(field, f"expected a {'positive ' if positive else ''}finite number, got {value!r}")
+    return value
+
+
+def _range(field: str, value: Any) -> tuple[float, float]:
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise CampaignError(field, f"expected [low, high], got {value!r}")
+    lo, hi = (_number(f"{field}[{k}]", v) for k, v in enumerate(value))
+    if not 0 <= lo <= hi:
+        raise CampaignError(field, f"expected 0 <= low <= high, got [{lo!r}, {hi!r}]")
+    return float(lo), float(hi)
+
+
+def parse_campaign(document: Any, base: Path) -> Campaign:
+    """Validate a parsed campaign document; ``base`` is the directory relative paths start from."""
+    if not isinstance(document, Mapping):
+        raise CampaignError("<top>", f"a campaign file is a mapping, got {type(document).__name__}")
+    for key in document:
+        if key not in TOP_KEYS:
+            raise CampaignError(str(key), f"unknown key (expected one of {', '.join(TOP_KEYS)})")
+    for key in ("formation", "samples", "seed", "control_rates"):
+        if key not in document:
+            raise CampaignError(key, "missing")
+    if not isinstance(document["formation"], str):
+        raise CampaignError("formation", f"expected a file name, got {document['formation']!r}")
+    formation = (base / document["formation"]).resolve()
+    if not formation.is_file():
+        raise CampaignError("formation", f"no such file {str(formation)!r}")
+    samples = int(_number("samples", document["samples"], positive=True, integer=True))
+    seed = int(_number("seed", document["seed"], integer=True))
+    if seed < 0:
+        raise CampaignError("seed", f"expected a non-negative integer, got {seed}")
+    rates = document["control_rates"]
+    if not isinstance(rates, list) or not rates:
+        raise CampaignError("control_rates", f"expected a non-empty list of rates [Hz], got {rates!r}")
+    control_rates = tuple(float(_number(f"control_rates[{k}]", r, positive=True)) for k, r in enumerate(rates))
+    duration = document.get("duration")
+    if duration is not None:
+        duration = float(_number("duration", duration, positive=True))
+    vary = document.get("vary") or {}
+    if not isinstance(vary, Mapping):
+        raise CampaignError("vary", f"expected a mapping, got {vary!r}")
+    checked: dict[str, Any] = {}
+    for key, value in vary.items():
+        if key not in VARY_KEYS:
+            raise CampaignError(f"vary.{key}", f"unknown key (expected one of {', '.join(VARY_KEYS)})")
+        if key == "initial_rotation":
+            checked[key] = float(_number(f"vary.{key}", value))
+            if not 0 <= checked[key] < math.pi:
+                raise CampaignError(f"vary.{key}", f"expected an angle in [0, pi) [rad], got {value!r}")
+        else:
+            checked[key] = _range(f"vary.{key}", value)
+            if key in ("mass", "inertia") and checked[key][0] <= 0:
+                raise CampaignError(f"vary.{key}", f"expected a positive scale range, got {list(value)!r}")
+    return Campaign(formation, samples, seed, control_rates, duration, checked)
+
+
+def load_campaign(path: Path) -> Campaign:
+    try:
+        document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise CampaignError(str(path), f"cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise CampaignError(str(path), f"not YAML: {exc}") from None
+    campaign = parse_campaign(document, path.parent)
+    load_formation(campaign.formation)  # a bad base formation is an error before anything runs
+    return campaign
+
+
+def tasks(campaign: Campaign) -> list[Task]:
+    """Every run, sample-major; sample i's plant is drawn from the i-th child seed, the same at every rate."""
+    root = np.random.SeedSequence(campaign.seed)
+    out = []
+    for child in root.spawn(campaign.samples):
+        i = child.spawn_key[-1]
+        for rate in campaign.control_rates:
+            out.append(
+                Task(
+                    str(campaign.formation),
+                    i,
+                    rate,
+                    campaign.duration,
+                    campaign.vary,
+                    int(root.entropy),
+                    tuple(child.spawn_key),
+                )
+            )
+    return out
+
+
+# --- one sample --------------------------------------------------------------------------------
+
+
+def _scaled_amplitude(model: SignalModel, value: float) -> SignalModel:
+    if model.model != "paper":
+        return model
+    return SignalModel(model.model, {**model.params, "amplitude": value})
+
+
+def sample_spec(task: Task) -> FormationSpec:
+    """The base formation with sample ``task.sample``'s plant, initial orientations and control rate."""
+    spec = load_formation(task.formation)
+    rng = np.random.default_rng(np.random.SeedSequence(task.entropy, spawn_key=task.spawn_key))
+    vary = task.vary
+    agents = []
+    for a in spec.agents:
+        d = a.dynamics
+        mass = d.mass * rng.uniform(*vary["mass"]) if "mass" in vary else d.mass
+        inertia = d.inertia * rng.uniform(*vary["inertia"]) if "inertia" in vary else d.inertia
+        dist, noise = d.disturbance, d.velocity_noise
+        if "disturbance_amplitude" in vary:
+            dist = _scaled_amplitude(dist, rng.uniform(*vary["disturbance_amplitude"]))
+        if "noise_amplitude" in vary:
+            noise = _scaled_amplitude(noise, rng.uniform(*vary["noise_amplitude"]))
+        R = a.R_world_body
+        if "initial_rotation" in vary:
+            axis = rng.normal(size=3)
+            angle = vary["initial_rotation"] * rng.uniform() ** (1 / 3)  # uniform in the ball
+            R = R @ exp_so3(axis / np.linalg.norm(axis) * angle)
+        dyn = dataclasses.replace(d, mass=mass, inertia=inertia, disturbance=dist, velocity_noise=noise)
+        agents.append(dataclasses.replace(a, dynamics=dyn, R_world_body=R))
+    spec = dataclasses.replace(spec, agents=tuple(agents))
+    physics = task.control_rate * max(1, round(spec.simulation.physics_rate / task.control_rate))
+    changes: dict[str, Any] = {"control_rate": task.control_rate, "physics_rate": physics}
+    changes["record_rate"] = min(spec.simulation.record_rate, task.control_rate)
+    if task.duration is not None:
+        changes["duration"] = task.duration
+    return spec.with_simulation(**changes)
+
+
+def run_task(task: Task) -> dict[str, Any]:
+    """One sample's headless run, as a row of ``runs.csv``."""
+    from formation_sim.headless import run_headless
+
+    spec = sample_spec(task)
+    summary = run_headless(spec, stop_on_violation=True).summary
+    fv = summary["first_violation"] or {}
+    edges, agents = summary["edges"].values(), summary["agents"].values()
+
+    def worst(values: Iterable[float | None]) -> float | None:
+        vals = [v for v in values if v is not None]
+        return min(vals) if vals else None
+
+    return {
+        "sample": task.sample,
+        "control_rate": task.control_rate,
+        "seed": f"{task.entropy}:{'/'.join(map(str, task.spawn_key))}",
+        "verdict": "PASS" if summary["funnels_held"] else "FAIL",
+        "violation_t": fv.get("t"),
+        "violation_kind": fv.get("kind"),
+        "violation_where": fv.get("edge") or fv.get("agent"),
+        "violation_channel": fv.get("channel"),
+        "worst_margin_e": worst(e["min_margin_e"] for e in edges),
+        "worst_margin_psi": worst(e["min_margin_psi"] for e in edges),
+        "worst_margin_v": worst(a["min_margin_v"] for a in agents),
+        "peak_force": max(a["peak_force"] for a in agents),
+        "peak_torque": max(a["peak_torque"] for a in agents),
+        "wall_time": summary["wall_time"],
+    }
+
+
+# --- running many ------------------------------------------------------------------------------
+
+
+def _finished(log: Path) -> dict[tuple[int, float], dict[str, Any]]:
+    """Rows of an earlier (interrupted) campaign in ``log``; a torn last line is ignored."""
+    rows = {}
+    if log.exists():
+        for line in log.read_text(encoding="utf-8").splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            rows[(row["sample"], row["control_rate"])] = row
+    return rows
+
+
+def _progress(done: int, total: int, started: float) -> None:
+    elapsed = time.perf_counter() - started
+    eta = elapsed / done * (total - done) if done else float("nan")
+    print(f"\r  {done}/{total} runs  {elapsed:6.1f} s elapsed  ETA {eta:6.1f} s", end="", flush=True)
+
+
+def run_tasks(todo: list[Task], log: Path, *, workers: int, scheduler: str | None, quiet: bool = False) -> None:
+    """Run ``todo`` and append each row to ``log`` as it finishes."""
+    started = time.perf_counter()
+    torn = log.exists() and log.stat().st_size > 0 and not log.read_bytes().endswith(b"\n")
+    with log.open("a", encoding="utf-8") as out:
+        if torn:  # a killed writer left half a line: end it, so that it stays one ignored line
+            out.write("\n")
+
+        def record(row: dict[str, Any], done: int) -> None:
+            out.write(json.dumps(row) + "\n")
+            out.flush()
+            os.fsync(out.fileno())
+            if not quiet:
+                _progress(done, len(todo), started)
+
+        if scheduler is not None:
+            from distributed import Client
+            from distributed import as_completed as dask_completed
+
+            with Client(scheduler) as client:
+                futures = client.map(run_task, todo, pure=False)
+                for done, fut in enumerate(dask_completed(futures), 1):
+                    record(fut.result(), done)
+        elif workers == 1:
+            for done, task in enumerate(todo, 1):
+                record(run_task(task), done)
+        else:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                futures = [pool.submit(run_task, t) for t in todo]
+                for done, fut in enumerate(as_completed(futures), 1):
+                    record(fut.result(), done)
+    if not quiet and todo:
+        print()
+
+
+def wilson(passes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95 % Wilson score interval of a pass rate."""
+    if n == 0:
+        return 0.0, 1.0
+    p = passes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def summarise(rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
+    """Pass rate and its 95 % interval, worst margins, per control rate."""
+    per_rate = {}
+    for rate in campaign.control_rates:
+        sel = [r for r in rows if r["control_rate"] == rate]
+        passes = sum(r["verdict"] == "PASS" for r in sel)
+        lo, hi = wilson(passes, len(sel))
+        per_rate[f"{rate:g}"] = {
+            "runs": len(sel),
+            "passes": passes,
+            "pass_rate": passes / len(sel) if sel else None,
+            "pass_rate_ci95": [lo, hi],
+            "first_violation_kinds": {
+                k: sum(r["violation_kind"] == k for r in sel)
+                for k in sorted({r["violation_kind"] or "" for r in sel})
+                if k
+            },
+        }
+    return {
+        "formation": str(campaign.formation),
+        "samples": campaign.samples,
+        "seed": campaign.seed,
+        "vary": {k: list(v) if isinstance(v, tuple) else v for k, v in campaign.vary.items()},
+        "duration": campaign.duration,
+        "per_control_rate": per_rate,
+    }
+
+
+def write_results(out: Path, rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
+    """runs.csv, summary.json and the figures, each written atomically."""
+    rows = sorted(rows, key=lambda r: (r["sample"], r["control_rate"]))
+    tmp = out / "runs.csv.tmp"
+    with tmp.open("w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(out / "runs.csv")
+    summary = summarise(rows, campaign)
+    tmp = out / "summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    tmp.replace(out / "summary.json")
+    plot_campaign(out, rows, summary)
+    return summary
+
+
+def plot_campaign(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> None:
+    """pass_rate.png (pass rate vs control rate, 95 % intervals) and worst_margin.png (histograms)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    per = summary["per_control_rate"]
+    rates = [float(r) for r in per]
+    rate_vals = np.array([per[r]["pass_rate"] or 0.0 for r in per])
+    ci = np.array([per[r]["pass_rate_ci95"] for r in per])
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    ax.errorbar(rates, rate_vals, yerr=[rate_vals - ci[:, 0], ci[:, 1] - rate_vals], fmt="o-", capsize=4)
+    ax.set_xscale("log")
+    ax.set_xlabel("control rate [Hz]")
+    ax.set_ylabel("pass rate (95 % CI)")
+    ax.set_ylim(-0.05, 1.05)
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{Path(summary['formation']).name}: {summary['samples']} samples")
+    fig.tight_layout()
+    tmp = out / "pass_rate.tmp.png"
+    fig.savefig(tmp, dpi=110)
+    tmp.replace(out / "pass_rate.png")
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for r in rates:
+        worst = [
+            min(m for m in (row["worst_margin_e"], row["worst_margin_psi"], row["worst_margin_v"]) if m is not None)
+            for row in rows
+            if row["control_rate"] == r
+        ]
+        ax.hist(worst, bins=30, alpha=0.5, label=f"{r:g} Hz")
+    ax.axvline(0.0, color="r", lw=1)
+    ax.set_xlabel("worst margin over the run (< 0: a funnel was left)")
+    ax.set_ylabel("runs")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    tmp = out / "worst_margin.tmp.png"
+    fig.savefig(tmp, dpi=110)
+    tmp.replace(out / "worst_margin.png")
+    plt.close(fig)
+
+
+def run_campaign(
+    campaign: Campaign, out: Path, *, workers: int = 1, scheduler: str | None = None, quiet: bool = False
+) -> dict[str, Any]:
+    """Run what ``out/runs.jsonl`` does not hold yet, then write the results."""
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "runs.jsonl"
+    finished = _finished(log)
+    todo = [t for t in tasks(campaign) if t.key not in finished]
+    if not quiet:
+        print(f"formation-campaign: {len(todo)} runs to do, {len(finished)} already done", flush=True)
+    run_tasks(todo, log, workers=workers, scheduler=scheduler, quiet=quiet)
+    wanted = {t.key for t in tasks(campaign)}
+    rows = [r for k, r in _finished(log).items() if k in wanted]
+    return write_results(out, rows, campaign)
+
+
+# --- command line ------------------------------------------------------------------------------
+
+
+def sweep_rate(formation: Path, rates: list[float], out: Path, *, workers: int, scheduler: str | None) -> int:
+    """The file's own plant at each rate, with the rate each agent needs."""
+    from formation_sim.rates import rate_needs
+
+    spec = load_formation(formation)
+    campaign = Campaign(formation.resolve(), 1, 0, tuple(rates), None, {})
+    summary = run_campaign(campaign, out, workers=workers, scheduler=scheduler, quiet=True)
+    rows = {r["control_rate"]: r for r in _finished(out / "runs.jsonl").values()}
+    print(f"formation-campaign: rate sweep of {spec.name}, {spec.simulation.duration:g} s")
+    print("  control rate [Hz]   verdict   first violation")
+    for rate in rates:
+        r = rows[rate]
+        where = (
+            "" if r["verdict"] == "PASS" else f"t={r['violation_t']:.3f} s {r['violation_kind']} {r['violation_where']}"
+        )
+        print(f"  {rate:>17g}   {r['verdict']:<7}   {where}")
+    needs = rate_needs(spec)
+    print("  needed (formation-check): " + ", ".join(f"agent {n.agent_id} {n.at_end:.0f} Hz" for n in needs))
+    print(f"outputs in {out}/")
+    return 0 if summary else 4
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-campaign",
+        description="Monte Carlo campaign of headless runs (see the module docstring for the file), or a rate sweep. "
+        "Exit status: 0 done, 2 invalid input, 130 interrupted.",
+    )
+    p.add_argument("campaign", type=Path, nargs="?", help="campaign file (YAML)")
+    p.add_argument("--out", type=Path, help="output directory (default out/<campaign>-campaign); resumes if it exists")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local worker processes (default: cores)")
+    p.add_argument("--scheduler", help="address of a Dask distributed scheduler (e.g. tcp://host:8786)")
+    p.add_argument(
+        "--sweep-rate", nargs="+", metavar=("FILE", "RATE"), help="a formation file and control rates [Hz] to try"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.sweep_rate:
+            formation = Path(args.sweep_rate[0])
+            try:
+                rates = [
+                    float(_number(f"--sweep-rate[{k}]", float(r), positive=True))
+                    for k, r in enumerate(args.sweep_rate[1:], 1)
+                ]
+            except ValueError as exc:
+                raise CampaignError("--sweep-rate", f"rates must be numbers [Hz]: {exc}") from None
+            if not rates:
+                raise CampaignError("--sweep-rate", "give a formation file and at least one rate")
+            out = args.out or Path("out") / f"{formation.stem}-sweep"
+            return sweep_rate(formation, rates, out, workers=args.workers, scheduler=args.scheduler)
+        if args.campaign is None:
+            parser.error("give a campaign file or --sweep-rate FILE RATE…")
+        campaign = load_campaign(args.campaign)
+        if args.workers < 1:
+            raise CampaignError("--workers", f"expected at least 1, got {args.workers}")
+    except (CampaignError, FormationSpecError) as exc:
+        print(f"formation-campaign: {exc}", file=sys.stderr)
+        return 2
+    out = args.out or Path("out") / f"{args.campaign.stem}-campaign"
+    try:
+        summary = run_campaign(campaign, out, workers=args.workers, scheduler=args.scheduler, quiet=args.quiet)
+    except KeyboardInterrupt:
+        print("\nformation-campaign: interrupted; run again to resume", file=sys.stderr)
+        return 130
+    for rate, s in summary["per_control_rate"].items():
+        lo, hi = s["pass_rate_ci95"]
+        print(f"  {rate:>8} Hz: {s['passes']}/{s['runs']} pass ({lo:.2f}-{hi:.2f} at 95 %)")
+    print(f"outputs in {out}/")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,290 @@
+"""The run core: the closed loop of a whole formation stepped many control steps at a time, compiled.
+
+Per control step k (t_k = k / control_rate) :func:`run_steps` does what the ROS 2 lockstep run
+does, step for step: the measurements of step k (relative poses with their noise, noisy
+twists), every agent's controller (:func:`formation_sim.team.team_step`, with the fault policy),
+the step's ground truth, wrenches and velocity-funnel margins into the recording buffers, then
+``substeps`` physics steps: with the wrenches held (``sampled``, zero-order hold) or with the
+controller evaluated on every integrator stage (``continuous``, the paper's law). It returns to
+Python after a buffer's worth of steps, at the first step with a fault while none is recorded
+yet (so the recorder sees faults and funnel checks in the order the streaming runs record them),
+or when a state is no longer finite (naming the agents).
+
+:func:`run_closed_loop` drives it for a formation and a :class:`RunRecorder`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+
+from formation_agent.controller import (
+    ERROR,
+    REASON_MESSAGES,
+    AgentGains,
+    EdgeGains,
+    FunnelStart,
+    Outputs,
+    gains,
+    new_funnel_start,
+    new_outputs,
+)
+from formation_msgs_py.compiled import kernel
+from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
+from formation_sim.inputs import non_finite_agents
+from formation_sim.measurement import Sensing, relative_poses
+from formation_sim.plant import (
+    PlantParams,
+    body_rates,
+    chart_rates,
+    measured_velocity_into,
+    new_workspace,
+    rkmk4_combine,
+    rkmk4_stage,
+    rkmk4_step,
+    saturate_into,
+)
+from formation_sim.report import RunRecorder
+from formation_sim.simulation import Simulation
+from formation_sim.team import note_errors, note_missing, team_step
+
+#: run_steps' reasons to return early
+EVENT_NONE, EVENT_FAULT, EVENT_NON_FINITE = 0, 1, 2
+#: (t, real-time factor, worst margin so far)
+ProgressFn = Callable[[float, float, float], None]
+
+
+class ClosedLoop(NamedTuple):
+    """Everything the compiled loop reads or updates besides the plant state."""
+
+    plant: PlantParams
+    sensing: Sensing
+    agents: AgentGains
+    ends: EdgeGains
+    start: FunnelStart
+    out: Outputs
+    p_rel: np.ndarray  # (n_ends, 3) scratch: the step's measurements
+    R_rel: np.ndarray  # (n_ends, 3, 3)
+    in_range: np.ndarray  # (n_ends,) bool
+    v_measured: np.ndarray  # (N, 6) scratch: the step's noisy twists
+    noise: np.ndarray  # (draws, 2, n_links, 3) standard normal draws, or (1, 0, 0, 3) without noise
+    cursor: np.ndarray  # (1,) int: next row of ``noise``
+
+
+class Buffers(NamedTuple):
+    """Every control step's sample, a chunk at a time (rows 0..n-1 of a call)."""
+
+    t: np.ndarray  # (C,)
+    p: np.ndarray  # (C, N, 3)
+    R: np.ndarray  # (C, N, 3, 3)
+    v: np.ndarray  # (C, N, 6)
+    u: np.ndarray  # (C, N, 6)
+    margin_v: np.ndarray  # (C, N, 6)
+    level: np.ndarray  # (C, N)
+    reason: np.ndarray  # (C, N)
+    in_range: np.ndarray  # (C, n_ends) bool: the end's neighbour was measured
+
+
+def new_buffers(rows: int, n_agents: int, n_ends: int) -> Buffers:
+    return Buffers(
+        np.zeros(rows),
+        np.zeros((rows, n_agents, 3)),
+        np.zeros((rows, n_agents, 3, 3)),
+        np.zeros((rows, n_agents, 6)),
+        np.zeros((rows, n_agents, 6)),
+        np.zeros((rows, n_agents, 6)),
+        np.zeros((rows, n_agents), dtype=np.int64),
+        np.zeros((rows, n_agents), dtype=np.int64),
+        np.zeros((rows, n_ends), dtype=np.bool_),
+    )
+
+
+@kernel
+def sense_and_control(loop, t, p, R, v):
+    """The measurements at t (consuming one noise draw) and every agent's answer, into ``loop.out``."""
+    if loop.noise.shape[1] == 0:
+        draws = loop.noise[0]
+    else:
+        draws = loop.noise[loop.cursor[0]]
+        loop.cursor[0] += 1
+    relative_poses(p, R, loop.sensing, draws, loop.p_rel, loop.R_rel, loop.in_range)
+    measured_velocity_into(t, p, R, v, loop.plant.noise, loop.v_measured)
+    team_step(t, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured, loop.agents, loop.ends, loop.start, loop.out)
+
+
+@kernel
+def continuous_step(loop, t, p, R, v, h, work):
+    """One RKMK4 step (as :func:`formation_sim.plant.rkmk4_step`) with the controller at every stage."""
+    sense_and_control(loop, t, p, R, v)
+    saturate_into(loop.out.u, loop.plant, work.u)
+    body_rates(t, p, R, v, work.u, loop.plant, work.p_dot[0], work.v_dot[0])
+    work.theta_dot[0] = v[:, 3:]
+    for k in range(3):
+        c = h if k == 2 else 0.5 * h
+        rkmk4_stage(c, p, R, v, k, work)
+        sense_and_control(loop, t + c, work.p, work.R, work.v)
+        saturate_into(loop.out.u, loop.plant, work.u)
+        body_rates(t + c, work.p, work.R, work.v, work.u, loop.plant, work.p_dot[k + 1], work.v_dot[k + 1])
+        chart_rates(k + 1, work)
+    rkmk4_combine(h, p, R, v, work)
+
+
+@kernel
+def all_finite_state(p, R, v):
+    """True while every entry of the state is finite (the caller names the agents otherwise)."""
+    total = 0.0  # NaN or inf in any entry makes the sum non-finite
+    for i in range(p.shape[0]):
+        for x in range(3):
+            total += p[i, x] + R[i, x, 0] + R[i, x, 1] + R[i, x, 2]
+        for x in range(6):
+            total += v[i, x]
+    return np.isfinite(total)
+
+
+@kernel
+def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, stop_at_fault, buf):
+    """Control steps k0 … k_stop − 1 (no physics after step k_last), (p, R, v) in place.
+
+    Returns (steps done, event): ``EVENT_FAULT`` after a step with an agent at ERROR when
+    ``stop_at_fault``; ``EVENT_NON_FINITE`` when the state is no longer finite.
+    """
+    n = 0
+    for k in range(k0, k_stop):
+        t = k / control_rate
+        sense_and_control(loop, t, p, R, v)
+        out = loop.out
+        buf.t[n] = t
+        buf.p[n] = p
+        buf.R[n] = R
+        buf.v[n] = v
+        buf.u[n] = out.u
+        buf.margin_v[n] = out.margin_v
+        buf.level[n] = out.level
+        buf.reason[n] = out.reason
+        buf.in_range[n] = loop.in_range
+        fault = False
+        for i in range(out.level.shape[0]):
+            fault = fault or out.level[i] == ERROR
+        n += 1
+        if k == k_last:
+            break
+        for s in range(substeps):
+            if continuous:
+                continuous_step(loop, t + s * h, p, R, v, h, work)
+            else:
+                rkmk4_step(t + s * h, p, R, v, out.u, h, loop.plant, work)
+        if not all_finite_state(p, R, v):
+            return n, EVENT_NON_FINITE
+        if fault and stop_at_fault:
+            return n, EVENT_FAULT
+    return n, EVENT_NONE
+
+
+def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
+    """The compiled loop's inputs for ``spec``, with the plant and measurement model of ``sim``."""
+    agents, ends = gains([agent_view(spec, a) for a in spec.agent_ids])
+    n, n_ends = len(spec.agents), len(ends.d2)
+    return ClosedLoop(
+        sim.plant.params,
+        sim.sensors.sensing,
+        agents,
+        ends,
+        new_funnel_start(n),
+        new_outputs(n, n_ends),
+        np.zeros((n_ends, 3)),
+        np.zeros((n_ends, 3, 3)),
+        np.zeros(n_ends, dtype=np.bool_),
+        np.zeros((n, 6)),
+        sim.sensors.draw_noise(1),
+        np.zeros(1, dtype=np.int64),
+    )
+
+
+def _refill_noise(loop: ClosedLoop, sim: Simulation, draws: int) -> ClosedLoop:
+    """Make sure ``draws`` more noise draws are at hand, continuing the measurement model's stream."""
+    if not sim.sensors.noisy:
+        return loop
+    left = loop.noise[loop.cursor[0] :]
+    if len(left) >= draws:
+        return loop
+    return loop._replace(
+        noise=np.concatenate([left, sim.sensors.draw_noise(draws - len(left))]), cursor=np.zeros(1, dtype=np.int64)
+    )
+
+
+def run_closed_loop(
+    spec: FormationSpec,
+    recorder: RunRecorder,
+    *,
+    continuous: bool = False,
+    stop_on_violation: bool = False,
+    progress: ProgressFn | None = None,
+    chunk: int | None = None,
+) -> tuple[float, str]:
+    """Run ``spec`` for ``simulation.duration`` into ``recorder``: (wall time [s], why it is incomplete or "").
+
+    Every control step is checked (``recorder.add_many``); faults are recorded as the streaming
+    runs record them (:func:`formation_sim.team.note_missing` before a step's funnel check,
+    :func:`formation_sim.team.note_errors` after it). A state that stops being finite ends the
+    run, incomplete, naming the agents (as :func:`formation_sim.inputs.advance_checked`).
+    """
+    started = time.perf_counter()
+    sim_spec = spec.simulation
+    sim = Simulation(simulator_view(spec))
+    loop = closed_loop(spec, sim)
+    ids = spec.agent_ids
+    n_steps = round(sim_spec.duration * sim_spec.control_rate)
+    # about 8 MB of buffers per chunk, and progress at least every 2000 steps
+    chunk = chunk or int(np.clip(8e6 / (len(ids) * 8 * 36), 100, 2000))
+    neighbours = [ie.neighbour for a in ids for ie in agent_view(spec, a).edges]
+    buf = new_buffers(chunk, len(ids), len(neighbours))
+    draws_per_step = 1 + (4 * sim.substeps if continuous else 0)
+    p, R, v = sim.state.p, sim.state.R, sim.state.v  # advanced in place
+    work = new_workspace(len(ids))
+    k = 0
+    incomplete = ""
+    last_report = started
+    while k <= n_steps:
+        loop = _refill_noise(loop, sim, chunk * draws_per_step)
+        watch = recorder.first_violation is None
+        done, event = run_steps(
+            loop, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
+            sim.substeps, sim.h, continuous, watch, buf,
+        )  # fmt: skip
+        if watch and buf.level[done - 1].max() == ERROR:
+            # a fault at the last step done: the checks before it, then its faults around its own check
+            j = done - 1
+            if j:
+                recorder.add_many(*_samples(buf, slice(0, j)), stop_at_violation=stop_on_violation)
+            if not (stop_on_violation and recorder.first_violation is not None):
+                t = float(buf.t[j])
+                first = loop.agents.first_end
+                missing = {
+                    i: [neighbours[e] for e in range(first[i], first[i + 1]) if not buf.in_range[j, e]]
+                    for i in range(len(ids))
+                    if not buf.in_range[j, first[i] : first[i + 1]].all()
+                }
+                note_missing(recorder, t, ids, missing)
+                recorder.add_many(*_samples(buf, slice(j, done)))
+                note_errors(recorder, t, ids, buf.level[j], [REASON_MESSAGES[r] for r in buf.reason[j]])
+        else:
+            recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
+        k += done
+        if event == EVENT_NON_FINITE:  # the run stops; the non-finite state is never recorded
+            bad = ", ".join(non_finite_agents(ids, p, R, v))
+            incomplete = f"t={k / sim_spec.control_rate:.6f} s: non-finite plant state of agent(s) {bad}"
+            break
+        if stop_on_violation and recorder.first_violation is not None:
+            break
+        now = time.perf_counter()
+        if progress is not None and now - last_report > 1.0:
+            progress(k / sim_spec.control_rate, k / sim_spec.control_rate / (now - started), recorder.worst_margin())
+            last_report = now
+    return time.perf_counter() - started, incomplete
+
+
+def _samples(buf: Buffers, rows: slice) -> tuple[np.ndarray, ...]:
+    return buf.t[rows], buf.p[rows], buf.R[rows], buf.v[rows], buf.u[rows], buf.margin_v[rows]

@@ -1,0 +1,97 @@
+"""formation-campaign: strict file validation, identical results however the runs are spread, resuming."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+from formation_sim import campaign
+from formation_sim.campaign import load_campaign, run_campaign
+
+#: two samples of the paper's formation, 30 ms each, at two rates: 4 runs of ~0.1 s
+SMALL = {
+    "formation": "paper.yaml",
+    "samples": 2,
+    "seed": 7,
+    "control_rates": [2000, 10000],
+    "duration": 0.03,
+    "vary": {"mass": [0.8, 1.2], "inertia": [0.8, 1.2], "disturbance_amplitude": [0, 0.1], "initial_rotation": 0.05},
+}
+
+
+def write_campaign(tmp_path: Path, paper_path: Path, doc: dict) -> Path:
+    (tmp_path / "paper.yaml").write_text(paper_path.read_text())
+    path = tmp_path / "campaign.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def results(out: Path) -> list[dict]:
+    """runs.csv without the wall time (the only column that may differ between runs)."""
+    import csv
+
+    with (out / "runs.csv").open() as f:
+        return [{k: v for k, v in row.items() if k != "wall_time"} for row in csv.DictReader(f)]
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"samples": 0}, "samples"),
+        ({"samples": "ten"}, "samples"),
+        ({"control_rates": []}, "control_rates"),
+        ({"control_rates": [1000, -5]}, r"control_rates\[1\]"),
+        ({"vary": {"mass": [1.2, 0.8]}}, r"vary\.mass"),
+        ({"vary": {"masss": [0.8, 1.2]}}, r"vary\.masss"),
+        ({"vary": {"initial_rotation": 4.0}}, r"vary\.initial_rotation"),
+        ({"formation": "missing.yaml"}, "formation"),
+        ({"sedd": 1}, "sedd"),
+    ],
+)
+def test_bad_campaign_file_exits_2_naming_the_field(tmp_path, paper_path, capsys, change, field) -> None:
+    """Every invalid field is refused before anything runs, with its name in the message."""
+    path = write_campaign(tmp_path, paper_path, {**SMALL, **change})
+    assert campaign.main([str(path), "--out", str(tmp_path / "out")]) == 2
+    assert re.search(rf"formation-campaign: {field}: ", capsys.readouterr().err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_same_results_with_1_worker_2_workers_and_a_dask_cluster(tmp_path, paper_path) -> None:
+    """Per-sample seeds: the table is identical whether the runs go to 1 or 2 local processes or to Dask."""
+    from distributed import LocalCluster
+
+    c = load_campaign(write_campaign(tmp_path, paper_path, SMALL))
+    run_campaign(c, tmp_path / "one", workers=1, quiet=True)
+    run_campaign(c, tmp_path / "two", workers=2, quiet=True)
+    loopback = {"host": "127.0.0.1", "dashboard_address": None}  # nothing leaves the machine
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, **loopback) as cluster:
+        run_campaign(c, tmp_path / "dask", scheduler=cluster.scheduler_address, quiet=True)
+    one = results(tmp_path / "one")
+    assert len(one) == 4 and {r["control_rate"] for r in one} == {"2000.0", "10000.0"}
+    assert len({(r["peak_force"]) for r in one}) == 4  # every run has its own plant or rate
+    assert results(tmp_path / "two") == one
+    assert results(tmp_path / "dask") == one
+    summary = json.loads((tmp_path / "one" / "summary.json").read_text())
+    assert set(summary["per_control_rate"]) == {"2000", "10000"}
+    assert (tmp_path / "one" / "pass_rate.png").stat().st_size > 5000
+
+
+def test_an_interrupted_campaign_resumes_without_rerunning(tmp_path, paper_path, monkeypatch) -> None:
+    """Runs already in runs.jsonl are not run again; a torn last line (a killed writer) is run again."""
+    c = load_campaign(write_campaign(tmp_path, paper_path, SMALL))
+    out = tmp_path / "out"
+    run_campaign(c, out, workers=1, quiet=True)
+    full = results(out)
+    lines = (out / "runs.jsonl").read_text().splitlines()
+    (out / "runs.jsonl").write_text("\n".join(lines[:2]) + "\n" + lines[2][:20])  # 2 done, 1 torn
+    ran = []
+    real = campaign.run_task
+    monkeypatch.setattr(campaign, "run_task", lambda task: ran.append(task.key) or real(task))
+    run_campaign(c, out, workers=1, quiet=True)
+    done_before = {(json.loads(x)["sample"], json.loads(x)["control_rate"]) for x in lines[:2]}
+    assert len(ran) == 2 and not done_before & set(ran)
+    assert results(out) == full

@@ -142,6 +142,8 @@ class StepSynchroniser:
     def refuse(self, ns: int, reason: str, now: float, neighbour: str | None = None) -> None:
         """A measurement of step ``ns`` was refused (the velocity if ``neighbour`` is None): the step
         is answered with a zero wrench and ERROR naming ``reason``."""
+        if self.last_ns is not None and ns < self.last_ns:
+            return  # a step already behind us: nothing to answer, and no reset (only a real clock jump resets)
         self.refused[ns] = reason
         if len(self.refused) > _POSE_MEMORY:
             del self.refused[next(iter(self.refused))]

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 
-class Verdict(enum.StrEnum):
+class Verdict(str, enum.Enum):  # noqa: UP042  (StrEnum would change str() of a member: not here)
     """What a run (or the analysis of its bag) concludes."""
 
     PASS = "PASS"

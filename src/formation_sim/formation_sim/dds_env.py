@@ -17,6 +17,8 @@ import sys
 from pathlib import Path
 from typing import IO
 
+from formation_msgs_py.hotloop import FASTDDS_PROFILE
+
 #: Ids Fast DDS accepts whose port blocks stay clear of Linux's ephemeral ports (102..214 may collide).
 DOMAIN_IDS = (*range(1, 102), *range(215, 233))
 #: Above this many DDS participants, run in a private network namespace (Fast DDS LOCALHOST limit).
@@ -103,6 +105,7 @@ def run_environment(base: dict[str, str], *, log_dir: Path) -> dict[str, str]:
         env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
     else:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))  # secure mode sets its own per process
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(reserve_domain_id())
     return env

@@ -19,9 +19,10 @@ and the ground truth, and collects every agent's wrench.
 
 Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
 ``formation/ground_truth`` are published at ``--clock-rate`` / ``--ground-truth-rate`` (default:
-the record rate, at most the control rate). The run's outputs (docs/outputs.md) go to ``--out``.
-Exit status: 0 every funnel held, 1 a funnel was violated or a fault reported, 2 invalid file
-or settings, 3 an agent missing (discovery or step timeout), 130 interrupted.
+the record rate, at most the control rate; ``/clock`` at most 10 Hz in realtime). The run's
+outputs (docs/outputs.md) go to ``--out``. Exit status: 0 every funnel held, 1 a funnel was
+violated or a fault reported, 2 invalid file or settings, 3 an agent missing (discovery or step
+timeout), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -62,6 +63,10 @@ EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_MISSING, EXIT_INTERRUPTED = 0, 1, 2,
 
 class AgentMissingError(RuntimeError):
     """Agents did not answer (discovery or lockstep step timeout)."""
+
+
+#: default /clock rate in realtime [Hz]: the agents' measurement-age checks need no more
+REALTIME_CLOCK_RATE = 10.0
 
 
 class StopRequestedError(Exception):
@@ -206,6 +211,10 @@ class Runner:
         )
         gt_rate = args.ground_truth_rate or min(s.record_rate, s.control_rate)
         clock_rate = args.clock_rate or min(s.record_rate, s.control_rate)
+        if args.mode == "realtime" and not args.clock_rate:
+            # every agent takes each /clock (rclpy's time source, a message object): in realtime it
+            # only dates their measurement-age check, for which REALTIME_CLOCK_RATE is plenty
+            clock_rate = min(clock_rate, REALTIME_CLOCK_RATE)
         self.gt_every = max(1, round(s.control_rate / gt_rate))
         self.clock_every = max(1, round(s.control_rate / clock_rate))
         self.started = time.monotonic()

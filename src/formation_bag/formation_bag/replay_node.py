@@ -69,7 +69,7 @@ def sleep_until(deadline: float) -> None:
 
 class Replayer(Node):
     def __init__(self, bag: Bag, selected: list[str], *, clock_hz: float) -> None:
-        super().__init__("formation_replay")
+        super().__init__(topics.REPLAY_NODE_NAME)
         self.bag = bag
         infos = bag.topics
         self.pubs: dict[str, Any] = {}

@@ -41,6 +41,8 @@ def wrench(agent_id: str) -> str:
 #: Agent i's node is /agent_<i>/formation_agent: the multi-robot convention of one namespace per robot.
 AGENT_NODE_NAME = "formation_agent"
 SIM_NODE_NAME = "formation_sim"
+#: formation-replay: publishes a bag's measurements and /clock in the simulator's stead
+REPLAY_NODE_NAME = "formation_replay"
 
 
 def agent_node(agent_id: str) -> str:

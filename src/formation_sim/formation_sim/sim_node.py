@@ -20,9 +20,10 @@ ROS-free policy of :mod:`formation_sim.stepping`; this module is the thin node a
 
 Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
 ``formation/ground_truth`` are published at ``--clock-rate`` / ``--ground-truth-rate`` (default:
-the record rate, at most the control rate). The run's outputs (docs/outputs.md) go to ``--out``,
-also when the run is interrupted (SIGINT/SIGTERM: summary and trajectory, no figures, so that
-the stop is fast). The node never needs its stdout to finish.
+the record rate, at most the control rate; ``/clock`` at most 10 Hz in realtime). The run's
+outputs (docs/outputs.md) go to ``--out``, also when the run is interrupted (SIGINT/SIGTERM:
+summary and trajectory, no figures, so that the stop is fast). The node never needs its stdout
+to finish.
 """
 
 from __future__ import annotations
@@ -58,6 +59,9 @@ from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
 from formation_sim.stepping import NS, CommandHold, LagBudget, LockstepWait, ParticipantMissingError, WrenchBook
 from formation_sim.team import AgentTeam
+
+#: default /clock rate in realtime [Hz]: the agents' measurement-age checks need no more
+REALTIME_CLOCK_RATE = 10.0
 
 
 class StopRequestedError(Exception):
@@ -218,6 +222,10 @@ class Runner:
         )
         gt_rate = args.ground_truth_rate or min(s.record_rate, s.control_rate)
         clock_rate = args.clock_rate or min(s.record_rate, s.control_rate)
+        if args.mode == "realtime" and not args.clock_rate:
+            # every agent takes each /clock (rclpy's time source, a message object): in realtime it
+            # only dates their measurement-age check, for which REALTIME_CLOCK_RATE is plenty
+            clock_rate = min(clock_rate, REALTIME_CLOCK_RATE)
         self.gt_every = max(1, round(s.control_rate / gt_rate))
         self.clock_every = max(1, round(s.control_rate / clock_rate))
         self.started = time.monotonic()

@@ -210,4 +210,6 @@ def test_lockstep_run_is_not_stalled_by_a_future_stamped_wrench(procs, ros_env, 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["duration"] == 1.0 and summary["steps"] == 100, summary
     assert summary["refused_wrenches"]["2"]["future_step"]["count"] >= 1, summary["refused_wrenches"]
-    assert set(summary["refused_wrenches"]) == {"2"}
+    # a healthy agent may answer a re-sent step twice, the second time after the step was integrated
+    others = {a: set(kinds) for a, kinds in summary["refused_wrenches"].items() if a != "2"}
+    assert all(kinds <= {"past_step"} for kinds in others.values()), summary["refused_wrenches"]

@@ -119,7 +119,9 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
     for a in spec.agents:
         procs.agent(REALTIME, a.id)
     out = tmp_path / "out"
-    sim = procs.sim(REALTIME, out, "--duration", "4", "--physics-rate", "100", "--progress-period", "0.2")
+    sim = procs.sim(
+        REALTIME, out, "--duration", "4", "--physics-rate", "100", "--progress-period", "0.2", "--lag-budget", "30"
+    )
     refused: dict[str, dict[str, int]] = {}
 
     def on_diagnostics(msg: DiagnosticArray) -> None:

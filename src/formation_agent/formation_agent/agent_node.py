@@ -219,15 +219,17 @@ import rclpy  # noqa: E402  (the synchroniser above stays importable and testabl
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped  # noqa: E402
 from rcl_interfaces.msg import SetParametersResult  # noqa: E402
+from rclpy._rclpy_pybind11 import RCLError  # noqa: E402
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump  # noqa: E402
 from rclpy.duration import Duration  # noqa: E402
 from rclpy.exceptions import ParameterException  # noqa: E402
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
+from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from formation_msgs_py import conversions, parameters, qos, topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
 from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
+from formation_msgs_py.hotloop import EXECUTORS, Spinner, check_kind  # noqa: E402
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport  # noqa: E402
@@ -238,6 +240,7 @@ POSE_WAIT_DOC = (
     "wall seconds to wait for the neighbours' poses once the velocity is in; a neighbour still "
     "missing then is out of range: zero wrench and ERROR; live"
 )
+EXECUTOR_DOC = f"how the node spins: {', '.join(EXECUTORS)} (formation_msgs_py.hotloop)"
 DIAG_DOC = "wall seconds between /diagnostics messages (>= 0.1); live"
 QOS_DOC = "QoS of the measurements: reliable or best-effort, as the simulator's --measurement-qos"
 POLICY_DOC = (
@@ -267,7 +270,8 @@ class AgentNode(Node):
         pose_wait = declare(self, "pose_wait", 0.005, POSE_WAIT_DOC, low=0.0, high=1.0)
         self.diag_period = declare(self, "diagnostics_period", 0.1, DIAG_DOC, low=0.1, high=3600.0)
         self.measurement_qos = declare(self, "measurement_qos", "reliable", QOS_DOC, read_only=True)
-        self.executor_kind = declare(self, "executor", "events", "rclpy executor: events or single", read_only=True)
+        self.executor_kind = declare(self, "executor", "lean", EXECUTOR_DOC, read_only=True)
+        check_kind(self.executor_kind)
         policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
         gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
         self.sync = StepSynchroniser(
@@ -383,14 +387,16 @@ class AgentNode(Node):
             self.sync.reset()
 
     # the loop: spin, then deadlines (pose wait, diagnostics) on the wall clock
-    def spin(self, executor) -> None:
+    def spin(self) -> None:
         sync = self.sync
         mono = time.monotonic
-        while rclpy.ok(context=self.context):
+        spinner = Spinner(self.executor_kind, self)
+        ok = self.context.ok
+        while ok():
             dl = sync.deadline()
             now = mono()
             timeout = min(self._next_diag - now, 0.1 if dl is None else dl - now)
-            executor.spin_once(timeout_sec=max(timeout, 0.0))
+            spinner.spin_once(timeout)
             now = mono()
             if sync.pending is not None and now >= sync.pending[2]:
                 sync.try_compute(now, final=True)
@@ -439,17 +445,6 @@ def _fmt(x: float) -> str:
     return "" if math.isinf(x) else f"{x:.6f}"
 
 
-def make_executor(kind: str, context=None):
-    """``events`` (rclpy.experimental.EventsExecutor, driven by spin_once) or ``single``."""
-    if kind == "events":
-        from rclpy.experimental import EventsExecutor
-
-        return EventsExecutor(context=context)
-    if kind == "single":
-        return SingleThreadedExecutor(context=context)
-    raise ValueError(f"executor {kind!r} is not 'events' or 'single'")
-
-
 def _cli_sets(args: Sequence[str], name: str) -> bool:
     return any(a.startswith(f"{name}:=") for a in args)
 
@@ -485,7 +480,8 @@ parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
   formation_file       formation file (YAML); only the agent's own view of it is used   read-only
   agent_id             the agent's id in the file                                      read-only
   measurement_qos      reliable (default) or best-effort, as the simulator's --measurement-qos  read-only
-  executor             events (default) or single                                      read-only
+  executor             lean (default: one wait set over the measurements, raw takes), events or
+                       single (an rclpy executor's spin_once per message)              read-only
   intruder_policy      report (default) or refuse: a publisher other than the simulator on the
                        agent's measurements (or other than itself on its wrench) is logged; refuse
                        also ignores that topic's messages while it is there  read-only
@@ -514,19 +510,20 @@ def main(args: list[str] | None = None) -> int:
     try:
         try:
             node = AgentNode(resolve_agent_id(argv, None))
-            executor = make_executor(node.executor_kind, node.context)
             check_secure_transport()
         except (FormationSpecError, ParameterException, ValueError, InsecureTransportError) as exc:
             print(f"formation-agent: {exc}", file=sys.stderr)
             return 2
-        executor.add_node(node)
-        node.spin(executor)
+        node.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RCLError:
+            pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
     return 0
 
 

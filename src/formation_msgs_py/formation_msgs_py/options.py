@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
+from formation_msgs_py.hotloop import EXECUTORS
+
 HEADLESS, SIM, LAUNCH, CHECK = "headless", "sim", "launch", "check"
 RUNNERS = frozenset({HEADLESS, SIM, LAUNCH})
 ROS = frozenset({SIM, LAUNCH})
@@ -110,11 +112,15 @@ OPTIONS: tuple[Option, ...] = (
            forward=True),
     Option("--settle", "wall s to wait after discovery", frozenset({SIM}), nonnegative, 0.3),
     Option("--resend", "lockstep: re-send an unanswered step after [wall s]", frozenset({SIM}), positive, 0.25),
-    Option("--wait-recorder", "also wait for a ground-truth subscriber (a bag recorder)", frozenset({SIM})),
+    Option("--wait-recorder", "wait for a bag recorder (formation-record --formation FILE) before the first step; "
+           "in lockstep the recorder then takes part in every step (its acknowledgement), so the bag holds every "
+           "message", frozenset({SIM})),
+    Option("--lag-budget", "realtime: stop INCOMPLETE (exit 4) when a tick lags more than this many wall s behind "
+           "the wall clock", ROS, nonnegative, 1.0, forward=True),
     Option("--ground-truth-rate", "ground-truth publication rate [Hz, sim time] (default: the record rate, at "
            "most the control rate; while recording: the control rate)", ROS, positive, forward=True),
     Option("--clock-rate", "/clock publication rate [Hz, sim time]", ROS, positive, forward=True),
-    Option("--executor", "rclpy executor of every node", ROS, str, "events", ("events", "single"), forward=True),
+    Option("--executor", "how every node spins (formation_msgs_py.hotloop)", ROS, str, "lean", EXECUTORS, forward=True),
     Option("--measurement-qos", "QoS of relative poses and velocities; best-effort (realtime only) costs less CPU "
            "per message (agents need -p measurement_qos:=best_effort)", ROS, str, "reliable",
            ("reliable", "best-effort"), forward=True),
@@ -165,9 +171,10 @@ class RunOptions:
     settle: float = 0.3
     resend: float = 0.25
     wait_recorder: bool = False
+    lag_budget: float = 1.0
     ground_truth_rate: float | None = None
     clock_rate: float | None = None
-    executor: str = "events"
+    executor: str = "lean"
     measurement_qos: str = "reliable"
     intruder_policy: str = "report"
     marker_rate: float = 30.0

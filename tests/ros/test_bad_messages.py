@@ -119,7 +119,9 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
     for a in spec.agents:
         procs.agent(REALTIME, a.id)
     out = tmp_path / "out"
-    sim = procs.sim(REALTIME, out, "--duration", "4", "--physics-rate", "100", "--progress-period", "0.2")
+    sim = procs.sim(
+        REALTIME, out, "--duration", "4", "--physics-rate", "100", "--progress-period", "0.2", "--lag-budget", "30"
+    )
     refused: dict[str, dict[str, int]] = {}
 
     def on_diagnostics(msg: DiagnosticArray) -> None:
@@ -210,4 +212,6 @@ def test_lockstep_run_is_not_stalled_by_a_future_stamped_wrench(procs, ros_env, 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["duration"] == 1.0 and summary["steps"] == 100, summary
     assert summary["refused_wrenches"]["2"]["future_step"]["count"] >= 1, summary["refused_wrenches"]
-    assert set(summary["refused_wrenches"]) == {"2"}
+    # a healthy agent may answer a re-sent step twice, the second time after the step was integrated
+    others = {a: set(kinds) for a, kinds in summary["refused_wrenches"].items() if a != "2"}
+    assert all(kinds <= {"past_step"} for kinds in others.values()), summary["refused_wrenches"]

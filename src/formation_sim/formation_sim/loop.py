@@ -5,7 +5,8 @@ does, step for step: the measurements of step k (relative poses with their noise
 twists), every agent's controller (:func:`formation_sim.team.team_step`, with the fault policy),
 the step's ground truth, wrenches and velocity-funnel margins into the recording buffers, then
 ``substeps`` physics steps: with the wrenches held (``sampled``, zero-order hold) or with the
-controller evaluated on every integrator stage (``continuous``, the paper's law). It returns to
+controller evaluated on every integrator stage (``continuous``, the paper's law, sub-stepped to
+within RK4's stability limit: :func:`continuous_substeps`). It returns to
 Python after a buffer's worth of steps, at the first step with a fault while none is recorded
 yet (so the recorder sees faults and funnel checks in the order the streaming runs record them),
 or when a state is no longer finite (naming the agents).
@@ -15,6 +16,7 @@ or when a state is no longer finite (naming the agents).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import NamedTuple
@@ -47,6 +49,7 @@ from formation_sim.plant import (
     rkmk4_step,
     saturate_into,
 )
+from formation_sim.rates import rate_needs
 from formation_sim.report import RunRecorder
 from formation_sim.simulation import Simulation
 from formation_sim.team import note_errors, note_missing, team_step
@@ -203,6 +206,18 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
     )
 
 
+#: Fraction of RK4's stability limit used: the linearisation at ξ_v = 0 underestimates the gain
+#: r_v(ξ)/2 near the funnel's bound.
+STABILITY_FRACTION = 0.5
+
+
+def continuous_substeps(spec: FormationSpec, file_substeps: int) -> int:
+    """Physics steps per control period for the continuous closed loop: at least the file's, and enough
+    for every agent's RK4 stability limit (:attr:`formation_sim.rates.RateNeed.physics_step`)."""
+    h_max = STABILITY_FRACTION * min(n.physics_step for n in rate_needs(spec))
+    return max(file_substeps, math.ceil(1.0 / (spec.simulation.control_rate * h_max)))
+
+
 def _refill_noise(loop: ClosedLoop, sim: Simulation, draws: int) -> ClosedLoop:
     """Make sure ``draws`` more noise draws are at hand, continuing the measurement model's stream."""
     if not sim.sensors.noisy:
@@ -223,6 +238,7 @@ def run_closed_loop(
     stop_on_violation: bool = False,
     progress: ProgressFn | None = None,
     chunk: int | None = None,
+    substeps: int | None = None,
 ) -> tuple[float, str]:
     """Run ``spec`` for ``simulation.duration`` into ``recorder``: (wall time [s], why it is incomplete or "").
 
@@ -230,6 +246,8 @@ def run_closed_loop(
     runs record them (:func:`formation_sim.team.note_missing` before a step's funnel check,
     :func:`formation_sim.team.note_errors` after it). A state that stops being finite ends the
     run, incomplete, naming the agents (as :func:`formation_sim.inputs.advance_checked`).
+    ``substeps`` overrides the physics steps per control period (default: the file's, and in
+    continuous mode at least :func:`continuous_substeps`).
     """
     started = time.perf_counter()
     sim_spec = spec.simulation
@@ -241,7 +259,10 @@ def run_closed_loop(
     chunk = chunk or int(np.clip(8e6 / (len(ids) * 8 * 36), 100, 2000))
     neighbours = [ie.neighbour for a in ids for ie in agent_view(spec, a).edges]
     buf = new_buffers(chunk, len(ids), len(neighbours))
-    draws_per_step = 1 + (4 * sim.substeps if continuous else 0)
+    if substeps is None:  # physics steps per control period
+        substeps = continuous_substeps(spec, sim.substeps) if continuous else sim.substeps
+    h = 1.0 / (sim_spec.control_rate * substeps)
+    draws_per_step = 1 + (4 * substeps if continuous else 0)
     p, R, v = sim.state.p, sim.state.R, sim.state.v  # advanced in place
     work = new_workspace(len(ids))
     k = 0
@@ -252,7 +273,7 @@ def run_closed_loop(
         watch = recorder.first_violation is None
         done, event = run_steps(
             loop, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
-            sim.substeps, sim.h, continuous, watch, buf,
+            substeps, h, continuous, watch, buf,
         )  # fmt: skip
         if watch and buf.level[done - 1].max() == ERROR:
             # a fault at the last step done: the checks before it, then its faults around its own check

@@ -46,9 +46,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.loader import read_document
 from formation_msgs_py.so3 import exp_so3
 from formation_msgs_py.spec import FormationSpec, SignalModel, load_formation
 
@@ -175,13 +175,16 @@ def parse_campaign(document: Any, base: Path) -> Campaign:
 
 
 def load_campaign(path: Path) -> Campaign:
+    """Read and validate a campaign file with the formation files' reader (duplicate keys, size and
+    alias budgets); errors name the field and its FILE:LINE:COL."""
     try:
-        document = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise CampaignError(str(path), f"cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise CampaignError(str(path), f"not YAML: {exc}") from None
-    campaign = parse_campaign(document, path.parent)
+        document = read_document(path)
+    except FormationSpecError as exc:
+        raise CampaignError("campaign file", str(exc).replace("formation file", "campaign file")) from None
+    try:
+        campaign = parse_campaign(document.data, path.parent)
+    except CampaignError as exc:
+        raise CampaignError(exc.field, f"{exc.args[0].split(': ', 1)[1]} ({document.location(exc.field)})") from None
     load_formation(campaign.formation)  # a bad base formation is an error before anything runs
     return campaign
 

@@ -11,6 +11,12 @@ the numbers depend on the machine and its load, which is printed with them.
 
 - lockstep: the paper preset at its 10 kHz control rate (``--lockstep-duration``, default 0.5 s;
   ``--full`` for the whole 5 s).
+- step_cpu: the acceptance figure of issue 13: CPU of all the run's processes (simulator, agents,
+  recorder; ``logs/processes.json``) of a ``--duration 0.55`` run minus that of a ``--duration
+  0.05`` run, divided by the 5 000 steps between them, per variant of ``--variants`` (``NAME=LAUNCH
+  [ARG ...]``: another checkout's formation-launch gives the "before" of a side-by-side comparison;
+  ``profile=off`` in the arguments runs without the shipped Fast DDS profile), ``--repeat`` times,
+  interleaved.
 - executor: the same, 0.1 s, with ``--executor events`` and ``--executor single``.
 - realtime: config/realtime_5agents_100hz.yaml as written and with ``--physics-rate 100`` (one
   integrator step per tick), 10 s each.
@@ -42,16 +48,19 @@ PAPER = REPO / "config" / "paper_5agents.yaml"
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
 
 
-def launch(formation: Path, out: Path, *extra: str, timeout: float = 1800) -> dict[str, Any]:
+def launch(
+    formation: Path, out: Path, *extra: str, timeout: float = 1800, launcher: Path = LAUNCH, env: dict | None = None
+) -> dict[str, Any]:
     """Run one formation through formation-launch; return summary, process table and timings."""
     load_before = os.getloadavg()
     t0 = time.monotonic()
     r = subprocess.run(
-        [str(LAUNCH), str(formation), "--out", str(out), "--no-plots", "--quiet", "--force", *extra],
+        [str(launcher), str(formation), "--out", str(out), "--no-plots", "--quiet", "--force", *extra],
         capture_output=True,
         text=True,
         timeout=timeout,
         start_new_session=True,
+        env=env,
     )
     total = time.monotonic() - t0
     summary = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else {}
@@ -118,6 +127,51 @@ def brief(res: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def total_cpu(procs: list[dict[str, Any]]) -> dict[str, float]:
+    """CPU seconds (user + system) by role (sim, agent, recorder) and in total."""
+    out: dict[str, float] = {}
+    for p in procs:
+        out[p["role"]] = out.get(p["role"], 0.0) + p.get("cpu_user_s", 0.0) + p.get("cpu_system_s", 0.0)
+    out["total"] = sum(out.values())
+    return out
+
+
+def step_cpu(base: Path, variants: list[str], repeat: int) -> dict[str, Any]:
+    """CPU per lockstep step of the paper preset, (CPU(0.55 s) − CPU(0.05 s)) / 5000, per variant."""
+    runs: dict[str, list[dict[str, Any]]] = {}
+    for r in range(repeat):
+        for v in variants:
+            name, _, rest = v.partition("=")
+            words = rest.split()
+            launcher = Path(words[0]) if words else LAUNCH
+            extra = [w for w in words[1:] if w != "profile=off"]
+            env = dict(os.environ)
+            if "profile=off" in words:
+                env["FASTRTPS_DEFAULT_PROFILES_FILE"] = ""
+            res = {}
+            for d in (0.05, 0.55):
+                res[d] = launch(
+                    PAPER, base / f"stepcpu_{name}_{r}_{d}", "--duration", str(d), *extra, launcher=launcher, env=env
+                )
+            short, long_ = total_cpu(res[0.05]["processes"]), total_cpu(res[0.55]["processes"])
+            per_step = {k: 1e3 * (long_.get(k, 0.0) - short.get(k, 0.0)) / 5000 for k in long_}
+            s = res[0.55]["summary"]
+            row = {
+                "cpu_ms_per_step": per_step,
+                "exit": [res[0.05]["exit"], res[0.55]["exit"]],
+                "real_time_factor_0.55": s.get("real_time_factor"),
+                "load": [round(x, 2) for x in (*res[0.05]["load_before"], *res[0.55]["load_after"])],
+            }
+            runs.setdefault(name, []).append(row)
+            print(
+                f"step_cpu {name} #{r}: total {per_step['total']:.2f} ms/step "
+                f"({', '.join(f'{k} {v:.2f}' for k, v in per_step.items() if k != 'total')}), "
+                f"rtf {row['real_time_factor_0.55']}, load {row['load']}, exit {row['exit']}",
+                flush=True,
+            )
+    return runs
+
+
 def generated(n: int, tmp: Path) -> Path:
     """A random tree of n agents, realtime at 100 Hz for 10 s (formation_sim.generate).
 
@@ -148,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--full", action="store_true", help="the whole 5 s paper scenario in lockstep")
     p.add_argument("--sizes", default="20,50", help="agent counts of the scale section")
     p.add_argument("--out", type=Path, help="keep the run directories here (default: a temporary directory)")
+    p.add_argument("--variants", nargs="*", default=["this="], help="step_cpu: NAME=[LAUNCH [ARG ...]] per variant")
+    p.add_argument("--repeat", type=int, default=2, help="step_cpu: runs of each variant (interleaved)")
     args = p.parse_args(argv)
     sections = set(args.only.split(","))
     base = args.out or Path(tempfile.mkdtemp(prefix="ros_bench_"))
@@ -161,6 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     if "lockstep" in sections:
         d = 5.0 if args.full else args.lockstep_duration
         record("lockstep_paper_10kHz", launch(PAPER, base / "lockstep", "--duration", str(d)))
+    if "step_cpu" in sections:
+        results["step_cpu"] = step_cpu(base, args.variants, args.repeat)
     if "executor" in sections:
         for ex in ("events", "single"):
             record(f"executor_{ex}", launch(PAPER, base / f"exec_{ex}", "--duration", "0.1", "--executor", ex))

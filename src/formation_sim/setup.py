@@ -23,7 +23,8 @@ setup(
         "numba",
         "distributed",
     ],
-    extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
+    # colcon test runs pytest when "test" lists it; "dask": formation-campaign --scheduler
+    extras_require={"test": ["pytest"], "dask": ["distributed"]},
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",

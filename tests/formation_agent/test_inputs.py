@@ -113,3 +113,17 @@ def test_bytes_that_are_no_message_are_refused_and_dropped() -> None:
     refusal = c.malformed("relative pose of 3")
     assert refusal.kind == inputs.MALFORMED and refusal.kind in inputs.DROPPED_KINDS
     assert c.counts == {inputs.MALFORMED: 1}
+
+
+def test_refused_measurement_of_a_past_step_changes_nothing() -> None:
+    """A refused velocity stamped before the last answered step: no answer, no controller reset."""
+    spec = load_formation(PAPER)
+    meas = Simulation(simulator_view(spec)).sense()
+    sent: list = []
+    sync = StepSynchroniser(AgentController(agent_view(spec, "5")), lambda ns, u: sent.append((ns, tuple(u))))
+    p, R = meas.relative_poses["5"]["3"]
+    sync.on_pose("3", 2000, p, R, now=0.0)
+    sync.on_velocity(2000, meas.velocities[4].tolist(), now=0.0)
+    assert len(sent) == 1
+    sync.refuse(1000, "velocity: non-finite value", now=0.0)
+    assert len(sent) == 1 and sync.resets == 0 and sync.last_ns == 2000

@@ -64,7 +64,9 @@ def main() -> int:
         t = k / 1000.0
         stamp = cv.stamp_from_seconds(t)
         pubs[topics.CLOCK].publish(cv.clock_msg(t))
-        pubs["/" + topics.GROUND_TRUTH].publish(cv.poses_to_msg(t, p + 0.001 * k, R))
+        pubs["/" + topics.GROUND_TRUTH].publish(
+            cv.ground_truth_bytes(k * 1_000_000, (p + 0.001 * k).tolist(), R.tolist())
+        )
         for i, j in links:
             pi, pj = spec.agent(i).index, spec.agent(j).index
             msg = cv.relative_pose_to_msg(t, i, j, R[pi].T @ (p[pj] - p[pi]), R[pi].T @ R[pj])

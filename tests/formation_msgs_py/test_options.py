@@ -109,3 +109,25 @@ def test_run_sh_refuses_a_nan_control_rate() -> None:
     )
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "argument --control-rate: 'nan' is not finite" in r.stderr
+
+
+@pytest.mark.parametrize(
+    ("script", "extra", "message"),
+    [
+        ("formation-sim", ["--measurement-qos", "best-effort"], "is for realtime runs only"),
+        ("formation-launch", ["--measurement-qos", "best-effort"], "is for realtime runs only"),
+        ("formation-headless", ["--control-rate", "1000"], "control rate too low"),
+        ("formation-headless", [], "exists and is not empty"),
+    ],
+)
+def test_preflight_refuses_what_cannot_run(script, extra, message, tmp_path) -> None:
+    """The one pre-flight of every runner: QoS that cannot work, a rate below the need, a non-empty OUT."""
+    out = tmp_path / "o"
+    if message.startswith("exists"):
+        out.mkdir()
+        (out / "keep.txt").write_text("x")
+    r = subprocess.run(
+        [str(BIN / script), str(PAPER), "--out", str(out), *extra], capture_output=True, text=True, timeout=300
+    )
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr + r.stdout

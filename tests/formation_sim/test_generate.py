@@ -49,6 +49,37 @@ def test_presets_match_their_generator(paper_path) -> None:
         "chain_8agents_gravity.yaml": dict(
             n_agents=8, topology="chain", gravity=9.81, seed=1, name="chain_8agents_gravity"
         ),
+        "realtime_20agents_100hz.yaml": dict(
+            n_agents=20, seed=1, control_rate=100.0, duration=10.0, name="realtime_20agents_100hz", preset="realtime"
+        ),
+        "realtime_50agents_50hz.yaml": dict(
+            n_agents=50, seed=1, control_rate=50.0, duration=10.0, name="realtime_50agents_50hz", preset="realtime"
+        ),
     }
     for file, kwargs in cases.items():
         assert yaml.safe_load((config / file).read_text()) == generate.generate(**kwargs), file
+
+
+@pytest.mark.parametrize(("n", "rate"), [(6, 100.0), (12, 50.0), (8, 20.0)])
+def test_realtime_preset_needs_a_fraction_of_its_rate(n: int, rate: float) -> None:
+    """--preset realtime: realtime mode at the asked rate, every agent's rate need over the run
+    at most rate / REALTIME_MARGIN (γ chosen from the need; 1e-9 relative for the rounding of γ)."""
+    from formation_sim.rates import rate_needs
+
+    spec = formation_from_dict(generate.generate(n, seed=n, control_rate=rate, duration=10.0, preset="realtime"))
+    s = spec.simulation
+    assert (s.mode, s.control_rate, s.physics_rate, s.record_rate) == ("realtime", rate, rate, rate)
+    needs = rate_needs(spec)
+    assert len(needs) == n
+    worst = max(r.at_end for r in needs)
+    assert worst <= rate / generate.REALTIME_MARGIN * (1 + 1e-9)
+    assert worst >= rate / generate.REALTIME_MARGIN / 2  # γ is not needlessly small
+
+
+def test_realtime_preset_from_the_command_line(tmp_path) -> None:
+    out = tmp_path / "rt.yaml"
+    assert generate.main(["5", "--preset", "realtime", "--control-rate", "50", "--out", str(out)]) == 0
+    spec = load_formation(out)
+    assert (spec.simulation.mode, spec.simulation.control_rate, spec.simulation.duration) == ("realtime", 50.0, 10.0)
+    with pytest.raises(ValueError, match="preset: 'fast'"):
+        generate.generate(5, preset="fast")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 
@@ -52,3 +52,21 @@ def test_clock_bytes() -> None:
     for ns in STAMPS:
         msg = deserialize_message(cv.clock_bytes(ns), Clock)
         assert cv.stamp_ns(msg.clock) == ns
+
+
+def test_ground_truth_bytes_deserialize_in_rclpy() -> None:
+    """The ground-truth PoseArray as CDR bytes: stamp, frame 'world', one pose per agent, any count."""
+    from formation_msgs_py.so3 import exp_so3, quaternion_from_matrix
+
+    rng = np.random.default_rng(2)
+    for n in (0, 1, 5, 50):
+        p = rng.normal(size=(n, 3)).tolist()
+        R = [exp_so3(theta).tolist() for theta in rng.normal(size=(n, 3))]
+        msg = deserialize_message(cv.ground_truth_bytes(12_345_678_901, p, R), PoseArray)
+        assert cv.stamp_ns(msg.header.stamp) == 12_345_678_901
+        assert msg.header.frame_id == "world"
+        assert len(msg.poses) == n
+        for pose, pi, Ri in zip(msg.poses, p, R):
+            o = pose.orientation
+            assert [pose.position.x, pose.position.y, pose.position.z] == pi
+            assert [o.x, o.y, o.z, o.w] == list(quaternion_from_matrix(Ri))

@@ -142,6 +142,8 @@ class StepSynchroniser:
     def refuse(self, ns: int, reason: str, now: float, neighbour: str | None = None) -> None:
         """A measurement of step ``ns`` was refused (the velocity if ``neighbour`` is None): the step
         is answered with a zero wrench and ERROR naming ``reason``."""
+        if self.last_ns is not None and ns < self.last_ns:
+            return  # a step already behind us: nothing to answer, and no reset (only a real clock jump resets)
         self.refused[ns] = reason
         if len(self.refused) > _POSE_MEMORY:
             del self.refused[next(iter(self.refused))]
@@ -220,12 +222,13 @@ from rcl_interfaces.msg import SetParametersResult  # noqa: E402
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump  # noqa: E402
 from rclpy.duration import Duration  # noqa: E402
 from rclpy.exceptions import ParameterException  # noqa: E402
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
+from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from formation_msgs_py import conversions, parameters, qos, topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
 from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
+from formation_msgs_py.hotloop import EXECUTORS, Spinner, check_kind  # noqa: E402
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport  # noqa: E402
@@ -236,6 +239,7 @@ POSE_WAIT_DOC = (
     "wall seconds to wait for the neighbours' poses once the velocity is in; a neighbour still "
     "missing then is out of range: zero wrench and ERROR; live"
 )
+EXECUTOR_DOC = f"how the node spins: {', '.join(EXECUTORS)} (formation_msgs_py.hotloop)"
 DIAG_DOC = "wall seconds between /diagnostics messages (>= 0.1); live"
 QOS_DOC = "QoS of the measurements: reliable or best-effort, as the simulator's --measurement-qos"
 POLICY_DOC = (
@@ -265,7 +269,8 @@ class AgentNode(Node):
         pose_wait = declare(self, "pose_wait", 0.005, POSE_WAIT_DOC, low=0.0, high=1.0)
         self.diag_period = declare(self, "diagnostics_period", 0.1, DIAG_DOC, low=0.1, high=3600.0)
         self.measurement_qos = declare(self, "measurement_qos", "reliable", QOS_DOC, read_only=True)
-        self.executor_kind = declare(self, "executor", "events", "rclpy executor: events or single", read_only=True)
+        self.executor_kind = declare(self, "executor", "lean", EXECUTOR_DOC, read_only=True)
+        check_kind(self.executor_kind)
         policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
         gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
         self.sync = StepSynchroniser(
@@ -381,14 +386,16 @@ class AgentNode(Node):
             self.sync.reset()
 
     # the loop: spin, then deadlines (pose wait, diagnostics) on the wall clock
-    def spin(self, executor) -> None:
+    def spin(self) -> None:
         sync = self.sync
         mono = time.monotonic
-        while rclpy.ok(context=self.context):
+        spinner = Spinner(self.executor_kind, self)
+        ok = self.context.ok
+        while ok():
             dl = sync.deadline()
             now = mono()
             timeout = min(self._next_diag - now, 0.1 if dl is None else dl - now)
-            executor.spin_once(timeout_sec=max(timeout, 0.0))
+            spinner.spin_once(timeout)
             now = mono()
             if sync.pending is not None and now >= sync.pending[2]:
                 sync.try_compute(now, final=True)
@@ -437,17 +444,6 @@ def _fmt(x: float) -> str:
     return "" if math.isinf(x) else f"{x:.6f}"
 
 
-def make_executor(kind: str, context=None):
-    """``events`` (rclpy.experimental.EventsExecutor, driven by spin_once) or ``single``."""
-    if kind == "events":
-        from rclpy.experimental import EventsExecutor
-
-        return EventsExecutor(context=context)
-    if kind == "single":
-        return SingleThreadedExecutor(context=context)
-    raise ValueError(f"executor {kind!r} is not 'events' or 'single'")
-
-
 def _cli_sets(args: Sequence[str], name: str) -> bool:
     return any(a.startswith(f"{name}:=") for a in args)
 
@@ -483,7 +479,8 @@ parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
   formation_file       formation file (YAML); only the agent's own view of it is used   read-only
   agent_id             the agent's id in the file                                      read-only
   measurement_qos      reliable (default) or best-effort, as the simulator's --measurement-qos  read-only
-  executor             events (default) or single                                      read-only
+  executor             lean (default: one wait set over the measurements, raw takes), events or
+                       single (an rclpy executor's spin_once per message)              read-only
   intruder_policy      report (default) or refuse: a publisher other than the simulator on the
                        agent's measurements (or other than itself on its wrench) is logged; refuse
                        also ignores that topic's messages while it is there  read-only
@@ -512,13 +509,11 @@ def main(args: list[str] | None = None) -> int:
     try:
         try:
             node = AgentNode(resolve_agent_id(argv, None))
-            executor = make_executor(node.executor_kind, node.context)
             check_secure_transport()
         except (FormationSpecError, ParameterException, ValueError, InsecureTransportError) as exc:
             print(f"formation-agent: {exc}", file=sys.stderr)
             return 2
-        executor.add_node(node)
-        node.spin(executor)
+        node.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -165,8 +165,10 @@ class Recorder(Node):
         if self._deferred is None:
             return
         now = time.monotonic()
-        # /diagnostics is optional (agents publish it at ≤ 10 Hz, tools may not): not waited for
-        if all(sub.get_publisher_count() > 0 for name, sub, _, _ in self._active if name != topics.DIAGNOSTICS):
+        # /diagnostics and the display topics are optional (agents publish diagnostics at ≤ 10 Hz,
+        # tools that replay or fake a run may publish neither): not waited for
+        optional = {topics.DIAGNOSTICS, *(m.absolute(t, self.namespace) for t in (topics.MARKERS, topics.FUNNELS))}
+        if all(sub.get_publisher_count() > 0 for name, sub, _, _ in self._active if name not in optional):
             if self._matched_at is None:
                 self._matched_at = now
         else:

@@ -23,13 +23,15 @@ machine); a multi-host run gives each process's address (docs/security.md).
 from __future__ import annotations
 
 import os
+import shutil
 import socket
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import escape
 
-from formation_deploy.keys import cert_path, key_path, process_names
+from formation_deploy.keys import cert_path, init_keys, key_path, process_names
 from formation_msgs_py.transport_check import SECURE_FLAG
 
 #: Default first port of a multi-host secure run (one port per process above it).
@@ -230,10 +232,6 @@ class SecureRun:
     def prepare(
         cls, agent_ids: Sequence[str], base_env: Mapping[str, str], *, keys: Path | None, port_start: int
     ) -> SecureRun:
-        import tempfile
-
-        from formation_deploy.keys import init_keys
-
         workdir = Path(tempfile.mkdtemp(prefix="formation-secure-"))  # mode 0700
         ephemeral = keys is None
         if keys is None:
@@ -254,6 +252,4 @@ class SecureRun:
         return {"transport": "TCPv4+TLS (mutual)", "ports": [min(ports), max(ports)], "run_keys": self.ephemeral_keys}
 
     def close(self) -> None:
-        import shutil
-
         shutil.rmtree(self.workdir, ignore_errors=True)

@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Pose, PoseArray, TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import topics
@@ -24,6 +24,7 @@ from formation_msgs_py.wire import (  # noqa: F401 - the ROS-free half, re-expor
     NS_PER_S,
     StampedCodec,
     clock_bytes,
+    ground_truth_bytes,
     poses_from_msg,
     relative_pose_codec,
     relative_pose_from_msg,
@@ -75,22 +76,6 @@ def wrench_to_msg(stamp: Time, agent_id: str, u: Sequence[float]) -> WrenchStamp
     msg.header.frame_id = topics.agent_frame(agent_id)
     f, tq = msg.wrench.force, msg.wrench.torque
     f.x, f.y, f.z, tq.x, tq.y, tq.z = (float(c) for c in u)
-    return msg
-
-
-def poses_to_msg(t: float, p, R) -> PoseArray:
-    """Ground truth: world poses of every agent, in formation-file order."""
-    msg = PoseArray()
-    msg.header.stamp = stamp_from_seconds(t)
-    msg.header.frame_id = topics.WORLD_FRAME
-    poses = []
-    for pi, Ri in zip(p.tolist(), R.tolist()):
-        pose = Pose()
-        pose.position.x, pose.position.y, pose.position.z = pi
-        o = pose.orientation
-        o.x, o.y, o.z, o.w = quaternion_from_matrix(Ri)
-        poses.append(pose)
-    msg.poses = poses
     return msg
 
 

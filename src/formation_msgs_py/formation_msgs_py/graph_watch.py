@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.subscription import Subscription
 
 from formation_msgs_py.publisher_watch import Intruder, PublisherInfo, PublisherWatch, describe
 
@@ -46,7 +47,7 @@ class GraphWatch:
                 if self.on_intruder is not None:
                     self.on_intruder(intruder)
 
-    def accept(self, topic: str, subscription) -> bool:
+    def accept(self, topic: str, subscription: Subscription) -> bool:
         """Whether to apply a message just taken from ``subscription`` of ``topic`` (see PublisherWatch.accept)."""
         if self.watch.policy == "report":
             return True

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
+from formation_msgs_py.hotloop import EXECUTORS
+
 HEADLESS, SIM, LAUNCH, CHECK = "headless", "sim", "launch", "check"
 RUNNERS = frozenset({HEADLESS, SIM, LAUNCH})
 ROS = frozenset({SIM, LAUNCH})
@@ -114,7 +116,7 @@ OPTIONS: tuple[Option, ...] = (
     Option("--ground-truth-rate", "ground-truth publication rate [Hz, sim time] (default: the record rate, at "
            "most the control rate; while recording: the control rate)", ROS, positive, forward=True),
     Option("--clock-rate", "/clock publication rate [Hz, sim time]", ROS, positive, forward=True),
-    Option("--executor", "rclpy executor of every node", ROS, str, "events", ("events", "single"), forward=True),
+    Option("--executor", "how every node spins (formation_msgs_py.hotloop)", ROS, str, "lean", EXECUTORS, forward=True),
     Option("--measurement-qos", "QoS of relative poses and velocities; best-effort (realtime only) costs less CPU "
            "per message (agents need -p measurement_qos:=best_effort)", ROS, str, "reliable",
            ("reliable", "best-effort"), forward=True),
@@ -167,7 +169,7 @@ class RunOptions:
     wait_recorder: bool = False
     ground_truth_rate: float | None = None
     clock_rate: float | None = None
-    executor: str = "events"
+    executor: str = "lean"
     measurement_qos: str = "reliable"
     intruder_policy: str = "report"
     marker_rate: float = 30.0

@@ -17,7 +17,7 @@ from __future__ import annotations
 import enum
 
 
-class Verdict(str, enum.Enum):
+class Verdict(str, enum.Enum):  # noqa: UP042  (StrEnum would change str() of a member: not here)
     """What a run (or the analysis of its bag) concludes."""
 
     PASS = "PASS"

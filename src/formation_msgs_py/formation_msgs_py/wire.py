@@ -105,6 +105,20 @@ class StampedCodec:
         return sec * NS_PER_S + nsec, self._doubles.unpack_from(data, 4 + off)
 
 
+def _ground_truth_frame() -> bytes:
+    """header.frame_id of the ground truth as CDR, from offset 8 (after the stamp), padded so that
+    the sequence length that follows is 4-aligned and the poses after it 8-aligned."""
+    raw = topics.WORLD_FRAME.encode("utf-8") + b"\0"
+    mid = _U32.pack(len(raw)) + raw
+    mid += b"\0" * ((-(8 + len(mid))) % 4)
+    if (8 + len(mid) + 4) % 8:
+        raise AssertionError("ground-truth layout: poses would not be 8-aligned")  # fixed by WORLD_FRAME
+    return mid
+
+
+_GROUND_TRUTH_FRAME = _ground_truth_frame()
+
+
 def twist_codec(agent_id: str) -> StampedCodec:
     """TwistStamped in frame ``agent_<id>``: [vx, vy, vz, wx, wy, wz]."""
     return StampedCodec([topics.agent_frame(agent_id)], 6)
@@ -124,6 +138,20 @@ def clock_bytes(ns: int) -> bytes:
     """CDR bytes of a rosgraph_msgs/Clock at ``ns`` (integer nanoseconds)."""
     sec, nsec = divmod(ns, NS_PER_S)
     return _CDR_LE + _STAMP.pack(sec, nsec)
+
+
+def ground_truth_bytes(
+    ns: int, p_world: Sequence[Sequence[float]], R_world: Sequence[Sequence[Sequence[float]]]
+) -> bytes:
+    """CDR bytes of the ground-truth geometry_msgs/PoseArray at ``ns``: frame ``world``, one pose
+    per agent (position in m, orientation as quaternion x, y, z, w of R_world_body)."""
+    sec, nsec = divmod(ns, NS_PER_S)
+    values = []
+    for p, R in zip(p_world, R_world):
+        values += p
+        values += quaternion_from_matrix(R)
+    head = _CDR_LE + _STAMP.pack(sec, nsec) + _GROUND_TRUTH_FRAME + _U32.pack(len(values) // 7)
+    return head + struct.pack(f"<{len(values)}d", *values)
 
 
 def relative_pose_values(p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]) -> tuple[float, ...]:

@@ -5,6 +5,14 @@ distance inside (d_col, d_con) with a margin), rejecting draws that bring any tw
 than the sum of their radii. Orientations and desired relative orientations are random with
 bounded angles, so ψ_k(0) stays below ρ_ψ,0 with a margin. The defaults are tuned for sampled
 control at 1 kHz (formation-check prints the need per agent).
+
+``--preset realtime`` makes the same tree hold in ``--mode realtime`` at ``--control-rate``
+(tens of Hz, what real processes sustain; config/realtime_*): heavier bodies, a small δ, a wider
+velocity funnel, a looser steady distance band and slower funnels, as
+config/realtime_5agents_100hz.yaml, and γ chosen from the rate need
+(:func:`formation_sim.rates.rate_need`) so that every agent needs at most 1/``REALTIME_MARGIN``
+of the control rate at the end of the run (the realtime loop applies a wrench one tick late,
+which the zero-order-hold bound does not count).
 """
 
 from __future__ import annotations
@@ -19,6 +27,13 @@ import yaml
 
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.spec import formation_from_dict
+from formation_sim.rates import mass_matrix, rate_need
+
+PRESETS = ("default", "realtime")
+#: realtime preset: control rate / the largest rate need (the 5-agent realtime preset has 2.5)
+REALTIME_MARGIN = 4.0
+#: realtime preset: γ never above this (the paper's 15 is for 10 kHz)
+REALTIME_GAMMA_MAX = 4.0
 
 
 def _random_rotation(rng: np.random.Generator, max_angle: float) -> list[list[float]]:
@@ -38,8 +53,11 @@ def generate(
     control_rate: float = 1000.0,
     duration: float = 5.0,
     name: str | None = None,
+    preset: str = "default",
 ) -> dict[str, Any]:
     """A formation document (ready for yaml.safe_dump) with ``n_agents`` agents."""
+    if preset not in PRESETS:
+        raise ValueError(f"preset: {preset!r} is not {' or '.join(PRESETS)}")
     if n_agents < 2:
         raise ValueError(f"n_agents: {n_agents} must be at least 2")
     if topology not in ("chain", "star", "random"):
@@ -113,8 +131,38 @@ def generate(
         "agents": agents,
         "edges": edges,
     }
+    if preset == "realtime":
+        _tune_realtime(doc, control_rate)
     formation_from_dict(doc)  # must be valid by construction
     return doc
+
+
+def _tune_realtime(doc: dict[str, Any], control_rate: float) -> None:
+    """Retune ``doc`` (in place) to hold in realtime mode at ``control_rate`` [Hz]."""
+    sim = doc["simulation"]
+    period = 1.0 / control_rate
+    sim.update(mode="realtime", physics_rate=control_rate, record_rate=control_rate)
+    sim["command_timeout"] = round(5 * period, 9)  # five ticks without a wrench is a fault
+    for a in doc["agents"]:
+        dyn = a["dynamics"]
+        dyn["mass"] = round(dyn["mass"] + 1.0, 6)
+        dyn["inertia"] = [round(x + 1.0, 6) for x in dyn["inertia"]]
+    defaults = doc["defaults"]
+    rho_v_inf = 0.5
+    # the need is linear in γ and largest at the end (ρ_v = ρ_v,∞): need(γ) = γ · need(1)
+    need_per_gamma = max(
+        float(rate_need(mass_matrix(a["dynamics"]["mass"], np.diag(a["dynamics"]["inertia"])), 1.0, [rho_v_inf] * 6))
+        for a in doc["agents"]
+    )
+    gamma = min(REALTIME_GAMMA_MAX, control_rate / REALTIME_MARGIN / need_per_gamma)
+    defaults["agent"]["controller"] = {
+        "delta": 0.05,
+        "gamma": float(f"{gamma:.2g}") if gamma >= 0.1 else round(gamma, 3),
+        "velocity_funnel": {"rho_0": "auto", "rho_inf": rho_v_inf, "decay": 0.2},
+    }
+    defaults["edge"]["distance_funnel"] = {"rho_inf": 1.0, "decay": 0.8}
+    defaults["edge"]["orientation_funnel"] = {"rho_0": 1.9, "rho_inf": 0.1, "decay": 0.5}
+    doc["description"] += f" Realtime preset: holds at {control_rate:g} Hz control (need <= rate/{REALTIME_MARGIN:g})."
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -126,8 +174,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--topology", choices=("chain", "star", "random"), default="random", help="tree shape")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--gravity", type=float, default=0.0, help="gravity magnitude [m/s²] along −z (default 0)")
-    p.add_argument("--control-rate", type=float, default=1000.0, help="control (and physics) rate [Hz]")
-    p.add_argument("--duration", type=float, default=5.0, help="simulated time [s]")
+    p.add_argument(
+        "--control-rate",
+        type=float,
+        default=None,
+        help="control (and physics) rate [Hz] (default 1000; realtime preset 100)",
+    )
+    p.add_argument(
+        "--preset",
+        choices=PRESETS,
+        default="default",
+        help="default: gains for sampled control at 1 kHz; realtime: --mode realtime at --control-rate (γ from the "
+        "rate need, heavier bodies, wider funnels)",
+    )
+    p.add_argument("--duration", type=float, default=None, help="simulated time [s] (default 5; realtime preset 10)")
     p.add_argument("--name", help="formation name (default from topology, size and seed)")
     p.add_argument("--out", type=Path, help="output file (default: stdout)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
@@ -142,9 +202,10 @@ def main(argv: list[str] | None = None) -> int:
             topology=args.topology,
             seed=args.seed,
             gravity=args.gravity,
-            control_rate=args.control_rate,
-            duration=args.duration,
+            control_rate=args.control_rate or (100.0 if args.preset == "realtime" else 1000.0),
+            duration=args.duration or (10.0 if args.preset == "realtime" else 5.0),
             name=args.name,
+            preset=args.preset,
         )
     except (ValueError, FormationSpecError) as exc:
         print(f"formation-generate: {exc}", file=sys.stderr)

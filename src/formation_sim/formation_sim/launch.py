@@ -37,6 +37,7 @@ from typing import IO, Any
 
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
+from formation_msgs_py.hotloop import FASTDDS_PROFILE
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.preflight import preflight
@@ -422,6 +423,7 @@ def main(argv: list[str] | None = None) -> int:
         env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
     else:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))  # secure mode sets its own per process
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(pick_domain_id())
     secure = None

@@ -35,13 +35,14 @@ from typing import Any
 import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, options, qos, topics
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.graph_watch import GraphWatch
+from formation_msgs_py.hotloop import Spinner
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import ExitCode
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
@@ -170,8 +171,8 @@ class SimNode(Node):
     def publish_clock(self, ns: int) -> None:
         self.clock_pub.publish(conversions.clock_bytes(ns))
 
-    def publish_ground_truth(self, t: float, sim: Simulation) -> None:
-        self.gt_pub.publish(conversions.poses_to_msg(t, sim.state.p, sim.state.R))
+    def publish_ground_truth(self, ns: int, sim: Simulation) -> None:
+        self.gt_pub.publish(conversions.ground_truth_bytes(ns, sim.state.p.tolist(), sim.state.R.tolist()))
 
     # discovery -------------------------------------------------------------------------------
     def unmatched_agents(self) -> list[str]:
@@ -275,7 +276,7 @@ class Runner:
         if k % self.clock_every == 0:
             self.node.publish_clock(ns)
         if k % self.gt_every == 0:
-            self.node.publish_ground_truth(t, self.sim)
+            self.node.publish_ground_truth(ns, self.sim)
         if self.node.display is not None:  # markers at the display rate, with the latest wrenches
             self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.u_val))
 
@@ -436,14 +437,6 @@ def build_parser() -> OptionParser:
     )
 
 
-def make_executor(kind: str, context: Any) -> Any:
-    if kind == "events":
-        from rclpy.experimental import EventsExecutor
-
-        return EventsExecutor(context=context)
-    return SingleThreadedExecutor(context=context)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``formation-sim``."""
     raw = list(sys.argv if argv is None else [sys.argv[0], *argv])
@@ -472,8 +465,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
         settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
         node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
-        executor = make_executor(args.executor, node.context)
-        executor.add_node(node)
+        executor = Spinner(args.executor, node)
         runner = Runner(node, executor, spec, args)
         timeout = args.discovery_timeout or 30.0 + len(spec.agents)
         t_disc = time.monotonic()

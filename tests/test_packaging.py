@@ -43,8 +43,6 @@ CORE_MODULES = [
 #: names, so rosdep alone declares them). Keys ending in -pip name pip-installed rosdep keys.
 DEPENDENCIES = {
     "numpy": ("python3-numpy", "numpy"),
-    "numba": ("python3-numba", "numba"),
-    "distributed": ("python3-distributed-pip", "distributed"),
     "scipy": ("python3-scipy", "scipy"),
     "yaml": ("python3-yaml", "PyYAML"),
     "matplotlib": ("python3-matplotlib", "matplotlib"),

@@ -330,10 +330,13 @@ def run_tasks(todo: list[Task], log: Path, *, workers: int, scheduler: str | Non
             for done, task in enumerate(todo, 1):
                 record(run_task(task), done)
         else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            pool = ProcessPoolExecutor(max_workers=workers)
+            try:
                 futures = [pool.submit(run_task, t) for t in todo]
                 for done, fut in enumerate(as_completed(futures), 1):
                     record(fut.result(), done)
+            finally:  # interrupted: the runs not started are dropped, not waited for
+                pool.shutdown(wait=True, cancel_futures=True)
     if not quiet and todo:
         print()
 
@@ -411,7 +414,8 @@ def plot_campaign(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]
     ax.set_ylabel("pass rate (95 % CI)")
     ax.set_ylim(-0.05, 1.05)
     ax.grid(alpha=0.3)
-    ax.set_title(f"{Path(summary['formation']).name}: {summary['samples']} samples")
+    runs = max(per[r]["runs"] for r in per)
+    ax.set_title(f"{Path(summary['formation']).name}: {runs} random plants per rate")
     fig.tight_layout()
     tmp = out / "pass_rate.tmp.png"
     fig.savefig(tmp, dpi=110)

@@ -25,10 +25,10 @@ def _watch(policy: str = "report") -> PublisherWatch:
 def test_expected_publishers_follow_design_section_3() -> None:
     """The simulator publishes /clock, velocities and relative poses; agent i its own wrench."""
     exp = expected_publishers(["1", "3"], [("1", "3")])
-    assert exp["/clock"] == Expected("/formation_sim", "all")
-    assert exp["/agent_3/velocity"] == Expected("/formation_sim", "3")
-    assert exp["/agent_1/relative_pose/agent_3"] == Expected("/formation_sim", "1")
-    assert exp["/agent_3/wrench"] == Expected("/agent_3/formation_agent", "3")
+    assert exp["/clock"] == Expected(("/formation_sim", "/formation_replay"), "all")
+    assert exp["/agent_3/velocity"] == Expected(("/formation_sim", "/formation_replay"), "3")
+    assert exp["/agent_1/relative_pose/agent_3"] == Expected(("/formation_sim", "/formation_replay"), "1")
+    assert exp["/agent_3/wrench"] == Expected(("/agent_3/formation_agent",), "3")
     assert len(exp) == 6
 
 
@@ -52,6 +52,17 @@ def test_impostor_with_the_expected_name_is_an_intruder_once_one_is_pinned() -> 
     new = w.observe("/agent_1/relative_pose/agent_3", [SIM, impostor], 0.2)
     assert [(i.gid, i.reason) for i in new] == [("cc77", "second publisher with the expected node name")]
     assert w.pinned["/agent_1/relative_pose/agent_3"] == "aa01"
+
+
+def test_replay_stands_in_for_the_simulator_but_not_beside_it() -> None:
+    """formation-replay alone is pinned for the measurements; joining a live simulator it is an intruder."""
+    replay = PublisherInfo("formation_replay", "/", "ff42")
+    alone = _watch()
+    assert alone.observe("/agent_3/velocity", [replay], 0.0) == []
+    assert alone.pinned["/agent_3/velocity"] == "ff42"
+    live = _watch()
+    live.observe("/agent_3/velocity", [SIM], 0.0)
+    assert [i.node for i in live.observe("/agent_3/velocity", [SIM, replay], 0.2)] == ["/formation_replay"]
 
 
 def test_two_namesakes_at_first_sight_are_both_intruders() -> None:

@@ -337,7 +337,6 @@ class SegmentedBagWriter:
         os.replace(tmp, self.path / "metadata.yaml")
 
 
-
 def metadata_yaml(
     *,
     storage: str,

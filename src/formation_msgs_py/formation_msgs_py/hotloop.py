@@ -5,10 +5,10 @@ once per message, the SingleThreadedExecutor also rebuilds its wait set from eve
 node each time. ``lean`` (the default) instead waits once on every subscription of the node (a
 step's measurements, wrenches, acknowledgements, and ``/clock``) and takes every message then
 ready (CDR bytes for the raw per-step ones), so a burst of one step's messages costs one
-wake-up (benchmarks/msg_cost_bench.py measures the three). Services and timers (parameters,
-the graph watch) are left to a SingleThreadedExecutor turned every :data:`SIDE_PERIOD`; it
-honours callback groups, so the subscriptions are moved into a group it never runs (the
-EventsExecutor ignores groups and cannot be the side executor).
+wake-up (benchmarks/msg_cost_bench.py measures the three). The same wait covers the node's
+timers and services (parameters, the graph watch); when one is ready, a SingleThreadedExecutor
+runs it. That executor honours callback groups, so the subscriptions are moved into a group it
+never runs (the EventsExecutor ignores groups and cannot be the side executor).
 
 :data:`FASTDDS_PROFILE` is the Fast DDS profile every non-secure process of a run loads
 (``FASTRTPS_DEFAULT_PROFILES_FILE``, set by the launcher): writers without positive
@@ -26,8 +26,8 @@ from typing import Any
 FASTDDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
 #: the ways a node can spin (``--executor`` / the ``executor`` parameter)
 EXECUTORS = ("lean", "events", "single")
-#: wall seconds between two turns of the side executor in ``lean`` (services, timers)
-SIDE_PERIOD = 0.05
+#: ``lean``: wall seconds between two turns of the side executor when no timer or service is ready
+SIDE_PERIOD = 1.0
 
 
 def _hot_group() -> Any:
@@ -65,48 +65,58 @@ def make_executor(kind: str, context: Any) -> Any:
 
 
 class HotLoop:
-    """Wait on ``subscriptions`` and call each one's callback with every message taken (CDR bytes
-    for a raw subscription, else the message)."""
+    """Wait on ``subscriptions``, ``timers`` and ``services``; call each subscription's callback with
+    every message taken (CDR bytes for a raw subscription, else the message). Timers and services
+    are only waited on: :meth:`spin_once` says when one is ready, for an executor to run it."""
 
-    def __init__(self, context: Any, subscriptions: Sequence[Any]) -> None:
+    def __init__(
+        self, context: Any, subscriptions: Sequence[Any], timers: Sequence[Any] = (), services: Sequence[Any] = ()
+    ) -> None:
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
         self._rcl_error = _rclpy.RCLError
         self._context = context
-        self._wait_set = _rclpy.WaitSet(len(subscriptions), 0, 0, 0, 0, 0, context.handle)
+        self._wait_set = _rclpy.WaitSet(len(subscriptions), 0, len(timers), 0, len(services), 0, context.handle)
         self._entries = [(s.handle, s.msg_type, s.raw, s.callback) for s in subscriptions]
+        self._timers = [t.handle for t in timers]
+        self._services = [s.handle for s in services]
 
-    def spin_once(self, timeout_s: float) -> int:
-        """Wait up to ``timeout_s`` (wall s) for a message; handle all that are ready; return how many."""
+    def spin_once(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` (wall s); handle every message then ready; True if a timer or a
+        service is ready too."""
         ws = self._wait_set
         ws.clear_entities()
         for entry in self._entries:
             ws.add_subscription(entry[0])
+        for handle in self._timers:
+            ws.add_timer(handle)
+        for handle in self._services:
+            ws.add_service(handle)
         try:
             ws.wait(max(0, int(timeout_s * 1e9)))
         except self._rcl_error:
             if not self._context.ok():
-                return 0  # shut down while waiting (SIGINT/SIGTERM)
+                return False  # shut down while waiting (SIGINT/SIGTERM)
             raise
         ready = ws.get_ready_entities("subscription")
-        n = 0
         for handle, msg_type, raw, callback in self._entries:
             if handle.pointer in ready:
                 taken = handle.take_message(msg_type, raw)
                 while taken is not None:
                     callback(taken[0])
-                    n += 1
                     taken = handle.take_message(msg_type, raw)
-        return n
+        return bool(self._timers and ws.get_ready_entities("timer")) or bool(
+            self._services and ws.get_ready_entities("service")
+        )
 
 
 class Spinner:
     """Spins ``node`` with executor ``kind``.
 
-    ``lean``: a :class:`HotLoop` over every subscription the node has when the spinner is made
-    (moved into a callback group no executor runs), and a SingleThreadedExecutor for the rest
-    (services, timers) every :data:`SIDE_PERIOD`; ``events`` / ``single``: that executor's
-    ``spin_once`` for everything.
+    ``lean``: a :class:`HotLoop` over every subscription, timer and service the node has when the
+    spinner is made (subscriptions moved into a callback group no executor runs); a
+    SingleThreadedExecutor runs a ready timer or service, and anything else of the node (QoS
+    events) every :data:`SIDE_PERIOD`. ``events`` / ``single``: that executor's ``spin_once``.
     """
 
     def __init__(self, kind: str, node: Any) -> None:
@@ -118,7 +128,7 @@ class Spinner:
             group = _hot_group()
             for sub in hot:
                 sub.callback_group = group
-            self.hot = HotLoop(node.context, hot)
+            self.hot = HotLoop(node.context, hot, list(node.timers), list(node.services))
         self._next_side = 0.0
 
     def spin_once(self, timeout_sec: float) -> None:
@@ -126,8 +136,8 @@ class Spinner:
         if self.hot is None:
             self.executor.spin_once(timeout_sec=max(timeout_sec, 0.0))
             return
+        side = self.hot.spin_once(timeout_sec)
         now = time.monotonic()
-        if now >= self._next_side:
+        if side or now >= self._next_side:
             self._next_side = now + SIDE_PERIOD
             self.executor.spin_once(timeout_sec=0.0)
-        self.hot.spin_once(min(timeout_sec, self._next_side - now))

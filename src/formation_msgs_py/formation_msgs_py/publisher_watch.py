@@ -1,10 +1,12 @@
-"""Who may publish what (DESIGN.md §3, §10), and the watch that reports everyone else (no ROS import).
+"""Who may publish what (docs/topics.md, docs/security.md), and the watch that reports everyone else
+(no ROS import).
 
-The formation expects exactly one publisher per topic: the simulator for ``/clock``, relative
-poses and velocities, agent i for ``agent_<i>/wrench``. A node feeds the watch what the ROS graph
-says (topic, node name, endpoint GID); the watch pins the expected publisher by its GID the
-first time exactly one publisher of the expected node name is seen, and reports every other
-publisher once, as an :class:`Intruder`, with its node name and GID.
+The formation expects exactly one publisher per topic: the simulator (or, replaying a bag in its
+stead, formation-replay) for ``/clock``, relative poses and velocities, agent i for
+``/agent_<i>/wrench``. A node feeds the watch what the ROS graph says (topic, node name, endpoint
+GID); the watch pins the expected publisher by its GID the first time exactly one publisher of an
+expected node name is seen, and reports every other publisher once, as an :class:`Intruder`,
+with its node name and GID.
 
 Policy ``report`` only reports. Policy ``refuse`` also refuses every message of a topic while it
 has a publisher other than the pinned one: rclpy 7.1.6 does not give the publisher GID of a
@@ -33,9 +35,9 @@ NAME_GRACE = 0.5
 
 @dataclass(frozen=True)
 class Expected:
-    """The node (fully qualified name) that alone may publish on a topic, and the agent the topic concerns."""
+    """The nodes (fully qualified names) of which one alone may publish on a topic, and the agent it concerns."""
 
-    node: str
+    nodes: tuple[str, ...]
     agent: str
 
 
@@ -84,13 +86,13 @@ def expected_publishers(
     ``links`` are (observer, target) pairs of relative-pose topics; ``agent_ids`` get a velocity
     and a wrench topic each.
     """
-    sim = "/" + topics.SIM_NODE_NAME
+    sim = ("/" + topics.SIM_NODE_NAME, "/" + topics.REPLAY_NODE_NAME)
     out: dict[str, Expected] = {}
     if clock:
         out[topics.CLOCK] = Expected(sim, ALL_AGENTS)
     for a in agent_ids:
         out["/" + topics.velocity(a)] = Expected(sim, a)
-        out["/" + topics.wrench(a)] = Expected(topics.agent_node(a), a)
+        out["/" + topics.wrench(a)] = Expected((topics.agent_node(a),), a)
     for observer, target in links:
         out["/" + topics.relative_pose(observer, target)] = Expected(sim, observer)
     return out
@@ -118,7 +120,9 @@ class PublisherWatch:
         gids = {p.gid for p in publishers}
         if self.pinned.get(topic) not in gids:  # never pinned, or the pinned one left (a restart)
             self.pinned.pop(topic, None)
-            claimants = [p for p in publishers if p.qualified_node == exp.node and (topic, p.gid) not in self.intruders]
+            claimants = [
+                p for p in publishers if p.qualified_node in exp.nodes and (topic, p.gid) not in self.intruders
+            ]
             if len(claimants) == 1:
                 self.pinned[topic] = claimants[0].gid
         pinned = self.pinned.get(topic)
@@ -139,7 +143,7 @@ class PublisherWatch:
                 if wall - first < NAME_GRACE:
                     continue
                 reason = "a publisher without a ROS node name"
-            elif p.qualified_node == exp.node:
+            elif p.qualified_node in exp.nodes:
                 reason = "second publisher with the expected node name"
             else:
                 reason = "unexpected node"

@@ -12,6 +12,9 @@ MARKERS = "formation/markers"  # visualization_msgs/MarkerArray for viewers; no 
 FUNNELS = "formation/funnels"  # std_msgs/Float64MultiArray: e, ψ and their bounds per edge, for plots
 TF = "/tf"  # tf2_msgs/TFMessage world -> agent_<id>, where tf2_msgs is installed
 DIAGNOSTICS = "/diagnostics"  # the ROS convention: one global diagnostics topic
+#: lockstep: the bag recorder's acknowledgement (rosgraph_msgs/Clock): every step up to this stamp
+#: is in the bag. Not recorded; the simulator does not advance more than one step past it.
+RECORDER_ACK = "formation/recorder_ack"
 WORLD_FRAME = "world"
 
 
@@ -38,6 +41,8 @@ def wrench(agent_id: str) -> str:
 #: Agent i's node is /agent_<i>/formation_agent: the multi-robot convention of one namespace per robot.
 AGENT_NODE_NAME = "formation_agent"
 SIM_NODE_NAME = "formation_sim"
+#: formation-replay: publishes a bag's measurements and /clock in the simulator's stead
+REPLAY_NODE_NAME = "formation_replay"
 
 
 def agent_node(agent_id: str) -> str:

@@ -267,7 +267,7 @@ def run_task(task: Task) -> dict[str, Any]:
         "sample": task.sample,
         "control_rate": task.control_rate,
         "seed": f"{task.entropy}:{'/'.join(map(str, task.spawn_key))}",
-        "verdict": "PASS" if summary["funnels_held"] else "FAIL",
+        "verdict": summary["verdict"],  # PASS, FAIL or INCOMPLETE
         "violation_t": fv.get("t"),
         "violation_kind": fv.get("kind"),
         "violation_where": fv.get("edge") or fv.get("agent"),

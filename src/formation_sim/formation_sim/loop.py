@@ -55,7 +55,7 @@ from formation_sim.simulation import Simulation
 from formation_sim.team import note_errors, note_missing, team_step
 
 #: run_steps' reasons to return early
-EVENT_NONE, EVENT_FAULT, EVENT_NON_FINITE = 0, 1, 2
+EVENT_NONE, EVENT_NON_FINITE = 0, 1
 #: (t, real-time factor, worst margin so far)
 ProgressFn = Callable[[float, float, float], None]
 
@@ -148,11 +148,10 @@ def all_finite_state(p, R, v):
 
 
 @kernel
-def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, stop_at_fault, buf):
+def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, buf):
     """Control steps k0 … k_stop − 1 (no physics after step k_last), (p, R, v) in place.
 
-    Returns (steps done, event): ``EVENT_FAULT`` after a step with an agent at ERROR when
-    ``stop_at_fault``; ``EVENT_NON_FINITE`` when the state is no longer finite.
+    Returns (steps done, event): ``EVENT_NON_FINITE`` when the state is no longer finite.
     """
     n = 0
     for k in range(k0, k_stop):
@@ -168,9 +167,6 @@ def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h
         buf.level[n] = out.level
         buf.reason[n] = out.reason
         buf.in_range[n] = loop.in_range
-        fault = False
-        for i in range(out.level.shape[0]):
-            fault = fault or out.level[i] == ERROR
         n += 1
         if k == k_last:
             break
@@ -181,8 +177,6 @@ def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h
                 rkmk4_step(t + s * h, p, R, v, out.u, h, loop.plant, work)
         if not all_finite_state(p, R, v):
             return n, EVENT_NON_FINITE
-        if fault and stop_at_fault:
-            return n, EVENT_FAULT
     return n, EVENT_NONE
 
 
@@ -270,29 +264,22 @@ def run_closed_loop(
     last_report = started
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
-        watch = recorder.first_violation is None
         done, event = run_steps(
             loop, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
-            substeps, h, continuous, watch, buf,
+            substeps, h, continuous, buf,
         )  # fmt: skip
-        if watch and buf.level[done - 1].max() == ERROR:
-            # a fault at the last step done: the checks before it, then its faults around its own check
-            j = done - 1
-            if j:
-                recorder.add_many(*_samples(buf, slice(0, j)), stop_at_violation=stop_on_violation)
-            if not (stop_on_violation and recorder.first_violation is not None):
-                t = float(buf.t[j])
-                first = loop.agents.first_end
-                missing = {
-                    i: [neighbours[e] for e in range(first[i], first[i + 1]) if not buf.in_range[j, e]]
-                    for i in range(len(ids))
-                    if not buf.in_range[j, first[i] : first[i + 1]].all()
-                }
-                note_missing(recorder, t, ids, missing)
-                recorder.add_many(*_samples(buf, slice(j, done)))
-                note_errors(recorder, t, ids, buf.level[j], [REASON_MESSAGES[r] for r in buf.reason[j]])
-        else:
-            recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
+        done = recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
+        first = loop.agents.first_end
+        for j in np.flatnonzero(buf.level[:done].max(axis=1) == ERROR):  # the fault policy's record
+            t = float(buf.t[j])
+            missing = {
+                i: [neighbours[e] for e in range(first[i], first[i + 1]) if not buf.in_range[j, e]]
+                for i in range(len(ids))
+                if not buf.in_range[j, first[i] : first[i + 1]].all()
+            }
+            note_missing(recorder, t, ids, missing)
+            errors = [i not in missing and buf.level[j, i] == ERROR for i in range(len(ids))]
+            note_errors(recorder, t, ids, errors, [REASON_MESSAGES[r] for r in buf.reason[j]])
         k += done
         if event == EVENT_NON_FINITE:  # the run stops; the non-finite state is never recorded
             bad = ", ".join(non_finite_agents(ids, p, R, v))

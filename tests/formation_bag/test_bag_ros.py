@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from bag_helpers import PAPER, script
+from bag_helpers import PAPER, REPO, script
 from process_hygiene import kill_hard, remove_segments
 
 from formation_bag import messages as m
+from formation_bag.analysis import analyze_run
+from formation_bag.dataset import load_run
 from formation_bag.interop import check_bag
 from formation_bag.reader import Bag
 from formation_bag.writer import SegmentedBagWriter
@@ -187,3 +189,37 @@ def test_decimation_option() -> None:
         with pytest.raises(BagTopicError, match=re.escape(bad)):
             parse_decimation([bad])
     assert parse_meta(["mode=lockstep", "note=a=b"]) == {"mode": "lockstep", "note": "a=b"}
+
+
+def test_recorder_started_after_the_run_says_what_it_missed(ros_procs, tmp_path: Path) -> None:
+    """record.sh attached to a lockstep run already stepping: it names the steps it missed, and the
+    analysis of its bag is INCOMPLETE with the missing start listed (never PASS, never FAIL)."""
+    from formation_msgs_py.spec import load_formation
+
+    spec = load_formation(PAPER)
+    for a in spec.agents:
+        ros_procs.start(
+            [*script("formation-agent"), "--ros-args", "-p", f"formation_file:={PAPER}", "-p", f"agent_id:='{a.id}'"]
+        )
+    out = tmp_path / "run"
+    sim = ros_procs.start(
+        [*script("formation-sim"), str(PAPER), "--out", str(out), "--no-plots", "--duration", "0.2",
+         "--ground-truth-rate", "10000", "--progress-period", "0.1"]
+    )  # fmt: skip
+    ros_procs.wait_line(sim, "progress t=", 120)
+    bag = tmp_path / "bag"
+    rec = ros_procs.start(
+        [str(REPO / "ros2_ws" / "record.sh"), "--out", str(bag), "--formation", str(PAPER), "--quiet",
+         "--meta", "mode=lockstep", "control_rate=10000.0", "duration=0.2"]
+    )  # fmt: skip
+    ros_procs.wait_line(rec, "recording", 60)
+    ros_procs.finish(sim, timeout=240)
+    ros_procs.stop(rec)
+    _, err = ros_procs.finish(rec, timeout=30)
+    assert "started after the run: steps before t=" in err, err
+    run = load_run(bag)
+    _, summary, _ = analyze_run(run)
+    assert summary["verdict"] == "INCOMPLETE" and summary["first_violation"] is None
+    missing = summary["bag"]["missing"]
+    assert missing[0].startswith("ground truth: ") and "steps missing (0.0000-" in missing[0], missing
+    assert any(item.startswith("recorder: started after the run") for item in missing), missing

@@ -517,6 +517,10 @@ def main(args: list[str] | None = None) -> int:
         node.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():
+            raise
+        # a publish cut short by SIGINT/SIGTERM (rclpy's handler shut the context down): a stop
     finally:
         if node is not None:
             node.destroy_node()

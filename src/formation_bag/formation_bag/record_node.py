@@ -47,7 +47,8 @@ from rosgraph_msgs.msg import Clock
 from formation_bag import messages as m
 from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_bag.errors import BagError, BagTopicError
-from formation_bag.writer import STORAGES, SegmentedBagWriter, make_qos
+from formation_bag.metadata import STORAGES
+from formation_bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics, wire
 from formation_msgs_py.errors import FormationSpecError

@@ -286,7 +286,7 @@ class Launcher:
                 funnels_held={"PASS": True, "FAIL": False}.get(result.verdict.value),
             )
         t = self.timing
-        done = t.get("stepping_done", t["stop_from"])
+        done = min(t.get("stepping_done", t["stop_from"]), t["stop_from"])  # stepped to the end, or stopped
         summary["launch"] = {
             "ros_domain_id": int(self.sup.env["ROS_DOMAIN_ID"]),
             "discovery_range": self.sup.env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
@@ -296,7 +296,7 @@ class Launcher:
             "wall_stepping_s": done - t.get("stepping_from", done),
             # after the last step: the simulator writes OUT, then agents and recorder stop
             "wall_stop_s": t["stopped"] - done,
-            "wall_sim_outputs_s": t["stop_from"] - done,
+            "wall_sim_outputs_s": t["stop_from"] - done if "stepping_done" in t else None,
         }
         return summary
 

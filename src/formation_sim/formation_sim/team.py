@@ -79,6 +79,11 @@ class AgentTeam:
         self._p = np.zeros((n, 3))
         self._R = np.tile(np.eye(3), (n, 1, 1))
         self._in_range = np.zeros(n, dtype=np.bool_)
+        # load (or compile) the kernels now, on scratch outputs: not at a realtime run's first step
+        v = np.zeros((len(self.ids), 6))
+        scratch = (new_funnel_start(len(self.ids)), new_outputs(len(self.ids), n))
+        everyone = np.ones(n, dtype=np.bool_)  # every agent steps (a missing pose would skip agent_step)
+        team_step(0.0, self._p, self._R, everyone, v, self.agents, self.ends, *scratch)
 
     def evaluate(
         self, meas: Measurements, recorder: RunRecorder | None

@@ -7,7 +7,9 @@
 # Default: every topic of docs/topics.md (discovered on the graph, or all of FILE's with
 # --formation, which also stores FILE in the bag for formation-analyze). Stop with Ctrl-C or
 # SIGTERM: the bag is closed cleanly. Segments of 2 s: a killed recorder loses at most the last.
-# ROS_AUTOMATIC_DISCOVERY_RANGE defaults to LOCALHOST (set it to SUBNET to record other hosts).
+# Network: --network host (default: LOCALHOST unless ROS_AUTOMATIC_DISCOVERY_RANGE is set) or lan;
+# --secure KEYS [--hosts FILE] joins a secure run with the key 'recorder' (needs --formation FILE:
+# the ports follow its agents; docs/security.md).
 # All options: formation-record --help; user guide: docs/bags.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -18,5 +20,9 @@ case "${1:-}" in
     exec "$ROOT/.venv/bin/formation-record" --help ;;
 esac
 "$ROOT/ros2_ws/setup.sh"
-export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
-exec "$ROOT/.venv/bin/formation-record" "$@"
+# shellcheck source=lib/network.sh
+. "$ROOT/ros2_ws/lib/network.sh"
+formation=""; prev=""
+for a in "$@"; do [ "$prev" = "--formation" ] && formation="$a"; prev="$a"; done
+formation_network_options recorder "$formation" "$@" || exit 2
+exec "$ROOT/.venv/bin/formation-record" "${REST[@]+"${REST[@]}"}"

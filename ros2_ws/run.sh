@@ -15,8 +15,10 @@
 # ROS_DOMAIN_ID is picked unless set; runs above 30 processes use a private network namespace.
 # --headless runs the same formation in one process without ROS: formation-headless FILE with the
 # other options (see formation-headless --help).
-# Exit status: 0 every funnel held, 1 a funnel was violated or a fault reported, 2 invalid file or
-# settings, 3 a process died or an agent was missing, 130 interrupted. Details: docs/ros2.md.
+# Verdict PASS / FAIL / INCOMPLETE (with the reason) in the last lines and OUT/summary.json. Exit status:
+# 0 PASS, 1 FAIL (a funnel was violated), 2 invalid input (nothing started), 3 a process died or an
+# agent stopped answering, 4 incomplete (I/O error, disk full, lag budget, data missing), 130
+# interrupted. Details: docs/ros2.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case "${1:-}" in

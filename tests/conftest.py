@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import copy
+import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # process_hygiene, for every test directory
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config"
 PAPER = CONFIG / "paper_5agents.yaml"
@@ -26,37 +28,120 @@ def paper_doc() -> dict[str, Any]:
 
 
 # --- ROS 2 isolation ------------------------------------------------------------------------
-# Every test run that starts ROS processes takes a ROS_DOMAIN_ID no other live run holds: an
-# exclusive flock on /tmp/formation-ros-domain-<id>.lock, held until the pytest process exits.
-# Ids come from 1..101 and 215..232 (Fast DDS refuses ids above 232; 102..214 may collide with
-# ephemeral ports on Linux), starting from a pid-derived offset.
-_DOMAIN_IDS = [*range(1, 102), *range(215, 233)]
-_held_domain: tuple[int, object] | None = None
+# Every test run that starts ROS processes takes a ROS_DOMAIN_ID no other live run holds: the
+# allocator formation-launch uses (formation_sim.dds_env: free port block and an exclusive flock,
+# held until the pytest process exits).
 
 
 def allocate_ros_domain_id() -> int:
     """A ROS_DOMAIN_ID reserved for this process (the same one on every call)."""
-    global _held_domain
-    if _held_domain is not None:
-        return _held_domain[0]
-    import fcntl
-    import os
+    from formation_sim.dds_env import reserve_domain_id
 
-    start = os.getpid() % len(_DOMAIN_IDS)
-    for k in range(len(_DOMAIN_IDS)):
-        domain = _DOMAIN_IDS[(start + k) % len(_DOMAIN_IDS)]
-        handle = open(f"/tmp/formation-ros-domain-{domain}.lock", "w")  # held for the session
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        _held_domain = (domain, handle)
-        return domain
-    raise RuntimeError("every ROS_DOMAIN_ID is held by another test run")
+    return reserve_domain_id()
 
 
 @pytest.fixture(scope="session")
 def ros_domain_id() -> int:
     """This test run's ROS_DOMAIN_ID (exclusive among concurrent runs on this machine)."""
     return allocate_ros_domain_id()
+
+
+# --- no process and no Fast DDS file left behind -----------------------------------------------
+# pytest becomes a child subreaper: a process a test started (or a grandchild of it) that outlives
+# its parent is re-parented here, so every descendant is found. Fast DDS shared-memory files are
+# attributed to this session by watching which /dev/shm files our descendants map while they run
+# (other engineers' runs create such files concurrently: only ours count).
+_PR_SET_CHILD_SUBREAPER = 36
+
+
+def _set_subreaper() -> None:
+    import ctypes
+
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_CHILD_SUBREAPER, 1)
+    except OSError:
+        pass
+
+
+_set_subreaper()
+
+
+def _live_descendants(root: int) -> dict[int, str]:
+    """{pid: command line} of the live (non-zombie) descendants of ``root``."""
+    parent: dict[int, int] = {}
+    cmd: dict[int, str] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            state, ppid = stat.rsplit(")", 1)[1].split()[:2]
+            if state == "Z":
+                continue
+            parent[int(d.name)] = int(ppid)
+            cmd[int(d.name)] = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:200]
+        except (OSError, ValueError):
+            continue
+    out = {}
+    for pid in parent:
+        p, hops = parent.get(pid), 0
+        while p is not None and p > 1 and hops < 64:
+            if p == root:
+                out[pid] = cmd[pid]
+                break
+            p, hops = parent.get(p), hops + 1
+    return out
+
+
+def _shm_mapped(pids: list[int]) -> set[str]:
+    from process_hygiene import shm_segments
+
+    return {str(seg) for pid in pids for seg in shm_segments(pid)}
+
+
+#: processes the test interpreter keeps for its own lifetime (not started by a test's code)
+_HELPERS = ("multiprocessing.resource_tracker", "multiprocessing.forkserver")
+
+
+def _helper(cmdline: str) -> bool:
+    return any(h in cmdline for h in _HELPERS)
+
+
+@pytest.fixture(autouse=True)
+def no_leftovers() -> Any:
+    """Fail a test that leaves a process it started, or a Fast DDS file in /dev/shm, behind."""
+    import os
+    import threading
+    import time
+
+    root = os.getpid()
+    before = set(_live_descendants(root))
+    seen: set[str] = set()
+    stop = threading.Event()
+
+    def watch() -> None:
+        while not stop.wait(0.25):
+            seen.update(_shm_mapped([p for p in _live_descendants(root) if p not in before]))
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    yield
+    stop.set()
+    watcher.join()
+    deadline = time.monotonic() + 5.0
+
+    def new() -> dict[int, str]:
+        # the interpreter's own helpers live as long as pytest (started on first use by a test)
+        return {p: c for p, c in _live_descendants(root).items() if p not in before and not _helper(c)}
+
+    while (left := new()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    for pid in left:
+        try:
+            os.kill(pid, 9)  # by PID: only what this test left
+        except ProcessLookupError:
+            pass
+    live_maps = _shm_mapped([int(d.name) for d in Path("/proc").iterdir() if d.name.isdigit()])
+    shm_left = sorted(p for p in seen if Path(p).exists() and p not in live_maps)
+    assert not left, f"processes left behind: {left}"
+    assert not shm_left, f"Fast DDS files left in /dev/shm: {shm_left}"

@@ -45,9 +45,7 @@ def violating_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Synth
     """The paper run at a too-low control rate (700 Hz): agent 1 leaves its wz funnel at t ≈ 1.08 s."""
     spec = paper_spec(**VIOLATING)
     bag = tmp_path_factory.mktemp("violating") / "bag"
-    result = write_run_bag(
-        spec, bag, formation_text=PAPER.read_text(), segment_seconds=0.5, stop_on_violation=True
-    )
+    result = write_run_bag(spec, bag, formation_text=PAPER.read_text(), segment_seconds=0.5, stop_on_violation=True)
     return bag, result
 
 

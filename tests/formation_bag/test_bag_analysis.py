@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,9 @@ from formation_bag import analysis, rerun
 from formation_bag.analysis import analyze_run, message_ages
 from formation_bag.dataset import apply_overrides, load_run
 from formation_bag.errors import BagFormatError, OverrideError
+from formation_bag.reader import Bag
 from formation_bag.rerun import rerun_all
+from formation_bag.writer import SegmentedBagWriter
 from formation_sim.headless import run_headless
 
 IGNORED = {"wall_time", "real_time_factor", "bag", "source", "controller", "physics_rate", "mode", "samples"}
@@ -84,8 +87,11 @@ def test_analysis_of_a_violating_run(violating_bag, tmp_path: Path) -> None:
     ages = json.loads((out / "ages.json").read_text())
     assert ages["relative_pose"]["1->2"]["sim_age"]["max"] == 0.0  # lockstep: measured at the step's time
     assert ages["wrench"]["1"]["response_wall"]["median"] > 0
-    # the distance/orientation funnels alone held until then
-    assert analysis.main([str(bag), "--out", str(tmp_path / "o2"), "--velocity-margins", "none", "--no-plots"]) == 0
+    # the distance/orientation funnels alone held until then; the bag stops there: INCOMPLETE, not PASS
+    assert analysis.main([str(bag), "--out", str(tmp_path / "o2"), "--velocity-margins", "none", "--no-plots"]) == 4
+    partial = json.loads((tmp_path / "o2" / "summary.json").read_text())
+    assert partial["verdict"] == "INCOMPLETE" and partial["first_violation"] is None
+    assert partial["incomplete_reason"].startswith("data missing: ground truth: ")
     # refuses to overwrite
     assert analysis.main([str(bag), "--out", str(out)]) == 2
 
@@ -109,8 +115,10 @@ def test_analysis_of_a_truncated_bag(violating_bag, tmp_path: Path) -> None:
     assert summary["bag"]["truncated"]
     assert 0 < summary["bag"]["ground_truth_samples"] < result.steps
     assert summary["duration"] < result.summary["duration"]
-    # what is left agrees with the full run up to there
-    assert summary["funnels_held"]
+    # what is left agrees with the full run up to there, and says what it lacks
+    assert summary["verdict"] == "INCOMPLETE" and summary["first_violation"] is None
+    assert summary["funnels_held"] is None
+    assert any(item.startswith("lost ") for item in summary["bag"]["missing"])
 
 
 def test_rerun_reproduces_and_reports_overrides(violating_bag, tmp_path: Path, capsys) -> None:
@@ -169,3 +177,49 @@ def test_bag_without_formation_needs_one(tmp_path: Path, short_bags) -> None:
     assert len(run.ground_truth) == 11
     ages = message_ages(run)
     assert ages["velocity"]["2"]["sim_age"]["count"] == 11
+
+
+def _copy_without(src: Path, dst: Path, drop: Callable[[str, int], bool]) -> None:
+    """A copy of bag ``src`` without the messages ``drop(topic, stamp_ns)`` selects."""
+    from formation_msgs_py.wire import stamp_of
+
+    with Bag(src) as bag, SegmentedBagWriter(dst, custom_data=dict(bag.custom_data)) as out:
+        for t in bag.topics.values():
+            out.add_topic(t.name, t.msgtype)
+        for msg in bag.messages():
+            if not drop(msg.topic, stamp_of(bytes(msg.data))):
+                out.write(msg.topic, msg.log_time, msg.data)
+
+
+def test_bag_with_messages_removed_is_incomplete_not_fail(short_bags, tmp_path: Path) -> None:
+    """Ground truth and agent 2's velocity removed at 0.05-0.059 s, one wrench at 0.1 s: INCOMPLETE
+    (exit 4) with the gaps listed, no violation; the re-run says where it could not compare."""
+    src, result = short_bags["mcap"]
+    assert result.summary["verdict"] == "PASS"
+    bag = tmp_path / "holes"
+    gap = range(50_000_000, 60_000_000)
+
+    def drop(topic: str, stamp: int) -> bool:
+        if topic in ("/formation/ground_truth", "/agent_2/velocity", "/agent_1/relative_pose/agent_2"):
+            return stamp in gap
+        return topic == "/agent_4/wrench" and stamp == 100_000_000
+
+    _copy_without(src, bag, drop)
+    out = tmp_path / "out"
+    assert analysis.main([str(bag), "--out", str(out), "--no-plots"]) == 4
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["verdict"] == "INCOMPLETE" and summary["first_violation"] is None
+    assert summary["bag"]["missing"] == [
+        "ground truth: 10 steps missing (0.0500-0.0590 s)",
+        "agent 2 velocity: 10 steps missing (0.0500-0.0590 s)",
+        "agent 4 wrench: 1 steps missing (0.1000-0.1000 s)",
+    ]
+    assert summary["bag"]["ground_truth_missing"] == [[0.05, 0.059]]
+    assert summary["incomplete_reason"].startswith("data missing: ground truth: 10 steps missing")
+    # the margins of what is there are the run's own (a subset of its samples: at least as large)
+    for name, edge in summary["edges"].items():
+        assert edge["min_margin_e"] >= result.summary["edges"][name]["min_margin_e"] - 1e-12
+    runs = rerun.rerun_all(load_run(bag))
+    assert runs["1"].measurements_missing == 10 and runs["1"].first_difference(1e-12) is None
+    assert runs["4"].compared == len(runs["4"].stamps) - 1
+    assert rerun.main([str(bag)]) == 4  # equal where compared, data missing

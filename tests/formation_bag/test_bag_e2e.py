@@ -3,73 +3,74 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
-from bag_helpers import PAPER, script
+from bag_helpers import PAPER, REPO, script
 
 from formation_bag.analysis import analyze_run
 from formation_bag.dataset import load_run
 from formation_bag.interop import check_bag
 
-pytest.importorskip("rclpy")
-pytest.importorskip("formation_sim.launch")
-
-#: summary keys that describe the process, not the funnels
-RUN_ONLY = {"wall_time", "real_time_factor", "bag", "source", "mode", "samples"}
+REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
+#: what the judge decides: equal between the run and the analysis of its bag
+JUDGED = ("verdict", "exit_status", "funnels_held", "first_violation", "worst_margin", "duration", "edges", "agents")
 
 
-def _compare(ours: dict, theirs: dict, path: str = "") -> list[str]:
-    diffs = []
-    for key, value in theirs.items():
-        if key in RUN_ONLY or (path == "" and key not in ours):
-            continue  # the launcher's extras (timing, discovery, …)
-        where = f"{path}.{key}"
-        if isinstance(value, dict):
-            diffs += _compare(ours.get(key, {}), value, where)
-        elif isinstance(value, float) and isinstance(ours.get(key), float):
-            if abs(ours[key] - value) > 1e-9:
-                diffs.append(f"{where}: {ours[key]!r} != {value!r}")
-        elif ours.get(key) != value:
-            diffs.append(f"{where}: {ours.get(key)!r} != {value!r}")
-    return diffs
+def _compare(ours: Any, theirs: Any, path: str) -> list[str]:
+    if isinstance(theirs, dict):
+        assert isinstance(ours, dict) and ours.keys() == theirs.keys(), (path, ours, theirs)
+        return [d for k in theirs for d in _compare(ours[k], theirs[k], f"{path}.{k}")]
+    if isinstance(theirs, float) and isinstance(ours, float):
+        return [] if abs(ours - theirs) <= 1e-9 else [f"{path}: {ours!r} != {theirs!r}"]
+    return [] if ours == theirs else [f"{path}: {ours!r} != {theirs!r}"]
 
 
-def test_recorded_run_reproduces_its_summary(ros_procs, tmp_path: Path) -> None:
-    """formation-launch --record leaves OUT/bag; its analysis gives the run's summary (1e-9) and wrenches."""
+@contextmanager
+def cpu_load(n: int) -> Iterator[list[subprocess.Popen]]:
+    """``n`` busy-loop processes, stopped by their PIDs on exit."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True) for _ in range(n)]
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+
+
+def test_lockstep_bag_is_complete_under_cpu_load(ros_procs, tmp_path: Path) -> None:
+    """The default run (10 kHz lockstep, recording) with three busy loops added: the bag holds every
+    step of every topic, and its analysis and re-run reproduce the run's verdict and wrenches exactly."""
     out = tmp_path / "run"
-    run = ros_procs.start(
-        [
-            *script("formation-launch"),
-            str(PAPER),
-            "--duration",
-            "0.1",
-            "--control-rate",
-            "1000",
-            "--ground-truth-rate",
-            "1000",
-            "--allow-low-rate",
-            "--record",
-            "--no-plots",
-            "--quiet",
-            "--out",
-            str(out),
-        ]
-    )
-    stdout, stderr = ros_procs.finish(run, timeout=240)
-    assert run.returncode == 0, stdout + stderr
-    bag = out / "bag"
-    assert (bag / "metadata.yaml").exists()
-    recorded = load_run(bag, formation=PAPER)
-    _, summary, reruns = analyze_run(recorded)
+    with cpu_load(3):
+        run = ros_procs.start(
+            [*script("formation-launch"), str(PAPER), "--duration", "0.1", "--no-plots", "--quiet", "--out", str(out)]
+        )
+        stdout, stderr = ros_procs.finish(run, timeout=400)
     theirs = json.loads((out / "summary.json").read_text())
-    assert _compare(summary, theirs) == []
-    assert summary["bag"]["ground_truth_samples"] == 101 and summary["bag"]["ground_truth_gaps"] == 0
-    for a, r in reruns.items():
-        # every recorded wrench is reproduced (an agent matched by the recorder after its first
-        # steps leaves those out of the bag; the analysis then takes the re-run's wrench)
-        assert r.compared == len(recorded.wrench[a]) >= 90 and r.max_abs_diff <= 1e-12
-        assert r.compared + summary["bag"]["wrenches_from_rerun"].get(a, 0) == 101
+    assert run.returncode == 0 == theirs["exit_status"], stdout + stderr
+    assert theirs["recorder"]["not_recorded"] == 0, theirs["recorder"]
+    bag = out / "bag"
+    recorded = load_run(bag)
+    steps = 1001
+    assert len(set(recorded.ground_truth.stamps)) == steps
+    for a in recorded.spec.agent_ids:
+        assert len(set(recorded.velocity[a].stamps)) == steps and len(set(recorded.wrench[a].stamps)) == steps
+    for link, series in recorded.relative_pose.items():
+        assert len(set(series.stamps)) == steps, link  # the paper's pairs stay within sensing range
+    _, summary, reruns = analyze_run(recorded)
+    assert summary["bag"]["missing"] == [] and summary["bag"]["recorder_counts"]["missing"] == {}
+    assert _compare({k: summary[k] for k in JUDGED}, {k: theirs[k] for k in JUDGED}, "") == []
+    for r in reruns.values():
+        # formation-rerun's equality (1e-12 N, N·m): the agent process and the re-run evaluate the
+        # same controller kernels, not necessarily with the same floating-point operation order
+        assert r.compared == steps and r.first_difference(1e-12) is None
+    assert summary["bag"]["wrenches_from_rerun"] == {}
     report = check_bag(bag)
     assert report.ok, report.problems
     assert_markers_decode(bag, expected=4)  # 0.1 s at the default 30 Hz display rate: t = 0, 1/30, 2/30, 3/30
@@ -101,19 +102,16 @@ def test_recorded_realtime_run_gives_the_same_margins(ros_procs, tmp_path: Path)
     run = ros_procs.start(
         [
             *script("formation-launch"),
-            str(PAPER),
-            "--mode",
-            "realtime",
+            str(REALTIME),
             "--duration",
-            "0.3",
-            "--control-rate",
-            "1000",
+            "1",
+            # physics at the control rate keeps the simulator on the wall clock on a loaded machine
             "--physics-rate",
-            "1000",
+            "100",
             "--ground-truth-rate",
-            "1000",
-            "--allow-low-rate",
-            "--record",
+            "100",
+            "--lag-budget",
+            "30",
             "--no-plots",
             "--quiet",
             "--out",
@@ -121,8 +119,9 @@ def test_recorded_realtime_run_gives_the_same_margins(ros_procs, tmp_path: Path)
         ]
     )
     stdout, stderr = ros_procs.finish(run, timeout=240)
-    assert run.returncode in (0, 1), stdout + stderr  # 1: a stale wrench on a loaded machine is a fault
-    recorded = load_run(out / "bag", formation=PAPER)
+    # the realtime preset holds its funnels; stale wrenches on a loaded machine are counted faults
+    assert run.returncode == 0, stdout + stderr
+    recorded = load_run(out / "bag", formation=REALTIME)
     _, summary, _ = analyze_run(recorded)
     theirs = json.loads((out / "summary.json").read_text())
     counts = summary["bag"]["recorder_counts"]

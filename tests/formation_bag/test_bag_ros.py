@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import time
@@ -12,19 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from bag_helpers import PAPER, script
+from bag_helpers import PAPER, REPO, script
+from process_hygiene import kill_hard, remove_segments
 
 from formation_bag import messages as m
+from formation_bag.analysis import analyze_run
+from formation_bag.dataset import load_run
 from formation_bag.interop import check_bag
 from formation_bag.reader import Bag
 from formation_bag.writer import SegmentedBagWriter
-
-pytest.importorskip("rclpy")
-
-
-#: processes that a test kills with SIGKILL use UDP only: Fast DDS shared memory would leave
-#: segments in /dev/shm behind
-NO_SHM = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
 
 
 def _recorder(ros_procs, bag: Path, *extra: str, env: dict[str, str] | None = None):
@@ -88,8 +83,8 @@ def test_recorder_sigkill_loses_at_most_the_last_segment(ros_procs, tmp_path: Pa
     """A recorder killed with SIGKILL leaves its closed segments readable and listed in metadata.yaml."""
     bag = tmp_path / "bag"
     segment = 0.5
-    rec = _recorder(ros_procs, bag, "--segment-seconds", str(segment), env=NO_SHM)
-    pub = ros_procs.start([*script("publisher.py"), "3000", "200"], NO_SHM)
+    rec = _recorder(ros_procs, bag, "--segment-seconds", str(segment), "--log-time", "receive")
+    pub = ros_procs.start([*script("publisher.py"), "3000", "200"])
     deadline = time.monotonic() + 60
     while (
         not (bag / "metadata.yaml").exists()
@@ -102,7 +97,9 @@ def test_recorder_sigkill_loses_at_most_the_last_segment(ros_procs, tmp_path: Pa
         time.sleep(0.05)
     time.sleep(0.3)
     killed_at = time.time_ns()
-    ros_procs.stop(rec, signal.SIGKILL)
+    left = kill_hard(rec.pid)
+    rec.wait()
+    remove_segments(left)
     ros_procs.stop(pub, signal.SIGINT)
     with Bag(bag) as b:
         assert not b.recovered and len(b.segments) >= 2
@@ -115,8 +112,22 @@ def test_recorder_sigkill_loses_at_most_the_last_segment(ros_procs, tmp_path: Pa
     assert check_bag(bag).ok
 
 
-def test_replay_timing_at_100_hz(ros_procs, tmp_path: Path) -> None:
-    """Replay keeps the recorded 10 ms spacing: median inter-message error below 1 ms."""
+def test_replay_schedule_follows_the_log_times() -> None:
+    """Each message is sent at t0 + Δlog / rate (the deterministic schedule; wall-clock accuracy: BENCHMARKS.md)."""
+    from formation_bag.replay_node import send_time
+
+    start = 1_700_000_000 * m.NS_PER_S
+    logs = [start + k * 10_000_000 for k in range(150)]
+    # the same formula in two float orders: equal to 1e-12 s
+    assert [send_time(5.0, lg, start, 1.0) for lg in logs] == pytest.approx(
+        [5.0 + k * 0.01 for k in range(150)], abs=1e-12
+    )
+    assert send_time(5.0, start + 10_000_000, start, 2.0) == pytest.approx(5.005, abs=1e-12)
+    assert send_time(0.0, start + 3 * m.NS_PER_S, start + m.NS_PER_S, 0.5) == 4.0
+
+
+def test_replay_publishes_every_message_in_order(ros_procs, tmp_path: Path) -> None:
+    """A 100 Hz bag replayed: every message arrives, in order, with its stamp."""
     bag = tmp_path / "bag"
     enc = m.Encoder()
     rng = np.random.default_rng(3)
@@ -132,15 +143,8 @@ def test_replay_timing_at_100_hz(ros_procs, tmp_path: Path) -> None:
     rep_out, rep_err = ros_procs.finish(rep, timeout=30)
     assert rep.returncode == 0, rep_err
     assert "published 150 messages" in rep_out
-    times = np.array(json.loads(out.strip().splitlines()[-1])["times"])
-    assert times.size == 150
-    err_ms = np.abs(np.diff(times) - 0.010) * 1e3
-    load = os.getloadavg()[0] / (os.cpu_count() or 1)
-    if np.median(err_ms) >= 1.0 and load > 1.0:
-        # oversubscribed CPUs (other runs on this machine): processes wait for a CPU for
-        # milliseconds, which is not a replay defect; reported with the numbers
-        pytest.xfail(f"median error {np.median(err_ms):.3f} ms with load average {load:.0f} per CPU")
-    assert np.median(err_ms) < 1.0, f"median {np.median(err_ms):.3f} ms (load {load:.1f} per CPU)"
+    got = json.loads(out.strip().splitlines()[-1])
+    assert got["stamps"] == [k * 10_000_000 for k in range(150)]
 
 
 def test_replay_refuses_unknown_topic(short_bags) -> None:
@@ -170,9 +174,6 @@ def test_replay_window_and_rate(ros_procs, tmp_path: Path) -> None:
     assert "published 51 messages" in rep_out  # 0.50 s … 1.00 s inclusive
     got = json.loads(out.strip().splitlines()[-1])
     assert got["stamps"] == [k * 10_000_000 for k in range(50, 101)]
-    # timing at rate 2 (5 ms apart): only when the machine let both processes run on time
-    # (test_replay_timing_at_100_hz is the timing test)
-    assert np.median(np.diff(got["times"])) < 0.0075
 
 
 def test_decimation_option() -> None:
@@ -188,3 +189,37 @@ def test_decimation_option() -> None:
         with pytest.raises(BagTopicError, match=re.escape(bad)):
             parse_decimation([bad])
     assert parse_meta(["mode=lockstep", "note=a=b"]) == {"mode": "lockstep", "note": "a=b"}
+
+
+def test_recorder_started_after_the_run_says_what_it_missed(ros_procs, tmp_path: Path) -> None:
+    """record.sh attached to a lockstep run already stepping: it names the steps it missed, and the
+    analysis of its bag is INCOMPLETE with the missing start listed (never PASS, never FAIL)."""
+    from formation_msgs_py.spec import load_formation
+
+    spec = load_formation(PAPER)
+    for a in spec.agents:
+        ros_procs.start(
+            [*script("formation-agent"), "--ros-args", "-p", f"formation_file:={PAPER}", "-p", f"agent_id:='{a.id}'"]
+        )
+    out = tmp_path / "run"
+    sim = ros_procs.start(
+        [*script("formation-sim"), str(PAPER), "--out", str(out), "--no-plots", "--duration", "0.2",
+         "--ground-truth-rate", "10000", "--progress-period", "0.1"]
+    )  # fmt: skip
+    ros_procs.wait_line(sim, "progress t=", 120)
+    bag = tmp_path / "bag"
+    rec = ros_procs.start(
+        [str(REPO / "ros2_ws" / "record.sh"), "--out", str(bag), "--formation", str(PAPER), "--quiet",
+         "--meta", "mode=lockstep", "control_rate=10000.0", "duration=0.2"]
+    )  # fmt: skip
+    ros_procs.wait_line(rec, "recording", 60)
+    ros_procs.finish(sim, timeout=240)
+    ros_procs.stop(rec)
+    _, err = ros_procs.finish(rec, timeout=30)
+    assert "started after the run: steps before t=" in err, err
+    run = load_run(bag)
+    _, summary, _ = analyze_run(run)
+    assert summary["verdict"] == "INCOMPLETE" and summary["first_violation"] is None
+    missing = summary["bag"]["missing"]
+    assert missing[0].startswith("ground truth: ") and "steps missing (0.0000-" in missing[0], missing
+    assert any(item.startswith("recorder: started after the run") for item in missing), missing

@@ -24,9 +24,6 @@ def ros_env(ros_domain_id: int, tmp_path: Path) -> dict[str, str]:
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
         ROS_LOG_DIR=str(tmp_path / "roslog"),
         PYTHONUNBUFFERED="1",
-        # UDP only: tests SIGKILL processes on purpose, and a process killed that way leaves its
-        # Fast DDS shared-memory segments in /dev/shm (UDP loopback costs the same here).
-        FASTDDS_BUILTIN_TRANSPORTS="UDPv4",
     )
     env.pop("ROS_STATIC_PEERS", None)
     return env

@@ -11,6 +11,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from process_hygiene import kill_hard, remove_segments, shm_segments  # noqa: F401 (re-exported)
+
 REPO = Path(__file__).resolve().parents[2]
 BIN = REPO / ".venv" / "bin"
 RUN_SH = REPO / "ros2_ws" / "run.sh"

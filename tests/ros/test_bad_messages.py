@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import threading
 import time
 from collections.abc import Iterator
@@ -12,12 +11,11 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from ros_helpers import PAPER, REALTIME, read_log, wait_for_line
+from ros_helpers import PAPER, REALTIME, read_log, ros_context, wait_for_line
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics
@@ -30,24 +28,15 @@ IDENTITY_Q = (0.0, 0.0, 0.0, 1.0)
 
 @contextmanager
 def injector_node(ros_env: dict[str, str]) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
-    """A node of this test process in the run's domain (environment restored afterwards)."""
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    os.environ.update({k: ros_env[k] for k in saved})
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
+    """A node of this test process in the run's domain, with its executor."""
+    with ros_context(ros_env) as context:
         node = Node("bad_input_injector", context=context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        yield node, executor
-        node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=context)
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+        try:
+            yield node, executor
+        finally:
+            node.destroy_node()
 
 
 def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict[str, str]) -> None:
@@ -119,7 +108,9 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
     for a in spec.agents:
         procs.agent(REALTIME, a.id)
     out = tmp_path / "out"
-    sim = procs.sim(REALTIME, out, "--duration", "4", "--physics-rate", "100", "--progress-period", "0.2")
+    sim = procs.sim(
+        REALTIME, out, "--duration", "4", "--physics-rate", "100", "--progress-period", "0.2", "--lag-budget", "30"
+    )
     refused: dict[str, dict[str, int]] = {}
 
     def on_diagnostics(msg: DiagnosticArray) -> None:
@@ -210,4 +201,6 @@ def test_lockstep_run_is_not_stalled_by_a_future_stamped_wrench(procs, ros_env, 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["duration"] == 1.0 and summary["steps"] == 100, summary
     assert summary["refused_wrenches"]["2"]["future_step"]["count"] >= 1, summary["refused_wrenches"]
-    assert set(summary["refused_wrenches"]) == {"2"}
+    # a healthy agent may answer a re-sent step twice, the second time after the step was integrated
+    others = {a: set(kinds) for a, kinds in summary["refused_wrenches"].items() if a != "2"}
+    assert all(kinds <= {"past_step"} for kinds in others.values()), summary["refused_wrenches"]

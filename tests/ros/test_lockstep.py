@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from ros_helpers import BIN, PAPER, REPO, children_by_node, read_log, wait_for_line
+from ros_helpers import BIN, PAPER, REPO, children_by_node, kill_hard, read_log, remove_segments, wait_for_line
 
 from formation_msgs_py.spec import load_formation
 from formation_sim.headless import run_headless
@@ -73,13 +73,14 @@ def test_lockstep_names_a_killed_agent(procs, tmp_path: Path) -> None:
     agents = {a.id: procs.agent(PAPER, a.id) for a in load_formation(PAPER).agents}
     sim = procs.sim(PAPER, tmp_path / "out", "--duration", "5", "--step-timeout", "2", "--progress-period", "0.2")
     assert wait_for_line(sim, "progress t=", 90), read_log(sim)
-    os.kill(agents["3"].pid, signal.SIGKILL)
+    left = kill_hard(agents["3"].pid)
     killed = time.monotonic()
     code = sim.wait(timeout=30)
     elapsed = time.monotonic() - killed
+    remove_segments(left)
     log = read_log(sim)
     assert code == 3, log
-    assert "no wrench from agent(s) 3 " in log, log
+    assert "no answer from agent 3 " in log, log
     assert elapsed < 2 + 8, elapsed
     assert (tmp_path / "out" / "summary.json").is_file()
 
@@ -101,10 +102,11 @@ def test_launcher_stops_everything_when_an_agent_dies(ros_env: dict[str, str], t
             assert time.monotonic() < deadline and proc.poll() is None
             time.sleep(0.1)
         pids = children_by_node(proc.pid)
-        os.kill(pids["agent_2"], signal.SIGKILL)
+        left = kill_hard(pids["agent_2"])
         stdout, _ = proc.communicate(timeout=60)
+        remove_segments(left)
         assert proc.returncode == 3, stdout
-        assert "agent_2 exited" in stdout
+        assert "agent_2 was killed by SIGKILL" in stdout
         table = json.loads((out / "logs" / "processes.json").read_text())
         assert all(row["returncode"] is not None for row in table)
     finally:
@@ -151,7 +153,7 @@ def test_help_of_every_script() -> None:
 @pytest.mark.skipif(shutil.which("unshare") is None, reason="unshare (util-linux) is not installed")
 def test_private_network_namespace(ros_env: dict[str, str], tmp_path: Path) -> None:
     """--netns on runs the formation inside its own network namespace (how 50 agents run)."""
-    from formation_sim.launch import netns_available
+    from formation_sim.dds_env import netns_available
 
     reason = netns_available()
     if reason is not None:

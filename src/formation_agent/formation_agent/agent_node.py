@@ -219,6 +219,7 @@ import rclpy  # noqa: E402  (the synchroniser above stays importable and testabl
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped  # noqa: E402
 from rcl_interfaces.msg import SetParametersResult  # noqa: E402
+from rclpy._rclpy_pybind11 import RCLError  # noqa: E402
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump  # noqa: E402
 from rclpy.duration import Duration  # noqa: E402
 from rclpy.exceptions import ParameterException  # noqa: E402
@@ -516,10 +517,17 @@ def main(args: list[str] | None = None) -> int:
         node.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():
+            raise
+        # a publish cut short by SIGINT/SIGTERM (rclpy's handler shut the context down): a stop
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RCLError:
+            pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
     return 0
 
 

@@ -19,7 +19,9 @@ It also writes CSV exports (errors.csv, inputs.csv, positions.csv), and ``ages.j
 the age of every measurement and wrench per edge and agent, in simulation time (latest /clock at
 receipt − header stamp) and in wall time (receipt − receipt of the /clock that announced the
 stamp), and each agent's response time (wrench receipt − receipt of its velocity with that stamp).
-A bag truncated by a killed recorder is analysed as far as it goes (``bag.truncated`` in the summary).
+A bag truncated by a killed recorder, or missing messages, is analysed as far as it goes: the
+verdict is then INCOMPLETE with what is missing listed (``bag.missing``), never FAIL for lack of
+data; a violation seen in the data present is still FAIL.
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.errors import BagError
 from formation_bag.rerun import AgentRerun, rerun_all
 from formation_msgs_py.errors import FormationSpecError
-from formation_sim.report import VELOCITY_CHANNELS, RunRecorder, format_summary, report_animation, write_outputs
+from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
+from formation_sim.report import RunRecorder, format_summary, report_animation, write_json, write_outputs
 
 VELOCITY_MARGIN_MODES = ("rerun", "none")
 
@@ -122,28 +125,18 @@ def analyze_run(
             if not lockstep_checks:
                 continue
             t_s = m.seconds(step)
-            at_step = [
-                (a, reruns[a].outputs[k], reruns[a].faults[k])
-                for a in ids
-                if a in reruns and (k := rerun_index[a].get(step)) is not None
-            ]
-            for a, _, fault in at_step:
-                if fault is not None:
-                    recorder.fault(t_s, "measurement", a, fault)
-            for a, out, _ in at_step:
-                i = ids.index(a)
-                mv = min(out.margin_v)
-                recorder.min_margin_v[i] = min(recorder.min_margin_v[i], mv)
-                if recorder.first_violation is None and mv <= 0:
-                    ch = VELOCITY_CHANNELS[out.margin_v.index(mv)]
-                    recorder.fault(t_s, "velocity", a, ch)
+            margin_v = np.full((len(ids), 6), math.inf)
+            for i, a in enumerate(ids):
+                k = rerun_index[a].get(step) if a in reruns else None
+                if k is None:
+                    continue
+                out, fault = reruns[a].outputs[k], reruns[a].faults[k]
                 w = wrench_exact[a].get(step) or list(out.wrench)
                 recorder.peak_force[i] = max(recorder.peak_force[i], math.sqrt(sum(x * x for x in w[:3])))
                 recorder.peak_torque[i] = max(recorder.peak_torque[i], math.sqrt(sum(x * x for x in w[3:])))
-            if recorder.first_violation is None:
-                bad = next(((a, out) for a, out, _ in at_step if out.level == ERROR), None)
-                if bad is not None:
-                    recorder.fault(t_s, "controller", bad[0], bad[1].message)
+                if _count_fault(recorder, t_s, a, out, fault):
+                    margin_v[i] = out.margin_v
+            recorder.judge.update_velocity(t_s, margin_v)
 
     lockstep_checks = not realtime
     for kk, (stamp, (p_list, R_list)) in enumerate(zip(gt.stamps, gt.values)):
@@ -158,16 +151,13 @@ def analyze_run(
                     j = bisect.bisect_right(r.stamps, stamp) - 1
                     k = j if j >= 0 else None
                 outs.append(None if k is None else (r.outputs[k], r.faults[k], int(r.stamps[k]) == stamp))
-            for a, o in zip(ids, outs):
-                if o is not None and o[2] and o[1] is not None:
-                    recorder.fault(t, "measurement", a, o[1])
         if realtime:
             u = np.array([held(a, kk) for a in ids])
         else:
             rows = []
             for a, o in zip(ids, outs or [None] * len(ids)):
                 w = wrench_exact[a].get(stamp)
-                if w is None and o is not None and o[2]:
+                if w is None and o is not None and o[2] and o[1] is None:
                     # not in the bag (the recorder matched this agent late): the re-run's wrench,
                     # which equals the agent's on every recorded step
                     w = list(o[0].wrench)
@@ -177,24 +167,27 @@ def analyze_run(
         v = np.array([at(run.velocity[a], stamp) or zeros6 for a in ids])
         margin_v = None
         if reruns:
-            margin_v = np.array([o[0].margin_v if o is not None else (math.inf,) * 6 for o in outs])
+            # a step whose measurements are missing from the bag has unknown margins (inf), not −1
+            margin_v = np.full((len(ids), 6), math.inf)
+            for i, (a, o) in enumerate(zip(ids, outs)):
+                if o is not None and o[2] and _count_fault(recorder, t, a, o[0], o[1]):
+                    margin_v[i] = o[0].margin_v
+                elif o is not None and not o[2] and o[1] is None:
+                    margin_v[i] = o[0].margin_v  # the latest step before this sample
         recorder.add(t, np.array(p_list), np.array(R_list), v, u, margin_v)
-        if reruns and recorder.first_violation is None:
-            bad = next(((a, o[0]) for a, o in zip(ids, outs) if o is not None and o[2] and o[0].level == ERROR), None)
-            if bad is not None:
-                recorder.fault(t, "controller", bad[0], bad[1].message)
     between_steps(gt.stamps[-1] + 1 if len(gt) else None)  # not past the last sample: the run's end
     wall = (run.last_log - run.first_log) / m.NS_PER_S
     try:
-        duration: float | None = float(custom["duration"])
+        duration = float(custom["duration"])
     except (KeyError, ValueError):
-        duration = None  # the run may have overridden the file's duration: unknown
-    expected = None if duration is None else round(duration * (gt_rate or control_rate)) + 1
-    gaps = 0
-    if gt_rate:
-        step = m.NS_PER_S / gt_rate
-        gaps = int(sum(max(0, round((b - a) / step) - 1) for a, b in zip(gt.stamps, gt.stamps[1:])))
-    truncated = bool(run.lost) or run.recovered or (expected is not None and len(gt) < expected)
+        duration = spec.simulation.duration  # a recorder started without --meta: the file's duration
+    expected = round(duration * (gt_rate or control_rate)) + 1
+    gaps = stamp_gaps(gt.stamps, gt_rate or control_rate, duration)
+    missing = missing_data(
+        run, control_rate, gt_rate or control_rate, duration, _recorder_counts(custom), wrenches=not realtime
+    )
+    truncated = bool(missing)
+    incomplete = Incomplete(ExitCode.INCOMPLETE, "data missing: " + "; ".join(missing)) if missing else None
     bag_info = {
         "path": str(run.path),
         "recovered_without_metadata": run.recovered,
@@ -202,7 +195,9 @@ def analyze_run(
         "truncated": truncated,
         "ground_truth_samples": len(gt),
         "ground_truth_expected": expected,
-        "ground_truth_gaps": gaps,
+        "ground_truth_gaps": len(gaps),
+        "ground_truth_missing": [[m.seconds(lo), m.seconds(hi)] for lo, hi in gaps],
+        "missing": missing,
         "ground_truth_rate": gt_rate,
         "steps_between_ground_truth": len(between) if lockstep_checks else 0,
         "topics": run.topic_counts,
@@ -215,8 +210,72 @@ def analyze_run(
         },
         "analysis_time": time.perf_counter() - started,
     }
-    summary = recorder.summary(wall_time=wall, extra={"source": "bag", "bag": bag_info})
+    summary = recorder.summary(
+        wall_time=wall,
+        requested_duration=duration,
+        incomplete=incomplete,
+        extra={"source": "bag", "bag": bag_info},
+    )
     return recorder, summary, reruns
+
+
+def stamp_gaps(stamps: list[int], rate: float, duration: float) -> list[tuple[int, int]]:
+    """Missing stretches [first missing, last missing] (ns) of a series due every 1/rate s over [0, duration]."""
+    step = m.NS_PER_S / rate
+    have = sorted({round(s / step) for s in stamps})
+    last = round(duration * rate)
+    gaps = []
+    prev = -1
+    for k in [*have, last + 1]:
+        if k > prev + 1 and prev + 1 <= last:
+            gaps.append((round((prev + 1) * step), round(min(k - 1, last) * step)))
+        prev = max(prev, k)
+    return gaps
+
+
+def missing_data(
+    run: RunData,
+    control_rate: float,
+    gt_rate: float,
+    duration: float,
+    counts: dict[str, Any] | None,
+    *,
+    wrenches: bool = True,
+) -> list[str]:
+    """What the bag lacks, one phrase per topic: lost segments, missing steps (with their times)
+    of the ground truth, velocities and (lockstep: one per step) wrenches, and messages the
+    recorder counted as missed."""
+    out = [f"lost {x}" for x in run.lost]
+
+    def describe(name: str, gaps: list[tuple[int, int]], rate: float) -> None:
+        if gaps:
+            n = sum(round((hi - lo) * rate / m.NS_PER_S) + 1 for lo, hi in gaps)
+            spans = ", ".join(f"{m.seconds(lo):.4f}-{m.seconds(hi):.4f} s" for lo, hi in gaps[:3])
+            more = f" and {len(gaps) - 3} more gaps" if len(gaps) > 3 else ""
+            out.append(f"{name}: {n} steps missing ({spans}{more})")
+
+    describe("ground truth", stamp_gaps(run.ground_truth.stamps, gt_rate, duration), gt_rate)
+    for a in run.spec.agent_ids:
+        describe(f"agent {a} velocity", stamp_gaps(run.velocity[a].stamps, control_rate, duration), control_rate)
+        if wrenches:
+            describe(f"agent {a} wrench", stamp_gaps(run.wrench[a].stamps, control_rate, duration), control_rate)
+    if counts:
+        for topic, n in sorted(counts.get("missing", {}).items()):
+            if not topic.endswith(("/velocity", "/wrench", "/ground_truth")):
+                out.append(f"{topic}: {n} messages published but not recorded")
+        if counts.get("missed_start"):
+            out.append(f"recorder: {counts['missed_start']}")
+    return out
+
+
+def _count_fault(recorder: RunRecorder, t: float, agent: str, out: Any, missing: str | None) -> bool:
+    """Count a re-run step's fault; True if its margins are known (no measurement missing in the bag)."""
+    if out.level == ERROR:
+        recorder.fault(t, "controller", agent, out.message)
+    if missing is not None:
+        recorder.fault(t, "measurement", agent, missing)
+        return False
+    return True
 
 
 def _recorder_counts(custom: dict[str, str]) -> dict[str, Any] | None:
@@ -355,8 +414,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Analyse a recorded run without ROS: recompute e_k and ψ_k from /formation/ground_truth, check "
         "every funnel, write OUT as docs/outputs.md (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
         "inputs.png) plus errors.csv, inputs.csv, positions.csv, ages.json, ages.csv. Works on lockstep and "
-        "realtime bags and on bags left by a killed recorder. Exit status: 0 every funnel held, 1 a funnel was "
-        "violated, 2 bad input.",
+        "realtime bags and on bags left by a killed recorder; missing data makes the verdict INCOMPLETE (never FAIL) "
+        "and is listed. " + EXIT_STATUS_HELP + ".",
     )
     p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
     p.add_argument("--out", type=Path, help="output directory (default: <bag>-analysis next to the bag)")
@@ -379,6 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@guarded("formation-analyze")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     started = time.perf_counter()
@@ -397,22 +457,27 @@ def main(argv: list[str] | None = None) -> int:
         print("formation-analyze: warning: no usable metadata.yaml; read the segment files directly", file=sys.stderr)
     recorder, summary, _ = analyze_run(run, velocity_margins=args.velocity_margins)
     ages = message_ages(run)
-    out.mkdir(parents=True, exist_ok=True)
-    write_outputs(out, recorder, summary, plots=not args.no_plots)
-    (out / "ages.json").write_text(json.dumps(ages, indent=2) + "\n", encoding="utf-8")
-    write_csv(out, recorder, ages)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "ages.json", ages)
+        write_csv(out, recorder, ages)
+        write_outputs(out, recorder, summary, plots=not args.no_plots)
+    except OSError as exc:
+        print(f"formation-analyze: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr)
+        return ExitCode.INCOMPLETE
     if args.animate:
         report_animation(out, recorder.spec, recorder.arrays())
     print(format_summary(summary))
     b = summary["bag"]
-    expected = "" if b["ground_truth_expected"] is None else f" of {b['ground_truth_expected']} expected"
     print(
-        f"bag: {b['ground_truth_samples']} ground-truth samples{expected}, "
+        f"bag: {b['ground_truth_samples']} ground-truth samples of {b['ground_truth_expected']} expected, "
         f"{b['ground_truth_gaps']} gaps{', TRUNCATED' if b['truncated'] else ''}; "
         f"analysed in {time.perf_counter() - started:.2f} s"
     )
-    print(f"outputs in {out}/")
-    return 0 if summary["funnels_held"] else 1
+    for item in b["missing"]:
+        print(f"  missing: {item}")
+    print(f"outputs in {out}/ (exit status {summary['exit_status']})")
+    return summary["exit_status"]
 
 
 if __name__ == "__main__":

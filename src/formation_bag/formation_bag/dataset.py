@@ -130,9 +130,7 @@ def apply_overrides(doc: Mapping[str, Any], overrides: Mapping[str, Any], where:
     edges = out.get("edges") or []
     for name, change in (overrides.get("edges") or {}).items():
         tail, _, head = str(name).partition("-")
-        idx = next(
-            (k for k, e in enumerate(edges) if {str(e.get("tail")), str(e.get("head"))} == {tail, head}), None
-        )
+        idx = next((k for k, e in enumerate(edges) if {str(e.get("tail")), str(e.get("head"))} == {tail, head}), None)
         if idx is None:
             raise OverrideError(f"{where}.edges.{name}", "no such edge (write it as TAIL-HEAD, e.g. 1-2)")
         if not isinstance(change, Mapping):
@@ -212,6 +210,4 @@ def load_run(
                 f"bag {path}: ground truth at stamp {gt.stamps[k]} ns has {len(s[0])} poses, "
                 f"the formation file {name} has {n} agents"
             )
-    return RunData(
-        path, spec, doc, custom, gt, vel, wr, rel, clock, lost, recovered, first or 0, last or 0, counts
-    )
+    return RunData(path, spec, doc, custom, gt, vel, wr, rel, clock, lost, recovered, first or 0, last or 0, counts)

@@ -25,7 +25,7 @@ from rosbags.rosbag2.errors import ReaderError
 
 from formation_bag.errors import BagExistsError, BagFormatError, BagNotFoundError
 from formation_bag.messages import typestore
-from formation_bag.writer import STORAGES, SegmentInfo, metadata_yaml
+from formation_bag.metadata import STORAGES, SegmentInfo, metadata_yaml
 
 SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
 _SEG_RE = re.compile(r"_(\d+)$")

@@ -4,14 +4,23 @@ A thin rclpy node: raw subscriptions (the CDR bytes, nothing is deserialized) dr
 wait-set loop straight into a :class:`formation_bag.writer.SegmentedBagWriter`
 (a segment closes in a few ms; every subscription queues up to 1000 messages meanwhile).
 Counts: received and written per topic, and the publishers' sequence numbers (what they
-published in total and while we listened), stored in metadata.yaml custom_data ``recorder_counts``.
-SIGINT/SIGTERM (our own handlers) stop the loop, take and write what the subscriptions already
-received, close the last segment and write metadata.yaml (exit status 0). A SIGKILL loses at
-most the open segment.
+published in total and while we listened), stored in metadata.yaml custom_data ``recorder_counts``
+(and in ``--stats FILE``). SIGINT/SIGTERM (our own handlers) stop the loop, take and write what
+the subscriptions already hold (no waiting for silence: agents publish /diagnostics until they
+are stopped), close the last segment and write metadata.yaml (exit status 0). A SIGKILL loses at
+most the open segment. A full disk stops the recording with one line and exit status 4.
+
+Lockstep: with ``--formation`` the recorder publishes ``formation/recorder_ack`` (the stamp up
+to which it holds every agent's velocity and wrench); ``formation-sim --wait-recorder`` does not
+advance more than one step past it, so the recorder never falls behind far enough to drop. A
+recorder started after the simulator reports the steps it missed.
 
 Topics: every docs/topics.md topic of ``--formation FILE`` (exact, known before anything runs),
 plus whatever the graph shows that matches (checked every ``--discovery-period`` s); or only
-``--topics``. Log time = receive time (system clock, ns), as ``ros2 bag record`` does.
+``--topics``. Log time (``--log-time``): ``sim``, each message's own stamp (simulation time, as
+``ros2 bag record --use-sim-time`` gives; the default for lockstep runs, so a player shows the run
+at its true speed), or ``receive``, the receive time on the system clock (the default in realtime,
+where the analysis needs the order in which wrenches arrived).
 """
 
 from __future__ import annotations
@@ -33,17 +42,25 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
+from rosgraph_msgs.msg import Clock
 
 from formation_bag import messages as m
 from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_bag.errors import BagError, BagTopicError
-from formation_bag.writer import STORAGES, SegmentedBagWriter, make_qos
+from formation_bag.metadata import STORAGES
+from formation_bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py import qos as fqos
-from formation_msgs_py import topics
+from formation_msgs_py import topics, wire
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import load_formation
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
+from formation_sim.report import write_json
 
+#: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time)
+STAMPED_TYPES = frozenset(
+    {"TwistStamped", "WrenchStamped", "TransformStamped", "PoseArray", "Clock", "DiagnosticArray"}
+)
 #: depth of the recorder's own subscription queues (it must never be the one that drops)
 SUB_DEPTH = 1000
 #: with --formation, the ground-truth subscription waits until every other subscription has matched
@@ -120,8 +137,20 @@ class Recorder(Node):
         only: list[str] | None,
         namespace: str,
         decimate: list[tuple[str, int]],
+        sim_log_time: bool = False,
+        step_topics: list[str] | None = None,
     ) -> None:
         super().__init__("formation_record")
+        self.sim_log_time = sim_log_time
+        # lockstep acknowledgement: the latest stamp of each per-step topic (velocities, wrenches)
+        self.latest: dict[str, int] = {}
+        self.step_topics = step_topics or []
+        self.first_step_stamp: int | None = None
+        self.sim_now = 0  # the latest stamp taken [ns]
+        self.ack_ns = -1
+        self.ack_pub = None
+        if self.step_topics:
+            self.ack_pub = self.create_publisher(Clock, topics.RECORDER_ACK, fqos.CONTROL)
         self.writer = writer
         self.namespace = namespace
         self.only = only
@@ -160,15 +189,18 @@ class Recorder(Node):
             return name in self.only
         return m.classify(name, self.namespace) is not None
 
+    def _in_loop(self, name: str) -> bool:
+        kind = m.classify(name, self.namespace)
+        return kind is not None and kind.kind in ("clock", "velocity", "relative_pose", "wrench")
+
     def check_deferred(self) -> None:
         """Subscribe to the ground truth once every other subscription has matched (or after a timeout)."""
         if self._deferred is None:
             return
         now = time.monotonic()
-        # /diagnostics and the display topics are optional (agents publish diagnostics at ≤ 10 Hz,
-        # tools that replay or fake a run may publish neither): not waited for
-        optional = {topics.DIAGNOSTICS, *(m.absolute(t, self.namespace) for t in (topics.MARKERS, topics.FUNNELS))}
-        if all(sub.get_publisher_count() > 0 for name, sub, _, _ in self._active if name not in optional):
+        # only the topics of the closed loop are waited for: /diagnostics (≤ 10 Hz) and the display
+        # topics (markers, funnels: off with --marker-rate 0) are optional
+        if all(sub.get_publisher_count() > 0 for name, sub, _, _ in self._active if self._in_loop(name)):
             if self._matched_at is None:
                 self._matched_at = now
         else:
@@ -289,6 +321,7 @@ class Recorder(Node):
                     raise
                 for ptr in wait_set.get_ready_entities("subscription"):
                     self._take_all(*by_pointer[ptr])
+                self.acknowledge()
             else:
                 time.sleep(0.1)  # nothing to record yet: discovery below
             now = time.monotonic()
@@ -307,22 +340,45 @@ class Recorder(Node):
         if context.ok():
             self.drain()
 
-    def drain(self, quiet: float = 0.2) -> None:
-        """Take what the subscriptions hold until nothing has arrived for ``quiet`` s."""
-        last = time.monotonic()
-        while time.monotonic() - last < quiet:
-            if sum(self._take_all(*entry) for entry in self._active):
-                last = time.monotonic()
-            else:
-                time.sleep(0.01)
+    def acknowledge(self) -> None:
+        """Publish the stamp up to which every per-step topic is in the bag (when it advanced)."""
+        if self.ack_pub is None or len(self.latest) < len(self.step_topics):
+            return
+        ack = min(self.latest[t] for t in self.step_topics)
+        if ack > self.ack_ns:
+            self.ack_ns = ack
+            self.ack_pub.publish(wire.clock_bytes(ack))
+
+    def drain(self, limit: float = 1.0) -> None:
+        """Take what the subscriptions hold now, until a pass finds nothing (at most ``limit`` s).
+
+        Does not wait for silence: the agents publish /diagnostics until they are stopped."""
+        deadline = time.monotonic() + limit
+        while time.monotonic() < deadline and sum(self._take_all(*entry) for entry in self._active):
+            pass
 
     def _take_all(self, name: str, sub: Any, cls: Any, every: int) -> int:
         """Take and write every queued message of one subscription; returns how many."""
         take = sub.handle.take_message
         received, seq, write = self.received, self.seq, self.writer.write
+        sim_time, latest = self.sim_log_time, self.latest
+        step_topic = name in self.step_topics
+        # messages that start with a stamp (header or Clock); others (markers, funnels, /tf) are
+        # logged at the latest simulation time seen
+        stamped = cls.__name__ in STAMPED_TYPES
         count = 0
         while (got := take(cls, True)) is not None:
             data, info = got
+            if stamped:
+                stamp = wire.stamp_of(data)
+                self.sim_now = max(self.sim_now, stamp)
+            else:
+                stamp = self.sim_now
+            if step_topic:
+                if stamp > latest.get(name, -1):
+                    latest[name] = stamp
+                if self.first_step_stamp is None:
+                    self.first_step_stamp = stamp
             count += 1
             n = received[name]
             received[name] = n + 1
@@ -334,9 +390,15 @@ class Recorder(Node):
                 elif s > first_last[1]:
                     first_last[1] = s
             if n % every == 0:
-                write(name, info.get("received_timestamp") or time.time_ns(), data)
+                write(name, stamp if sim_time else info.get("received_timestamp") or time.time_ns(), data)
                 self.written[name] += 1
         return count
+
+    def missed_start(self) -> str | None:
+        """What a recorder started after the simulator missed (None if it has the first step)."""
+        if self.first_step_stamp is None or self.first_step_stamp == 0:
+            return None
+        return f"started after the run: steps before t={self.first_step_stamp / 1e9:.6f} s not recorded"
 
     def finish(self) -> dict[str, Any]:
         """Close the bag with the counts in custom_data; returns the counts."""
@@ -356,6 +418,8 @@ class Recorder(Node):
             "published_seen": published,
             "published_total": total,
             "decimate": {p: n for p, n in self.decimate},
+            "log_time": "sim" if self.sim_log_time else "receive",
+            "missed_start": self.missed_start(),
         }
         self.writer.custom_data["recorder_counts"] = json.dumps(stats, sort_keys=True)
         self.writer.close()
@@ -385,8 +449,21 @@ def build_parser() -> argparse.ArgumentParser:
         "(custom_data) so formation-analyze needs nothing else",
     )
     p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
-    p.add_argument("--segment-seconds", type=float, default=2.0, help="close a segment after S s (default 2)")
-    p.add_argument("--segment-mb", type=float, default=64.0, help="close a segment after M MiB (default 64)")
+    p.add_argument(
+        "--segment-seconds",
+        type=float,
+        default=None,
+        help="also close a segment after S s of log time (simulated s with --log-time sim; default: by size only)",
+    )
+    p.add_argument("--segment-mb", type=float, default=100.0, help="close a segment after M MiB (default 100)")
+    p.add_argument(
+        "--log-time",
+        choices=("auto", "sim", "receive"),
+        default="auto",
+        help="log time of each message: sim (its stamp: simulation time) or receive (system clock); "
+        "auto: sim for lockstep runs (--meta mode=lockstep, else the formation file's mode), receive otherwise",
+    )
+    p.add_argument("--stats", type=Path, help="also write the recorder's counts to this JSON file (atomically)")
     p.add_argument(
         "--decimate",
         nargs="+",
@@ -401,17 +478,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@guarded("formation-record")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         decimate = parse_decimation(args.decimate)
         custom = parse_meta(args.meta)
         known: dict[str, str] = {}
+        step_topics: list[str] = []
+        mode = custom.get("mode")
         if args.formation is not None:
             spec = load_formation(args.formation)
+            mode = mode or spec.simulation.mode
             known = m.formation_topics(spec.agent_ids, [(e.tail, e.head) for e in spec.edges], args.namespace)
             custom.setdefault(KEY_FORMATION_YAML, args.formation.read_text(encoding="utf-8"))
             custom.setdefault(KEY_FORMATION_FILE, args.formation.name)
+            step_topics = [
+                m.absolute(f(a), args.namespace) for a in spec.agent_ids for f in (topics.velocity, topics.wrench)
+            ]
         only = None
         if args.topics:
             only = [m.absolute(t, args.namespace) for t in args.topics]
@@ -419,6 +503,8 @@ def main(argv: list[str] | None = None) -> int:
                 k = m.classify(t, args.namespace)
                 if k is not None and t not in known:
                     known[t] = k.msgtype
+            step_topics = [t for t in step_topics if t in only]
+        sim_log_time = args.log_time == "sim" or (args.log_time == "auto" and mode == "lockstep")
         writer = SegmentedBagWriter(
             args.out,
             storage=args.storage,
@@ -428,22 +514,37 @@ def main(argv: list[str] | None = None) -> int:
         )
     except (BagError, FormationSpecError, OSError) as exc:
         print(f"formation-record: {exc}", file=sys.stderr)
-        return 2
+        return ExitCode.INVALID
     # our own SIGINT/SIGTERM handlers: rclpy's would shut the context down at once, before the
     # messages already received are written
     rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # until the node exists: KeyboardInterrupt
     node = None
     stats: dict[str, Any] = {}
-    code = 0
+    code = ExitCode.PASS
     try:
-        node = Recorder(writer, known=known, only=only, namespace=args.namespace, decimate=decimate)
+        node = Recorder(
+            writer,
+            known=known,
+            only=only,
+            namespace=args.namespace,
+            decimate=decimate,
+            sim_log_time=sim_log_time,
+            step_topics=step_topics,
+        )
         check_secure_transport()  # secure mode: refuse to record over a transport that fell back to UDP
         signal.signal(signal.SIGINT, node.request_stop)
         signal.signal(signal.SIGTERM, node.request_stop)
-        print(f"formation-record: recording {node.topic_count} topics into {args.out}", flush=True)
+        print(
+            f"formation-record: recording {node.topic_count} topics into {args.out} "
+            f"(log time: {'simulation' if sim_log_time else 'receive'})",
+            flush=True,
+        )
         try:
             node.spin(discovery_period=args.discovery_period, status_period=None if args.quiet else 5.0)
+        except (OSError, BagError) as exc:
+            print(f"formation-record: I/O error writing {args.out}: {exc}; recording stopped", file=sys.stderr)
+            code = ExitCode.INCOMPLETE
         except Exception:
             if node.context.ok():
                 raise
@@ -459,17 +560,29 @@ def main(argv: list[str] | None = None) -> int:
                 stats = node.finish()
             except (BagError, OSError) as exc:
                 print(f"formation-record: closing {args.out} failed: {exc}", file=sys.stderr)
-                code = 1
+                code = ExitCode.INCOMPLETE
             node.destroy_node()
         else:
-            writer.close()
+            try:
+                writer.close()
+            except (BagError, OSError) as exc:
+                print(f"formation-record: closing {args.out} failed: {exc}", file=sys.stderr)
+                code = ExitCode.INCOMPLETE
         rclpy.try_shutdown()
+    if args.stats is not None and stats:
+        try:
+            write_json(args.stats, stats)
+        except OSError as exc:
+            print(f"formation-record: could not write {args.stats}: {exc}", file=sys.stderr)
+            code = ExitCode.INCOMPLETE
     rec, wr = sum(stats.get("received", {}).values()), sum(stats.get("written", {}).values())
     print(
         f"formation-record: closed {args.out}: {wr} messages written of {rec} received "
         f"on {len(stats.get('received', {}))} topics, {len(writer.segments)} segments",
         flush=True,
     )
+    if stats.get("missed_start"):
+        print(f"formation-record: WARNING: {stats['missed_start']}", file=sys.stderr, flush=True)
     return code
 
 

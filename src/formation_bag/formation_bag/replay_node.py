@@ -52,6 +52,11 @@ def to_rclpy_qos(profiles: Sequence[Any], topic: str) -> QoSProfile:
     )
 
 
+def send_time(t0: float, log_time: int, t_first: int, rate: float) -> float:
+    """When a message logged at ``log_time`` [ns] is published: t0 + Δlog / rate [wall s]."""
+    return t0 + (log_time - t_first) / m.NS_PER_S / rate
+
+
 def sleep_until(deadline: float) -> None:
     """Sleep until ``time.perf_counter() >= deadline`` (sub-ms accurate)."""
     while True:
@@ -115,10 +120,10 @@ class Replayer(Node):
         for msg in self.bag.messages(self.pubs, start=start, stop=None if stop is None else stop + 1):
             if clock_period is not None:
                 while next_clock <= msg.log_time:
-                    sleep_until(t0 + (next_clock - t_first) / m.NS_PER_S / rate)
+                    sleep_until(send_time(t0, next_clock, t_first, rate))
                     self.clock_pub.publish(self._Clock(clock=_time(next_clock)))
                     next_clock += clock_period
-            sleep_until(t0 + (msg.log_time - t_first) / m.NS_PER_S / rate)
+            sleep_until(send_time(t0, msg.log_time, t_first, rate))
             if not ok():
                 break
             self.pubs[msg.topic].publish(bytes(msg.data))

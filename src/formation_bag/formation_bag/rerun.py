@@ -31,6 +31,7 @@ from formation_bag import messages as m
 from formation_bag.dataset import RunData, apply_overrides, load_run, spec_from_document
 from formation_bag.errors import BagError, OverrideError
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import FormationSpec, agent_view
 
 DEFAULT_TOLERANCE = 1e-12
@@ -48,31 +49,42 @@ class AgentRerun:
     rerun: np.ndarray  # (T,6)
 
     @property
+    def comparable(self) -> np.ndarray:
+        """(T,) bool: the bag holds the agent's wrench and every measurement it answered."""
+        complete = np.array([f is None or f == "stale" for f in self.faults], dtype=bool)
+        return ~np.isnan(self.recorded[:, 0]) & complete
+
+    @property
     def compared(self) -> int:
-        return int(np.sum(~np.isnan(self.recorded[:, 0])))
+        return int(np.sum(self.comparable))
+
+    @property
+    def measurements_missing(self) -> int:
+        """Steps the bag lacks a measurement of (re-run not comparable there)."""
+        return sum(f is not None and f != "stale" for f in self.faults)
 
     @property
     def max_abs_diff(self) -> float:
-        d = np.abs(self.recorded - self.rerun)
-        d = d[~np.isnan(d[:, 0])]
+        d = np.abs(self.recorded - self.rerun)[self.comparable]
         return float(d.max()) if d.size else 0.0
 
     def first_difference(self, tol: float) -> int | None:
         d = np.abs(self.recorded - self.rerun).max(axis=1)
-        bad = np.nonzero(d > tol)[0]  # NaN compares False: missing wrenches are not differences
+        bad = np.nonzero((d > tol) & self.comparable)[0]  # missing data is never a difference
         return int(bad[0]) if bad.size else None
 
     def report(self, tol: float) -> dict[str, Any]:
         k = self.first_difference(tol)
         d = np.abs(self.recorded - self.rerun)
-        valid = ~np.isnan(d[:, 0])
+        valid = self.comparable
         force = np.linalg.norm(self.recorded[:, :3] - self.rerun[:, :3], axis=1)
         torque = np.linalg.norm(self.recorded[:, 3:] - self.rerun[:, 3:], axis=1)
         levels = [o.level for o in self.outputs]
         return {
             "steps": len(self.stamps),
             "compared": self.compared,
-            "missing_recorded_wrench": int(np.sum(~valid)),
+            "missing_recorded_wrench": int(np.sum(np.isnan(self.recorded[:, 0]))),
+            "measurements_missing": self.measurements_missing,
             "equal": k is None,
             "max_abs_diff": self.max_abs_diff,
             "max_force_diff": float(np.nanmax(force)) if valid.any() else 0.0,
@@ -176,8 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-rerun",
         description="Feed the recorded measurements of one or all agents to the agent's controller core "
-        "(offline, no ROS) and compare the wrenches with the recorded ones. Exit status: 0 equal within "
-        "--tolerance, 1 different, 2 bad input.",
+        "(offline, no ROS) and compare the wrenches with the recorded ones; steps whose measurement or wrench "
+        "the bag lacks are not compared and are counted. Exit status: 0 equal within --tolerance on complete "
+        "data, 1 a recorded wrench differs, 2 bad input, 4 equal where compared but data missing.",
     )
     p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
     p.add_argument("--agent", action="append", default=None, metavar="ID", help="agent id (repeatable; default all)")
@@ -193,6 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@guarded("formation-rerun")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -227,6 +241,8 @@ def main(argv: list[str] | None = None) -> int:
             line += f", first at t={r['first_difference']['t']:.6f} s, {r['steps_differing']} steps differ"
         if r["missing_recorded_wrench"]:
             line += f"; {r['missing_recorded_wrench']} steps without a recorded wrench"
+        if r["measurements_missing"]:
+            line += f"; {r['measurements_missing']} steps with a measurement missing from the bag (not compared)"
         print(line)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
@@ -241,8 +257,15 @@ def main(argv: list[str] | None = None) -> int:
                 level=np.array([o.level for o in r.outputs], dtype=np.int8),
             )
         print(f"report in {args.out}/rerun.json")
-    print(f"formation-rerun: wrenches {'reproduced' if equal else 'differ'} (tolerance {args.tolerance:g})")
-    return 0 if equal else 1
+    incomplete = any(r["missing_recorded_wrench"] or r["measurements_missing"] for r in report["agents"].values())
+    if not equal:
+        verdict, code = "differ", ExitCode.FAIL
+    elif incomplete:
+        verdict, code = "reproduced where the bag has the data (INCOMPLETE: data missing)", ExitCode.INCOMPLETE
+    else:
+        verdict, code = "reproduced", ExitCode.PASS
+    print(f"formation-rerun: wrenches {verdict} (tolerance {args.tolerance:g})")
+    return code
 
 
 if __name__ == "__main__":

@@ -119,5 +119,9 @@ def write_run_bag(
                 break
             sim.advance(u)
     wall = time.perf_counter() - started
-    summary = recorder.summary(wall_time=wall, extra={"controller": "sampled", "physics_rate": sim_spec.physics_rate})
+    summary = recorder.summary(
+        wall_time=wall,
+        requested_duration=sim_spec.duration,
+        extra={"controller": "sampled", "physics_rate": sim_spec.physics_rate},
+    )
     return SynthResult(summary, recorder, count, k + 1)

@@ -20,11 +20,8 @@ whichever comes first, checked at every write.
 
 from __future__ import annotations
 
-import json
 import os
-import re
 import shutil
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -42,17 +39,14 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.errors import WriterError
-from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.typesys.store import Typestore
 
 from formation_bag.errors import BagExistsError, BagWriterError
 from formation_bag.messages import typestore
+from formation_bag.metadata import METADATA_VERSION, STORAGES, SegmentInfo, metadata_yaml, qos_yaml
 
-STORAGES = {"mcap": (StoragePlugin.MCAP, ".mcap"), "sqlite3": (StoragePlugin.SQLITE3, ".db3")}
-METADATA_VERSION = 9
-ROS_DISTRO = "jazzy"
 #: rmw's "infinite" duration, as Jazzy writes it in metadata.yaml
 INFINITE = QosTime(sec=9223372036, nsec=854775807)
 ZERO = QosTime(sec=0, nsec=0)
@@ -78,7 +72,7 @@ class _SegmentFileWriter(Writer):
 
     rosbags dumps the QoS of every connection and the file metadata with ruamel.yaml, ~30 ms per
     topic: a recorder would stall for a second at every segment. Connections and the embedded
-    metadata are the same records, emitted by :func:`_emit`.
+    metadata are the same records, emitted by :mod:`formation_bag.metadata` (libyaml).
     """
 
     def add_topic_fast(self, topic: str, msgtype: str, msgdef: str, rihs01: str, qos: list[Qos]) -> Connection:
@@ -111,25 +105,12 @@ class _SegmentFileWriter(Writer):
         self.storage = None
 
 
-def qos_yaml(qos: list[Qos] | tuple[Qos, ...]) -> str:
-    """Offered QoS profiles as rosbag2 stores them per connection (version 9 YAML list)."""
-    return "".join(_emit(dump_qos_v9(list(qos)), 0)).rstrip("\n")
-
-
 @dataclass
 class TopicRecord:
     name: str
     msgtype: str
     qos: tuple[Qos, ...]
     count: int = 0
-
-
-@dataclass
-class SegmentInfo:
-    path: str
-    start: int
-    end: int
-    count: int
 
 
 @dataclass
@@ -335,98 +316,3 @@ class SegmentedBagWriter:
         tmp = self.path / ".metadata.yaml.tmp"
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, self.path / "metadata.yaml")
-
-
-
-def metadata_yaml(
-    *,
-    storage: str,
-    segments: list[SegmentInfo],
-    topics: list[tuple[str, str, tuple[Qos, ...], str, int]],
-    custom_data: dict[str, str] | None,
-) -> str:
-    """metadata.yaml of a multi-file bag, version 9, with the keys and layout Jazzy writes."""
-    if segments:
-        start = min(s.start for s in segments)
-        end = max(s.end for s in segments)
-    else:
-        start, end = 0, 0
-    info: dict[str, Any] = {
-        "version": METADATA_VERSION,
-        "storage_identifier": storage,
-        "duration": {"nanoseconds": max(0, end - start)},
-        "starting_time": {"nanoseconds_since_epoch": start},
-        "message_count": sum(s.count for s in segments),
-        "topics_with_message_count": [
-            {
-                "topic_metadata": {
-                    "name": name,
-                    "type": msgtype,
-                    "serialization_format": "cdr",
-                    "offered_qos_profiles": dump_qos_v9(list(qos)),
-                    "type_description_hash": digest,
-                },
-                "message_count": count,
-            }
-            for name, msgtype, qos, digest, count in topics
-        ],
-        "compression_format": "",
-        "compression_mode": "",
-        "relative_file_paths": [s.path for s in segments],
-        "files": [
-            {
-                "path": s.path,
-                "starting_time": {"nanoseconds_since_epoch": s.start},
-                "duration": {"nanoseconds": max(0, s.end - s.start)},
-                "message_count": s.count,
-            }
-            for s in segments
-        ],
-        "custom_data": dict(custom_data) if custom_data else None,
-        "ros_distro": ROS_DISTRO,
-    }
-    return "rosbag2_bagfile_information:\n" + "".join(_emit(info, 1))
-
-
-_PLAIN = re.compile(r"^[A-Za-z0-9_/][A-Za-z0-9_/.-]*$")
-_RESERVED = {"true", "false", "yes", "no", "on", "off", "null", "y", "n", "~"}
-
-
-def _scalar(x: Any) -> str:
-    if x is None:
-        return "~"
-    if isinstance(x, bool):
-        return "true" if x else "false"
-    if isinstance(x, int):
-        return str(x)
-    s = str(x)
-    if _PLAIN.match(s) and s.lower() not in _RESERVED and not re.match(r"^[0-9.+-]", s):
-        return s
-    return json.dumps(s, ensure_ascii=False)  # a JSON string is a valid YAML double-quoted scalar
-
-
-def _emit(node: Any, level: int) -> Iterator[str]:
-    """Block-style YAML as rosbag2 (yaml-cpp) writes metadata.yaml: 2 spaces, sequences indented."""
-    pad = "  " * level
-    if isinstance(node, dict):
-        for k, v in node.items():
-            key = _scalar(k)
-            if isinstance(v, dict) and v:
-                yield f"{pad}{key}:\n"
-                yield from _emit(v, level + 1)
-            elif isinstance(v, list) and v:
-                yield f"{pad}{key}:\n"
-                yield from _emit(v, level + 1)
-            elif isinstance(v, (dict, list)):
-                yield f"{pad}{key}: {'{}' if isinstance(v, dict) else '[]'}\n"
-            else:
-                yield f"{pad}{key}: {_scalar(v)}\n"
-    else:
-        for item in node:
-            if isinstance(item, dict) and item:
-                lines = list(_emit(item, level + 1))
-                first = lines[0][len(pad) + 2 :]
-                yield f"{pad}- {first}"
-                yield from lines[1:]
-            else:
-                yield f"{pad}- {_scalar(item)}\n"

@@ -112,7 +112,11 @@ OPTIONS: tuple[Option, ...] = (
            forward=True),
     Option("--settle", "wall s to wait after discovery", frozenset({SIM}), nonnegative, 0.3),
     Option("--resend", "lockstep: re-send an unanswered step after [wall s]", frozenset({SIM}), positive, 0.25),
-    Option("--wait-recorder", "also wait for a ground-truth subscriber (a bag recorder)", frozenset({SIM})),
+    Option("--wait-recorder", "wait for a bag recorder (formation-record --formation FILE) before the first step; "
+           "in lockstep the recorder then takes part in every step (its acknowledgement), so the bag holds every "
+           "message", frozenset({SIM})),
+    Option("--lag-budget", "realtime: stop INCOMPLETE (exit 4) when a tick lags more than this many wall s behind "
+           "the wall clock", ROS, nonnegative, 1.0, forward=True),
     Option("--ground-truth-rate", "ground-truth publication rate [Hz, sim time] (default: the record rate, at "
            "most the control rate; while recording: the control rate)", ROS, positive, forward=True),
     Option("--clock-rate", "/clock publication rate [Hz, sim time]", ROS, positive, forward=True),
@@ -167,6 +171,7 @@ class RunOptions:
     settle: float = 0.3
     resend: float = 0.25
     wait_recorder: bool = False
+    lag_budget: float = 1.0
     ground_truth_rate: float | None = None
     clock_rate: float | None = None
     executor: str = "lean"

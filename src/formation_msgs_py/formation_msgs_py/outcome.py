@@ -9,12 +9,20 @@
 | ``INCOMPLETE`` | any other reason: I/O error, disk full, lag budget, data missing, internal | 4    |
 | ``INCOMPLETE`` | interrupted (SIGINT/SIGTERM)                                             | 130  |
 
-A crash never exits 1: 1 means a funnel was violated and nothing else.
+A crash never exits 1: 1 means a funnel was violated and nothing else. A violation seen before a
+run stopped early is still FAIL (exit 1, or 130 when interrupted): the data shows it. Missing
+data is never a violation.
 """
 
 from __future__ import annotations
 
 import enum
+import functools
+import sys
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 
 class Verdict(str, enum.Enum):  # noqa: UP042  (StrEnum would change str() of a member: not here)
@@ -42,3 +50,54 @@ EXIT_STATUS_HELP = (
     "4 incomplete for another reason (I/O error, disk full, lag budget, data missing, internal error), "
     "130 interrupted"
 )
+
+
+@dataclass(frozen=True)
+class Incomplete:
+    """Why a run has no PASS/FAIL verdict over its whole requested duration."""
+
+    code: ExitCode
+    reason: str
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """A verdict, its exit status and (INCOMPLETE) the reason."""
+
+    verdict: Verdict
+    exit_code: ExitCode
+    reason: str | None = None
+
+
+def decide(violated: bool, incomplete: Incomplete | None) -> Outcome:
+    """The verdict of a run: a violation seen is FAIL even if the run stopped early; missing data
+    or an early stop without a violation is INCOMPLETE. An interrupted run exits 130 either way."""
+    if violated:
+        interrupted = incomplete is not None and incomplete.code == ExitCode.INTERRUPTED
+        code = ExitCode.INTERRUPTED if interrupted else ExitCode.FAIL
+        return Outcome(Verdict.FAIL, code, None if incomplete is None else incomplete.reason)
+    if incomplete is not None:
+        return Outcome(Verdict.INCOMPLETE, incomplete.code, incomplete.reason)
+    return Outcome(Verdict.PASS, ExitCode.PASS)
+
+
+def guarded(prog: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
+    """Decorate a command's ``main``: a crash exits 4 (internal error, traceback on stderr), never 1;
+    Ctrl-C outside the command's own handling exits 130."""
+
+    def wrap(main: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(main)
+        def guarded_main(*args: Any, **kwargs: Any) -> int:
+            try:
+                return int(main(*args, **kwargs))
+            except KeyboardInterrupt:
+                print(f"{prog}: INCOMPLETE: interrupted", file=sys.stderr, flush=True)
+                return ExitCode.INTERRUPTED
+            except Exception as exc:  # a crash: exit 4, never 1 (FAIL)
+                traceback.print_exc()
+                print(f"{prog}: INCOMPLETE: internal error: {exc!r}", file=sys.stderr, flush=True)
+                return ExitCode.INCOMPLETE
+
+        return guarded_main
+
+    return wrap

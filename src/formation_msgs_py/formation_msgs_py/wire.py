@@ -163,3 +163,10 @@ def relative_pose_from_values(values: Sequence[float]) -> tuple[list[float], lis
     """(p_i_j_in_i, R_i_j) as Python lists from the 7 doubles of :func:`relative_pose_values`."""
     px, py, pz, qx, qy, qz, qw = values
     return [px, py, pz], matrix_from_quaternion(qx, qy, qz, qw)
+
+
+def stamp_of(data: bytes) -> int:
+    """The stamp (integer ns) CDR bytes start with: header.stamp of every stamped message of
+    DESIGN.md §3 (and PoseArray, DiagnosticArray), or the time of a rosgraph_msgs/Clock."""
+    sec, nsec = _STAMP.unpack_from(data, 4)
+    return sec * NS_PER_S + nsec

@@ -16,7 +16,7 @@ from typing import Any
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser
-from formation_msgs_py.outcome import ExitCode
+from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.loop import ProgressFn, run_closed_loop
 from formation_sim.preflight import preflight
@@ -43,13 +43,15 @@ def run_headless(
     sim_spec = spec.simulation
     record_every = max(1, round(sim_spec.control_rate / sim_spec.record_rate))
     recorder = RunRecorder(spec, record_every=record_every, mode=f"headless-{mode}", control_rate=sim_spec.control_rate)
-    wall, incomplete = run_closed_loop(
+    wall, reason = run_closed_loop(
         spec, recorder, continuous=mode == "continuous", stop_on_violation=stop_on_violation, progress=progress
     )
-    extra: dict[str, Any] = {"controller": mode, "physics_rate": sim_spec.physics_rate}
-    if incomplete:
-        extra["incomplete_reason"] = incomplete
-    summary = recorder.summary(wall_time=wall, extra=extra)
+    summary = recorder.summary(
+        wall_time=wall,
+        requested_duration=sim_spec.duration,
+        incomplete=Incomplete(ExitCode.INCOMPLETE, reason) if reason else None,
+        extra={"controller": mode, "physics_rate": sim_spec.physics_rate},
+    )
     return HeadlessResult(recorder, summary)
 
 
@@ -58,11 +60,11 @@ def build_parser() -> OptionParser:
         options.HEADLESS,
         "formation-headless",
         "Run a formation's closed loop in one process (no ROS) and write OUT as docs/outputs.md: "
-        "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png. "
-        "Exit status: 0 every funnel held, 1 a funnel was violated, 2 invalid file, option or refused rate.",
+        "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png. " + EXIT_STATUS_HELP + ".",
     )
 
 
+@guarded("formation-headless")
 def main(argv: list[str] | None = None) -> int:
     opts = options.parse(options.HEADLESS, build_parser(), argv)
     try:
@@ -88,15 +90,16 @@ def main(argv: list[str] | None = None) -> int:
     result = run_headless(
         spec, controller_mode=mode, progress=None if opts.quiet else progress, stop_on_violation=opts.stop_on_violation
     )
-    write_outputs(out, result.recorder, result.summary, plots=not opts.no_plots)
+    try:
+        write_outputs(out, result.recorder, result.summary, plots=not opts.no_plots)
+    except OSError as exc:
+        print(f"formation-headless: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr)
+        return ExitCode.INCOMPLETE
     if opts.animate:
         report_animation(out, spec, result.recorder.arrays())
     print(format_summary(result.summary))
-    print(f"outputs in {out}/")
-    if result.summary.get("incomplete_reason"):
-        print(f"formation-headless: INCOMPLETE: {result.summary['incomplete_reason']}", file=sys.stderr)
-        return ExitCode.INCOMPLETE
-    return 0 if result.summary["funnels_held"] else 1
+    print(f"outputs in {out}/ (exit status {result.summary['exit_status']})")
+    return result.summary["exit_status"]
 
 
 if __name__ == "__main__":

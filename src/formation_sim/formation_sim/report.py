@@ -1,17 +1,26 @@
-"""Funnel checks on ground truth and the outputs every run leaves (docs/outputs.md).
+"""The judge of a run (funnel margins, first violation, settle times, faults, verdict) and the
+outputs every run leaves (docs/outputs.md).
 
-Headless runs, ROS 2 runs and bag analyses all fill a :class:`RunRecorder` with samples of
-the ground truth (and, where known, the agents' wrenches and velocity-funnel margins), then
-call :func:`write_outputs`: ``summary.json``, ``trajectory.npz`` and the paper's three figures.
+:func:`judge` is a pure function over trajectory arrays (t, p, R and, where known, the agents'
+velocity-funnel margins); :class:`Judge` is the same check fed in time order, one sample or a
+stack of samples at a time. :class:`RunRecorder` is the streaming adapter the headless runner,
+the simulator node, the synthesiser and the bag analysis fill sample by sample: it keeps the
+decimated trajectory, counts faults per agent and kind (:class:`FaultLog`) and builds the
+summary, whose verdict comes from :func:`formation_msgs_py.outcome.decide`.
 
 Margins are the fraction of a funnel left between an error and its nearest bound (1 at zero
-error, 0 on the bound, negative outside); see :mod:`formation_msgs_py.funnels`.
+error, 0 on the bound, negative outside); see :mod:`formation_msgs_py.funnels`. A fault (a
+missing measurement, a zeroed wrench, a saturated controller) is counted, never a violation:
+only the funnels decide FAIL, and missing data makes a run INCOMPLETE, never FAIL.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,11 +28,11 @@ from typing import Any
 import numpy as np
 
 from formation_msgs_py import funnels
+from formation_msgs_py.outcome import ExitCode, Incomplete, Outcome, Verdict, decide
 from formation_msgs_py.spec import FormationSpec
 
 VELOCITY_CHANNELS = ("vx", "vy", "vz", "wx", "wy", "wz")
-#: Violation kinds that name an edge; every other kind (velocity, measurement, controller,
-#: command, plant) names an agent.
+#: Violation kinds that name an edge; ``velocity`` names an agent.
 EDGE_KINDS = ("distance", "orientation")
 
 
@@ -70,8 +79,10 @@ class EdgeErrors:
         return -self.c_col * inf, self.c_con * inf, np.array([e.rho_psi_inf for e in self.spec.edges])
 
 
-@dataclass
+@dataclass(frozen=True)
 class Violation:
+    """The first sample outside a funnel: time [s], kind, edge or agent, channel."""
+
     t: float
     kind: str
     where: str
@@ -83,29 +94,221 @@ class Violation:
 
 
 @dataclass
+class EdgeSample:
+    """e, ψ and their funnels at one sample or a stack of samples ((K,) or (T,K))."""
+
+    e: np.ndarray
+    psi: np.ndarray
+    rho_e: np.ndarray
+    rho_psi: np.ndarray
+
+
+class Judge:
+    """Every funnel checked on ground truth, fed in time order (one sample or a (T,…) stack).
+
+    Keeps the minimum margins, the first violation and the settle times (the first time from
+    which an error stays inside its funnel's steady-state band until the last sample fed).
+    """
+
+    def __init__(self, spec: FormationSpec) -> None:
+        self.spec = spec
+        self.edges = EdgeErrors(spec)
+        K, N = len(spec.edges), len(spec.agents)
+        self.min_margin_e = np.full(K, np.inf)
+        self.min_margin_psi = np.full(K, np.inf)
+        self.min_margin_v = np.full(N, np.inf)
+        self.first_violation: Violation | None = None
+        self.settle_e: list[float | None] = [None] * K
+        self.settle_psi: list[float | None] = [None] * K
+        self.band_lo, self.band_hi, self.band_psi = self.edges.steady_band()
+        self.samples = 0
+        self.t_first: float | None = None
+        self.t_last: float | None = None
+
+    def update(
+        self,
+        t: np.ndarray | float,
+        p: np.ndarray,
+        R: np.ndarray,
+        margin_v: np.ndarray | None = None,
+        *,
+        stop_at_violation: bool = False,
+    ) -> EdgeSample:
+        """Check samples at t ((T,) or scalar) of p (…,N,3), R (…,N,3,3); margin_v (…,N,6) if known.
+
+        With ``stop_at_violation`` the samples after the first violation are not taken (the
+        returned arrays say how many were).
+        """
+        single = np.ndim(t) == 0
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        p = np.asarray(p, dtype=np.float64).reshape(len(t), -1, 3)
+        R = np.asarray(R, dtype=np.float64).reshape(len(t), -1, 3, 3)
+        e, psi = self.edges.errors(p, R)
+        rho_e, rho_psi = self.edges.rho(t)
+        xi_e = e / rho_e
+        m_e = funnels.margin_e(xi_e, self.edges.c_col, self.edges.c_con)
+        m_psi = funnels.margin_psi(psi / rho_psi)
+        mv = None
+        if margin_v is not None:
+            margin_v = np.asarray(margin_v, dtype=np.float64).reshape(len(t), -1, 6)
+            mv = margin_v.min(axis=2)  # (T,N); inf where unknown
+        n = len(t)
+        if self.first_violation is None:
+            self.first_violation, j = _first_violation(self, t, xi_e, m_e, m_psi, margin_v, mv)
+            if self.first_violation is not None and stop_at_violation:
+                n = j + 1
+        np.minimum(self.min_margin_e, m_e[:n].min(axis=0), out=self.min_margin_e)
+        np.minimum(self.min_margin_psi, m_psi[:n].min(axis=0), out=self.min_margin_psi)
+        if mv is not None:
+            np.minimum(self.min_margin_v, mv[:n].min(axis=0), out=self.min_margin_v)
+        self._settle(t[:n], e[:n], psi[:n])
+        self.samples += n
+        self.t_first = float(t[0]) if self.t_first is None else self.t_first
+        self.t_last = float(t[n - 1])
+        if single:
+            return EdgeSample(e[0], psi[0], rho_e[0], rho_psi[0])
+        return EdgeSample(e[:n], psi[:n], rho_e[:n], rho_psi[:n])
+
+    def update_velocity(self, t: float, margin_v: np.ndarray) -> None:
+        """Velocity-funnel margins (N,6) at a control step without a ground-truth sample (inf: unknown)."""
+        margin_v = np.asarray(margin_v, dtype=np.float64)
+        mv = margin_v.min(axis=1)
+        np.minimum(self.min_margin_v, mv, out=self.min_margin_v)
+        if self.first_violation is None and mv.min() <= 0:
+            i = int(np.argmin(mv))
+            channel = VELOCITY_CHANNELS[int(np.argmin(margin_v[i]))]
+            self.first_violation = Violation(float(t), "velocity", self.spec.agents[i].id, channel)
+
+    def _settle(self, t: np.ndarray, e: np.ndarray, psi: np.ndarray) -> None:
+        for settle, inside in (
+            (self.settle_e, (e >= self.band_lo) & (e <= self.band_hi)),
+            (self.settle_psi, psi <= self.band_psi),
+        ):
+            for k in range(inside.shape[1]):
+                out = np.flatnonzero(~inside[:, k])
+                if out.size == 0:
+                    settle[k] = float(t[0]) if settle[k] is None else settle[k]
+                elif out[-1] == len(t) - 1:
+                    settle[k] = None
+                else:
+                    settle[k] = float(t[out[-1] + 1])
+
+    def worst_margin(self) -> float:
+        vals = [self.min_margin_e.min(initial=np.inf), self.min_margin_psi.min(initial=np.inf)]
+        if np.isfinite(self.min_margin_v).any():
+            vals.append(self.min_margin_v.min())
+        return float(min(vals))
+
+
+def _first_violation(
+    judge: Judge,
+    t: np.ndarray,
+    xi_e: np.ndarray,
+    m_e: np.ndarray,
+    m_psi: np.ndarray,
+    margin_v: np.ndarray | None,
+    mv: np.ndarray | None,
+) -> tuple[Violation | None, int]:
+    """The earliest sample with a margin ≤ 0 and its index; at one sample the worst edge before any agent."""
+    m_edge = np.minimum(m_e, m_psi)
+    bad_edge = np.flatnonzero(m_edge.min(axis=1) <= 0)
+    bad_v = np.flatnonzero(mv.min(axis=1) <= 0) if mv is not None else np.empty(0, dtype=int)
+    if bad_edge.size and (not bad_v.size or bad_edge[0] <= bad_v[0]):
+        j = int(bad_edge[0])
+        k = int(np.argmin(m_edge[j]))
+        name = judge.edges.names[k]
+        if m_e[j, k] <= m_psi[j, k]:
+            return Violation(float(t[j]), "distance", name, "collision" if xi_e[j, k] < 0 else "connectivity"), j
+        return Violation(float(t[j]), "orientation", name, "psi"), j
+    if bad_v.size:
+        assert margin_v is not None and mv is not None
+        j = int(bad_v[0])
+        i = int(np.argmin(mv[j]))
+        channel = VELOCITY_CHANNELS[int(np.argmin(margin_v[j, i]))]
+        return Violation(float(t[j]), "velocity", judge.spec.agents[i].id, channel), j
+    return None, -1
+
+
+def judge(
+    spec: FormationSpec, t: np.ndarray, p: np.ndarray, R: np.ndarray, margin_v: np.ndarray | None = None
+) -> Judge:
+    """Every funnel of ``spec`` checked on a trajectory: t (T,) [s], p (T,N,3) [m] and
+    R_world_body (T,N,3,3) in the world frame, margin_v (T,N,6) (inf where unknown)."""
+    j = Judge(spec)
+    j.update(t, p, R, margin_v)
+    return j
+
+
+@dataclass
+class FaultCount:
+    """How often one kind of fault happened to one agent: count, first and last time [s]."""
+
+    count: int
+    first_t: float
+    last_t: float
+    first_detail: str
+    last_detail: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "count": self.count,
+            "first_t": self.first_t,
+            "last_t": self.last_t,
+            "first": self.first_detail,
+            "last": self.last_detail,
+        }
+
+
+@dataclass
+class FaultLog:
+    """Every fault counted per agent and kind (stale command, zero wrench, missing measurement, …)."""
+
+    counts: dict[tuple[str, str], FaultCount] = field(default_factory=dict)
+
+    def add(self, t: float, agent: str, kind: str, detail: str = "", n: int = 1) -> bool:
+        """Count ``n`` faults at t [s]; True if it is this agent's first of this kind."""
+        c = self.counts.get((agent, kind))
+        if c is None:
+            self.counts[(agent, kind)] = FaultCount(n, t, t, detail, detail)
+            return True
+        c.count += n
+        c.last_t = t
+        c.last_detail = detail
+        return False
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        out: dict[str, dict[str, Any]] = {}
+        for (agent, kind), c in sorted(self.counts.items()):
+            out.setdefault(agent, {})[kind] = c.as_dict()
+        return out
+
+
+def fault_lines(faults: dict[str, dict[str, Any]]) -> list[str]:
+    """One console line per agent and kind: count, first and last occurrence."""
+    lines = []
+    for agent, kinds in faults.items():
+        for kind, c in kinds.items():
+            first = f"first t={c['first_t']:.4f} s" + (f" ({c['first']})" if c.get("first") else "")
+            last = "" if c["count"] == 1 else f", last t={c['last_t']:.4f} s"
+            lines.append(f"  fault: agent {agent}: {kind} x{c['count']}: {first}{last}")
+    return lines
+
+
+@dataclass
 class RunRecorder:
-    """Checks every sample against the funnels; keeps a decimated trajectory for the outputs."""
+    """The streaming judge of one run: checks every sample, counts faults, keeps the trajectory."""
 
     spec: FormationSpec
     record_every: int = 1
     mode: str = "headless"
     control_rate: float = 0.0
-    samples: int = 0
-    first_violation: Violation | None = None
     _rows: dict[str, list[np.ndarray]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.edges = EdgeErrors(self.spec)
-        K, N = len(self.spec.edges), len(self.spec.agents)
-        self.min_margin_e = np.full(K, np.inf)
-        self.min_margin_psi = np.full(K, np.inf)
-        self.min_margin_v = np.full(N, np.inf)
-        self.peak_force = np.zeros(N)
-        self.peak_torque = np.zeros(N)
-        self._settle_e: list[float | None] = [None] * K
-        self._settle_psi: list[float | None] = [None] * K
-        self.band_lo, self.band_hi, self.band_psi = self.edges.steady_band()
-        self.t_last = 0.0
+        self.judge = Judge(self.spec)
+        self.faults = FaultLog()
+        self.peak_force = np.zeros(len(self.spec.agents))
+        self.peak_torque = np.zeros(len(self.spec.agents))
         for key in ("t", "p", "R", "v", "u", "e", "psi", "rho_e", "rho_psi"):
             self._rows[key] = []
 
@@ -124,49 +327,25 @@ class RunRecorder:
 
         ``u`` None: the wrenches are not known yet; give them with :meth:`set_inputs`.
         """
-        e, psi = self.edges.errors(p, R)
-        rho_e, rho_psi = self.edges.rho(t)
-        xi_e = e / rho_e
-        m_e = np.minimum(1.0 + xi_e / self.edges.c_col, 1.0 - xi_e / self.edges.c_con)
-        m_psi = 1.0 - psi / rho_psi
-        np.minimum(self.min_margin_e, m_e, out=self.min_margin_e)
-        np.minimum(self.min_margin_psi, m_psi, out=self.min_margin_psi)
-        if self.first_violation is None and (m_e.min() <= 0 or m_psi.min() <= 0):
-            k = int(np.argmin(np.minimum(m_e, m_psi)))
-            if m_e[k] <= m_psi[k]:
-                channel = "collision" if xi_e[k] < 0 else "connectivity"
-                self.first_violation = Violation(t, "distance", self.edges.names[k], channel)
-            else:
-                self.first_violation = Violation(t, "orientation", self.edges.names[k], "psi")
-        if margin_v is not None:
-            mv = margin_v.min(axis=1)
-            np.minimum(self.min_margin_v, mv, out=self.min_margin_v)
-            if self.first_violation is None and mv.min() <= 0:
-                i = int(np.argmin(mv))
-                ch = VELOCITY_CHANNELS[int(np.argmin(margin_v[i]))]
-                self.first_violation = Violation(t, "velocity", self.spec.agents[i].id, ch)
+        sample = self.judge.update(t, p, R, margin_v)
         if u is not None:
-            np.maximum(self.peak_force, np.linalg.norm(u[:, :3], axis=1), out=self.peak_force)
-            np.maximum(self.peak_torque, np.linalg.norm(u[:, 3:], axis=1), out=self.peak_torque)
-        in_e = (e >= self.band_lo) & (e <= self.band_hi)
-        in_psi = psi <= self.band_psi
-        for k in range(len(e)):
-            self._settle_e[k] = (self._settle_e[k] if self._settle_e[k] is not None else t) if in_e[k] else None
-            self._settle_psi[k] = (self._settle_psi[k] if self._settle_psi[k] is not None else t) if in_psi[k] else None
-        if self.samples % self.record_every == 0:
+            self._peaks(u)
+        if (self.judge.samples - 1) % self.record_every == 0:
             rows = self._rows
             rows["t"].append(np.float64(t))
             rows["p"].append(np.array(p, dtype=np.float64))
             rows["R"].append(np.array(R, dtype=np.float64))
             rows["v"].append(np.array(v, dtype=np.float64))
             rows["u"].append(np.zeros((len(p), 6)) if u is None else np.array(u, dtype=np.float64))
-            rows["e"].append(e)
-            rows["psi"].append(psi)
-            rows["rho_e"].append(rho_e)
-            rows["rho_psi"].append(rho_psi)
-        self.samples += 1
-        self.t_last = t
-        return e, psi
+            rows["e"].append(sample.e)
+            rows["psi"].append(sample.psi)
+            rows["rho_e"].append(sample.rho_e)
+            rows["rho_psi"].append(sample.rho_psi)
+        return sample.e, sample.psi
+
+    def _peaks(self, u: np.ndarray) -> None:
+        np.maximum(self.peak_force, np.linalg.norm(u[:, :3], axis=1), out=self.peak_force)
+        np.maximum(self.peak_torque, np.linalg.norm(u[:, 3:], axis=1), out=self.peak_torque)
 
     def add_many(
         self,
@@ -181,54 +360,19 @@ class RunRecorder:
     ) -> int:
         """:meth:`add` of T consecutive samples at once (arrays with a leading axis T); returns how many.
 
-        The same checks in the same order, vectorised over the samples (the run core's path).
-        With ``stop_at_violation`` the samples after the first violation are not added.
+        The same checks (:meth:`Judge.update` on the stack: the run core's path). With
+        ``stop_at_violation`` the samples after the first violation are not added.
         """
-        e, psi = self.edges.errors(p, R)
-        rho_e, rho_psi = self.edges.rho(t)
-        xi_e = e / rho_e
-        m_e = funnels.margin_e(xi_e, self.edges.c_col, self.edges.c_con)
-        m_psi = funnels.margin_psi(psi / rho_psi)
-        mv = margin_v.min(axis=2)
-        n = len(t)
-        if self.first_violation is None:
-            bad = np.flatnonzero((m_e.min(axis=1) <= 0) | (m_psi.min(axis=1) <= 0) | (mv.min(axis=1) <= 0))
-            if bad.size:
-                j = int(bad[0])
-                if m_e[j].min() <= 0 or m_psi[j].min() <= 0:
-                    k = int(np.argmin(np.minimum(m_e[j], m_psi[j])))
-                    if m_e[j, k] <= m_psi[j, k]:
-                        channel = "collision" if xi_e[j, k] < 0 else "connectivity"
-                        self.first_violation = Violation(float(t[j]), "distance", self.edges.names[k], channel)
-                    else:
-                        self.first_violation = Violation(float(t[j]), "orientation", self.edges.names[k], "psi")
-                else:
-                    i = int(np.argmin(mv[j]))
-                    ch = VELOCITY_CHANNELS[int(np.argmin(margin_v[j, i]))]
-                    self.first_violation = Violation(float(t[j]), "velocity", self.spec.agents[i].id, ch)
-                if stop_at_violation:
-                    n = j + 1
-        np.minimum(self.min_margin_e, m_e[:n].min(axis=0), out=self.min_margin_e)
-        np.minimum(self.min_margin_psi, m_psi[:n].min(axis=0), out=self.min_margin_psi)
-        np.minimum(self.min_margin_v, mv[:n].min(axis=0), out=self.min_margin_v)
+        sample = self.judge.update(t, p, R, margin_v, stop_at_violation=stop_at_violation)
+        n = len(sample.e)
+        start = self.judge.samples - n
         np.maximum(self.peak_force, np.linalg.norm(u[:n, :, :3], axis=2).max(axis=0), out=self.peak_force)
         np.maximum(self.peak_torque, np.linalg.norm(u[:n, :, 3:], axis=2).max(axis=0), out=self.peak_torque)
-        in_e = (e[:n] >= self.band_lo) & (e[:n] <= self.band_hi)
-        in_psi = psi[:n] <= self.band_psi
-        for settle, inside in ((self._settle_e, in_e), (self._settle_psi, in_psi)):
-            for k in range(inside.shape[1]):
-                out = np.flatnonzero(~inside[:, k])
-                if out.size == 0:
-                    settle[k] = settle[k] if settle[k] is not None else float(t[0])
-                else:
-                    settle[k] = float(t[out[-1] + 1]) if out[-1] + 1 < n else None
-        rows = np.flatnonzero((self.samples + np.arange(n)) % self.record_every == 0)
-        for key, arr in (("t", t), ("p", p), ("R", R), ("v", v), ("u", u), ("e", e), ("psi", psi)):
+        rows = np.flatnonzero((start + np.arange(n)) % self.record_every == 0)
+        for key, arr in (("t", t), ("p", p), ("R", R), ("v", v), ("u", u)):
             self._rows[key].extend(np.array(arr[rows], dtype=np.float64))
-        self._rows["rho_e"].extend(rho_e[rows])
-        self._rows["rho_psi"].extend(rho_psi[rows])
-        self.samples += n
-        self.t_last = float(t[n - 1])
+        for key, arr in (("e", sample.e), ("psi", sample.psi), ("rho_e", sample.rho_e), ("rho_psi", sample.rho_psi)):
+            self._rows[key].extend(arr[rows])
         return n
 
     def set_inputs(self, u: np.ndarray) -> None:
@@ -236,85 +380,184 @@ class RunRecorder:
 
         Lets a simulator check the funnels of step k while the agents compute, then record u_k.
         """
-        np.maximum(self.peak_force, np.linalg.norm(u[:, :3], axis=1), out=self.peak_force)
-        np.maximum(self.peak_torque, np.linalg.norm(u[:, 3:], axis=1), out=self.peak_torque)
-        if (self.samples - 1) % self.record_every == 0:
+        self._peaks(u)
+        if (self.judge.samples - 1) % self.record_every == 0:
             self._rows["u"][-1] = np.array(u, dtype=np.float64)
 
-    def fault(self, t: float, kind: str, agent: str, channel: str) -> None:
-        """Record a fault that is not a funnel check (e.g. a missing measurement)."""
-        if self.first_violation is None:
-            self.first_violation = Violation(t, kind, agent, channel)
+    def fault(self, t: float, kind: str, agent: str, detail: str = "") -> bool:
+        """Count a fault (not a funnel check); True if it is the agent's first of this kind."""
+        return self.faults.add(t, agent, kind, detail)
 
     # -- results ------------------------------------------------------------------------------
 
     @property
-    def funnels_held(self) -> bool:
-        return self.first_violation is None
+    def samples(self) -> int:
+        return self.judge.samples
+
+    @property
+    def t_last(self) -> float:
+        return 0.0 if self.judge.t_last is None else self.judge.t_last
+
+    @property
+    def first_violation(self) -> Violation | None:
+        return self.judge.first_violation
+
+    @property
+    def min_margin_v(self) -> np.ndarray:
+        return self.judge.min_margin_v
 
     def worst_margin(self) -> float:
-        vals = [self.min_margin_e.min(), self.min_margin_psi.min()]
-        if np.isfinite(self.min_margin_v).any():
-            vals.append(self.min_margin_v.min())
-        return float(min(vals))
+        return self.judge.worst_margin()
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The decimated trajectory (docs/outputs.md)."""
         return {k: np.array(v) for k, v in self._rows.items()}
 
+    def outcome(self, requested_duration: float | None, incomplete: Incomplete | None = None) -> Outcome:
+        """The verdict: the funnels, the duration reached (to half a control period) and ``incomplete``."""
+        if incomplete is None and requested_duration is not None:
+            tol = 0.5 / self.control_rate if self.control_rate > 0 else 1e-9
+            if self.judge.t_last is None or self.judge.t_last < requested_duration - tol:
+                incomplete = Incomplete(
+                    ExitCode.INCOMPLETE, f"duration not reached: t={self.t_last:g} s of {requested_duration:g} s"
+                )
+        return decide(self.first_violation is not None, incomplete)
+
     def summary(
-        self, *, wall_time: float, duration: float | None = None, extra: dict[str, Any] | None = None
+        self,
+        *,
+        wall_time: float,
+        requested_duration: float | None = None,
+        incomplete: Incomplete | None = None,
+        extra: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
-        duration = self.t_last if duration is None else duration
-
-        def num(x: float) -> float | None:
-            return float(x) if math.isfinite(x) else None
-
+        """summary.json (DESIGN.md §8); ``requested_duration`` None: whatever was fed is the run."""
+        j = self.judge
+        result = self.outcome(requested_duration, incomplete)
+        duration = self.t_last
         out: dict[str, Any] = {
             "formation": self.spec.name,
             "formation_file": Path(self.spec.source).name,
             "mode": self.mode,
             "control_rate": self.control_rate,
+            "verdict": result.verdict.value,
+            "incomplete_reason": result.reason if result.verdict != Verdict.PASS else None,
+            "exit_status": int(result.exit_code),
+            "requested_duration": requested_duration,
             "duration": duration,
-            "samples": self.samples,
+            "samples": j.samples,
             "wall_time": wall_time,
             "real_time_factor": duration / wall_time if wall_time > 0 else None,
-            "funnels_held": self.funnels_held,
-            "first_violation": None if self.first_violation is None else self.first_violation.as_dict(),
-            "worst_margin": num(self.worst_margin()),
+            # None (unknown) when the run is INCOMPLETE without a violation
+            "funnels_held": {Verdict.PASS: True, Verdict.FAIL: False}.get(result.verdict),
+            "first_violation": None if j.first_violation is None else j.first_violation.as_dict(),
+            "worst_margin": j.worst_margin(),
+            "faults": self.faults.as_dict(),
             "edges": {
                 name: {
-                    "min_margin_e": num(self.min_margin_e[k]),
-                    "min_margin_psi": num(self.min_margin_psi[k]),
-                    "settle_time_e": self._settle_e[k],
-                    "settle_time_psi": self._settle_psi[k],
+                    "min_margin_e": j.min_margin_e[k],
+                    "min_margin_psi": j.min_margin_psi[k],
+                    "settle_time_e": j.settle_e[k],
+                    "settle_time_psi": j.settle_psi[k],
                 }
-                for k, name in enumerate(self.edges.names)
+                for k, name in enumerate(j.edges.names)
             },
             "agents": {
                 a.id: {
-                    "peak_force": float(self.peak_force[i]),
-                    "peak_torque": float(self.peak_torque[i]),
-                    "min_margin_v": num(self.min_margin_v[i]),
+                    "peak_force": self.peak_force[i],
+                    "peak_torque": self.peak_torque[i],
+                    "min_margin_v": j.min_margin_v[i],
                 }
                 for i, a in enumerate(self.spec.agents)
             },
         }
         if extra:
             out.update(extra)
-        return out
+        return strict_json(out)
+
+
+def strict_json(x: Any) -> Any:
+    """A copy of ``x`` that ``json.dumps(allow_nan=False)`` accepts: numpy scalars to Python,
+    NaN and ±inf to None (the summary's reasons say why a value is unknown)."""
+    if isinstance(x, dict):
+        return {str(k): strict_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [strict_json(v) for v in x]
+    if isinstance(x, (np.integer, np.bool_)):
+        return x.item()
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        return x if math.isfinite(x) else None
+    if isinstance(x, np.ndarray):
+        return strict_json(x.tolist())
+    return x
+
+
+# -- atomic outputs ---------------------------------------------------------------------------
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write ``path`` under a temporary name in its directory, then rename it (raises OSError)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Strict JSON (no NaN/Infinity), written atomically."""
+    write_atomic(path, (json.dumps(strict_json(obj), indent=2, allow_nan=False) + "\n").encode("utf-8"))
 
 
 def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> None:
-    """Write summary.json, trajectory.npz and (unless ``plots`` is false) the figures (:mod:`formation_sim.figures`)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    arrays = recorder.arrays()
-    np.savez(out_dir / "trajectory.npz", **arrays)
-    if plots:
-        from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
+    """trajectory.npz, the figures (:mod:`formation_sim.figures`, unless ``plots`` is false), then summary.json; each
+    written under a temporary name and renamed. summary.json comes last and names what is there.
 
-        plot_run(out_dir, recorder.spec, arrays)
+    Raises OSError (disk full, …) after writing a summary marked INCOMPLETE if it still can.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    try:
+        fd, tmp = tempfile.mkstemp(dir=out_dir, prefix=".trajectory.", suffix=".npz")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, **recorder.arrays())
+            os.replace(tmp, out_dir / "trajectory.npz")
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        written.append("trajectory.npz")
+        if plots:
+            from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
+
+            staging = Path(tempfile.mkdtemp(dir=out_dir, prefix=".figures."))
+            try:
+                for path in plot_run(staging, recorder.spec, recorder.arrays()):
+                    os.replace(path, out_dir / path.name)
+                    written.append(path.name)
+            finally:
+                shutil.rmtree(staging, ignore_errors=True)
+    except OSError as exc:
+        failed = dict(summary)
+        failed.update(
+            verdict=Verdict.INCOMPLETE.value,
+            funnels_held=None if summary.get("verdict") != Verdict.FAIL.value else False,
+            incomplete_reason=f"I/O error writing {out_dir}: {exc}",
+            exit_status=int(ExitCode.INCOMPLETE),
+            outputs=written,
+        )
+        try:
+            write_json(out_dir / "summary.json", failed)
+        except OSError:
+            pass
+        raise
+    write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
 
 
 def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
@@ -327,18 +570,14 @@ def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.nd
 
 
 def format_summary(summary: dict[str, Any]) -> str:
-    """A short human-readable summary of a run (printed by every command)."""
+    """A short human-readable summary of a run (printed by every command): the verdict line, the
+    margins per edge and agent, and every fault kind with its first and last occurrence."""
     lines = [
         f"formation {summary['formation']} ({summary['mode']}, control {summary['control_rate']:g} Hz, "
         f"{summary['duration']:g} s simulated in {summary['wall_time']:.2f} s wall, "
         f"real-time factor {summary['real_time_factor'] or 0:.3g})"
     ]
-    fv = summary["first_violation"]
-    if summary["funnels_held"]:
-        lines.append(f"PASS: every funnel held (worst margin {summary['worst_margin']:.3f})")
-    else:
-        where = fv.get("edge") or fv.get("agent")
-        lines.append(f"FAIL: first violation at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})")
+    lines.append(verdict_line(summary))
     lines.append("  edge     min margin e   min margin psi   settle e [s]   settle psi [s]")
     for name, s in summary["edges"].items():
         lines.append(
@@ -348,10 +587,26 @@ def format_summary(summary: dict[str, Any]) -> str:
     lines.append("  agent    peak force [N]   peak torque [N·m]   min margin v")
     for aid, s in summary["agents"].items():
         lines.append(f"  {aid:<8} {s['peak_force']:>14.4g}   {s['peak_torque']:>17.4g}   {_f(s['min_margin_v']):>12}")
+    lines.extend(fault_lines(summary.get("faults") or {}))
     return "\n".join(lines)
+
+
+def verdict_line(summary: dict[str, Any]) -> str:
+    """``PASS: …``, ``FAIL: first violation …`` or ``INCOMPLETE: reason``."""
+    verdict = summary["verdict"]
+    fv = summary["first_violation"]
+    if verdict == Verdict.PASS.value:
+        return f"PASS: every funnel held over {summary['duration']:g} s (worst margin {_f(summary['worst_margin'])})"
+    if verdict == Verdict.FAIL.value:
+        where = fv.get("edge") or fv.get("agent")
+        text = f"FAIL: first violation at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
+        reason = summary.get("incomplete_reason")
+        return text + (f"; then the run stopped early: {reason}" if reason else "")
+    return (
+        f"INCOMPLETE: {summary.get('incomplete_reason')} (no violation in the {_f(summary['duration'])} s checked, "
+        f"worst margin {_f(summary['worst_margin'])})"
+    )
 
 
 def _f(x: float | None) -> str:
     return "-" if x is None else f"{x:.4g}"
-
-

@@ -3,26 +3,27 @@
 Plays the world with :class:`formation_sim.simulation.Simulation`, the code path of the
 headless runner (docs/ros2.md). Per control step k it publishes what ``Simulation.sense()``
 returns (relative poses of the tree pairs within sensing radius, noisy body twists), ``/clock``
-and the ground truth, and collects every agent's wrench.
+and the ground truth, and collects every agent's wrench. When to advance is decided by the
+ROS-free policy of :mod:`formation_sim.stepping`; this module is the thin node around it.
 
-- **lockstep**: waits for every agent's WrenchStamped whose stamp equals step k's (integer ns),
-  then ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps
-  not answered within ``--resend`` wall seconds are published again to the missing agents (late
-  discovery); an agent silent for ``simulation.step_timeout`` wall seconds is named and the
-  node exits 3.
+- **lockstep**: waits for every agent's WrenchStamped whose stamp equals step k's (integer ns)
+  and, with ``--wait-recorder``, for the bag recorder's acknowledgement (``formation/recorder_ack``:
+  the recorder is a participant of the step, at most one step behind, none at the last step), then
+  ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps not
+  answered within ``--resend`` wall seconds are published again to the missing agents; an agent
+  or recorder silent for ``simulation.step_timeout`` wall seconds is named: INCOMPLETE, exit 3.
 - **realtime**: ticks at the control rate on the wall clock; each tick integrates the previous
   period with the latest wrench of each agent held (zero-order hold), then publishes the new
   measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by
-  zero and reported (once per agent on stdout, and ``faults`` / ``stale_commands`` in the
-  summary); it is a fault, not a funnel violation: the funnels decide the exit status. The lag
-  behind the wall clock is reported (``realtime_lag_s``).
+  zero; every zeroed tick and every late tick is a counted fault (summary ``faults``). A run
+  lagging more than ``--lag-budget`` wall seconds behind the wall clock stops INCOMPLETE (exit 4).
 
 Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
 ``formation/ground_truth`` are published at ``--clock-rate`` / ``--ground-truth-rate`` (default:
 the record rate, at most the control rate; ``/clock`` at most 10 Hz in realtime). The run's
-outputs (docs/outputs.md) go to ``--out``. Exit status: 0 every funnel held, 1 a funnel was
-violated or a fault reported, 2 invalid file or settings, 3 an agent missing (discovery or step
-timeout), 130 interrupted.
+outputs (docs/outputs.md) go to ``--out``, also when the run is interrupted (SIGINT/SIGTERM:
+summary and trajectory, no figures, so that the stop is fast). The node never needs its stdout
+to finish.
 """
 
 from __future__ import annotations
@@ -36,16 +37,17 @@ from typing import Any
 import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from formation_msgs_py import conversions, options, qos, topics
+from formation_msgs_py import conversions, options, qos, topics, wire
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.hotloop import Spinner
 from formation_msgs_py.options import OptionParser, RunOptions
-from formation_msgs_py.outcome import ExitCode
+from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
@@ -55,15 +57,8 @@ from formation_sim.display import DisplayPublisher, declare_simulator_parameters
 from formation_sim.preflight import preflight
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
+from formation_sim.stepping import NS, CommandHold, LagBudget, LockstepWait, ParticipantMissingError, WrenchBook
 from formation_sim.team import AgentTeam
-
-NS = 1_000_000_000
-EXIT_OK, EXIT_VIOLATION, EXIT_INVALID, EXIT_MISSING, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
-
-
-class AgentMissingError(RuntimeError):
-    """Agents did not answer (discovery or lockstep step timeout)."""
-
 
 #: default /clock rate in realtime [Hz]: the agents' measurement-age checks need no more
 REALTIME_CLOCK_RATE = 10.0
@@ -73,12 +68,26 @@ class StopRequestedError(Exception):
     """The node was asked to stop (SIGINT/SIGTERM: context shut down)."""
 
 
+class RunStoppedError(Exception):
+    """The run cannot go on (plant blew up, lag budget exceeded): INCOMPLETE with this reason."""
+
+    def __init__(self, incomplete: Incomplete) -> None:
+        super().__init__(incomplete.reason)
+        self.incomplete = incomplete
+
+
 class SimNode(Node):
-    """Publishers and subscriptions of the simulator; the stepping loops are :func:`run`."""
+    """Publishers and subscriptions of the simulator; the stepping loops are :class:`Runner`'s."""
 
     display: DisplayPublisher | None = None
 
-    def __init__(self, spec: FormationSpec, measurement_qos: str = "reliable", intruder_policy: str = "report") -> None:
+    def __init__(
+        self,
+        spec: FormationSpec,
+        measurement_qos: str = "reliable",
+        intruder_policy: str = "report",
+        recorder: bool = False,
+    ) -> None:
         super().__init__(topics.SIM_NODE_NAME)
         meas_qos = qos.measurements(measurement_qos)
         self.spec = spec
@@ -96,6 +105,7 @@ class SimNode(Node):
                 pub = self.create_publisher(TransformStamped, topics.relative_pose(obs, tgt), meas_qos)
                 self.links[(obs, tgt)] = (pub, conversions.relative_pose_codec(obs, tgt))
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
+        self.wrenches = WrenchBook(n)
         self.wrench_check = inputs.WrenchCheck(
             self.ids,
             [a.dynamics.max_force for a in spec.agents],
@@ -104,17 +114,13 @@ class SimNode(Node):
             lockstep=spec.simulation.mode == "lockstep",
         )
         self._refusals_printed: set[tuple[str, str]] = set()
-        # wrenches: latest per agent (stamp ns, values); lockstep counts answers of the current step
-        self.u_ns = [-1] * n
-        self.u_val: list[tuple[float, ...]] = [(0.0,) * 6] * n
-        self.current_ns = -1
-        self.missing = n
+        self.current_ns = -1  # the lockstep step being answered (the wrench check's reference)
         self.received = 0
         self.pub_wall: dict[int, float] = {}
         self.timing = Timing(n)
         self.wrench_subs = [
             self.create_subscription(
-                WrenchStamped, topics.wrench(a), lambda data, i=i: self._on_wrench(i, data), qos.CONTROL, raw=True
+                WrenchStamped, topics.wrench(a), lambda data, i=i: self.accept_wrench(i, data), qos.CONTROL, raw=True
             )
             for i, a in enumerate(self.ids)
         ]
@@ -125,8 +131,13 @@ class SimNode(Node):
             PublisherWatch(expected_publishers(self.ids, self.links), intruder_policy),  # type: ignore[arg-type]
             on_intruder=lambda intruder: print(f"formation-sim: {describe(intruder)}", flush=True),
         )
+        self.ack_ns = -1
+        self.ack_sub = None
+        if recorder:
+            self.ack_sub = self.create_subscription(Clock, topics.RECORDER_ACK, self._on_ack, qos.CONTROL, raw=True)
 
-    def _on_wrench(self, i: int, data: bytes) -> None:
+    def accept_wrench(self, i: int, data: bytes) -> None:
+        """Every wrench agent i publishes comes here (the one place wrenches are accepted)."""
         if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
             return
         self.received += 1
@@ -140,24 +151,19 @@ class SimNode(Node):
                 self._refusals_printed.add((self.ids[i], refused))
                 reason = self.wrench_check.log[(self.ids[i], refused)].reason
                 print(f"formation-sim: agent {self.ids[i]}: wrench refused ({refused}): {reason}", flush=True)
-            if refused in inputs.DROPPED_KINDS or ns == self.u_ns[i]:
+            if refused in inputs.DROPPED_KINDS or ns == self.wrenches.stamp[i]:
                 return  # answers no step, or the step has its answer already: nothing changes
             u = (0.0,) * 6  # a refused value answers its step with zero: never integrated
-        if ns < self.u_ns[i]:
-            return  # out of date (a re-sent step answered twice)
-        first = ns != self.u_ns[i]
-        self.u_ns[i] = ns
-        self.u_val[i] = u
-        if first:
+        if self.wrenches.accept(i, ns, u):
             sent = self.pub_wall.get(ns)
             if sent is not None:
                 self.timing.latencies.append(time.monotonic() - sent)
-            if ns == self.current_ns:
-                self.missing -= 1
-                self.timing.answered[i] += 1
+
+    def _on_ack(self, data: bytes) -> None:
+        self.ack_ns = max(self.ack_ns, wire.stamp_of(data))
 
     # publishing ------------------------------------------------------------------------------
-    def publish_step(self, meas: Measurements, ns: int, only: set[int] | None = None) -> None:
+    def publish_step(self, meas: Measurements, ns: int, only: list[int] | None = None) -> None:
         """Relative poses (pairs in range) and velocities of one step, stamped ``ns``."""
         rel = meas.relative_poses
         vel = meas.velocities.tolist()
@@ -190,6 +196,11 @@ class SimNode(Node):
                 out.append(a)
         return out
 
+    def recorder_matched(self) -> bool:
+        """A recorder subscribes to the ground truth (and, in lockstep, acknowledges steps)."""
+        ack = self.ack_sub is None or self.ack_sub.get_publisher_count() > 0
+        return ack and self.gt_pub.get_subscription_count() > 0
+
 
 class Runner:
     """The stepping loops of one run (lockstep or realtime)."""
@@ -220,8 +231,6 @@ class Runner:
         self.started = time.monotonic()
         self.last_progress = self.started
         self.step = 0
-        self.faults: dict[str, str] = {}
-        self.incomplete_reason = ""
 
     def ok(self) -> bool:
         return rclpy.ok(context=self.node.context)
@@ -252,17 +261,18 @@ class Runner:
                 break
             now = time.monotonic()
             if now > deadline:
-                raise AgentMissingError(
+                raise ParticipantMissingError(
+                    missing,
                     f"discovery: agent(s) {', '.join(missing)} not matched within {timeout:g} s "
-                    "(not started, crashed, or another ROS_DOMAIN_ID / discovery range)"
+                    "(not started, crashed, or another ROS_DOMAIN_ID / discovery range)",
                 )
             if now - last_note > 5.0:
                 print(f"formation-sim: waiting for agent(s) {', '.join(missing)}", flush=True)
                 last_note = now
             self.spin(0.05)
-        while self.args.wait_recorder and self.node.gt_pub.get_subscription_count() == 0:
+        while self.args.wait_recorder and not self.node.recorder_matched():
             if time.monotonic() > deadline:
-                raise AgentMissingError(f"discovery: no recorder subscribed to ground truth within {timeout:g} s")
+                raise ParticipantMissingError(["recorder"], f"discovery: no bag recorder matched within {timeout:g} s")
             self.spin(0.05)
         settle = time.monotonic() + self.args.settle
         while time.monotonic() < settle:  # let the agents' side of discovery finish too
@@ -287,114 +297,109 @@ class Runner:
         if k % self.gt_every == 0:
             self.node.publish_ground_truth(ns, self.sim)
         if self.node.display is not None:  # markers at the display rate, with the latest wrenches
-            self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.u_val))
+            self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.wrenches.value))
 
-    def advance(self, u: np.ndarray) -> bool:
-        """Integrate one control period; False (run INCOMPLETE, agents named) if the state blew up."""
-        self.incomplete_reason = inputs.advance_checked(self.sim, u)
-        if self.incomplete_reason:
-            print(f"formation-sim: ERROR: {self.incomplete_reason}: run stopped", flush=True)
-            return False
-        return True
+    def advance(self, u: np.ndarray) -> None:
+        """Integrate one control period (raises RunStoppedError, agents named, if the state blew up)."""
+        reason = inputs.advance_checked(self.sim, u)
+        if reason:
+            raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, reason))
 
     # lockstep --------------------------------------------------------------------------------
     def run_lockstep(self) -> None:
         node, sim, rec, timing = self.node, self.sim, self.recorder, self.node.timing
-        step_timeout = self.spec.simulation.step_timeout
-        resend = self.args.resend
         mono = time.monotonic
-        n = len(node.ids)
-        u = np.zeros((n, 6))
+        wait = LockstepWait(
+            node.ids,
+            step_timeout=self.spec.simulation.step_timeout,
+            resend=self.args.resend,
+            recorder=node.ack_sub is not None,
+            period_ns=self.stamp_ns(1),
+        )
         self.started = mono()
         for k in range(self.n_steps + 1):
             self.step = k
+            final = k == self.n_steps
             meas = sim.sense()
             ns = self.stamp_ns(k)
             node.current_ns = ns
-            node.missing = sum(1 for x in node.u_ns if x != ns)
             self._publish_aux(k, meas.t, ns)
             sent = mono()
             node.pub_wall = {ns: sent}
+            wait.begin(ns, sent)
             node.publish_step(meas, ns)
             # while the agents compute: shadow controllers and the funnel check of step k
             _, margin_v, outputs = self.shadow.evaluate(meas, rec)
             s = sim.state
             rec.add(meas.t, s.p, s.R, s.v, None, margin_v)
             self.shadow.note_errors(meas.t, outputs, rec)
-            deadline = sent + step_timeout
-            next_resend = sent + resend
-            while node.missing > 0:
+            while True:
+                wait.on_ack(node.ack_ns)
+                if wait.done(node.wrenches, final):
+                    break
                 now = mono()
-                if now >= deadline:
-                    late = [a for i, a in enumerate(node.ids) if node.u_ns[i] != ns]
-                    raise AgentMissingError(
-                        f"lockstep: no wrench from agent(s) {', '.join(late)} for step {k} (t={meas.t:.6f} s) "
-                        f"within step_timeout={step_timeout:g} s"
-                    )
-                if now >= next_resend:
-                    late = {i for i in range(n) if node.u_ns[i] != ns}
+                late = wait.poll(node.wrenches, now, final)
+                if late:
                     node.publish_step(meas, ns, only=late)
                     timing.resends += 1
-                    next_resend = now + resend
-                self.spin(min(deadline, next_resend) - now)
+                    for i in late:
+                        rec.fault(meas.t, "resent_step", node.ids[i])
+                self.spin(wait.wake_at() - now)
+            for i in range(len(node.ids)):
+                timing.answered[i] += 1
             timing.expected += 1
-            u[:] = node.u_val
+            u = np.array(node.wrenches.value)
             rec.set_inputs(u)
-            if k == self.n_steps:
+            if final:
                 break
-            if not self.advance(u):
-                break
+            self.advance(u)
             if k & 63 == 0:
                 self.progress(sim.t)
 
     # realtime --------------------------------------------------------------------------------
     def run_realtime(self) -> None:
         node, sim, rec, timing = self.node, self.sim, self.recorder, self.node.timing
-        cmd_timeout_ns = round(self.spec.simulation.command_timeout * NS)
+        hold = CommandHold(round(self.spec.simulation.command_timeout * NS))
+        budget = LagBudget(self.args.lag_budget, self.period)
         mono = time.monotonic
-        n = len(node.ids)
-        u = np.zeros((n, 6))
-        period = self.period
+        u = np.zeros((len(node.ids), 6))
         self.started = t0 = mono()
         prev: tuple[Measurements, Any, np.ndarray, list] | None = None
         for k in range(self.n_steps + 1):
             self.step = k
-            target = t0 + k * period
-            while True:
-                now = mono()
-                if now >= target:
-                    break
+            target = t0 + k * self.period
+            while (now := mono()) < target:
                 self.spin(target - now)
             self.drain()
-            timing.lags.append(mono() - target)
+            lag = mono() - target
+            timing.lags.append(lag)
             if prev is not None:
                 pmeas, pstate, pmargin, pouts = prev
                 pns = self.stamp_ns(k - 1)
-                for i, a in enumerate(node.ids):
-                    if node.u_ns[i] == pns:
+                for i in range(len(node.ids)):
+                    if node.wrenches.stamp[i] == pns:
                         timing.on_time[i] += 1
-                    if node.u_ns[i] >= 0 and pns - node.u_ns[i] <= cmd_timeout_ns:
-                        u[i] = node.u_val[i]
-                    elif node.u_ns[i] < 0 and pns <= cmd_timeout_ns:
-                        u[i] = 0.0  # no wrench yet, but the run is younger than the command timeout
-                    else:
-                        u[i] = 0.0
-                        timing.stale[i] += 1
-                        if a not in self.faults:
-                            msg = (
-                                "no wrench yet"
-                                if node.u_ns[i] < 0
-                                else f"last wrench {(pns - node.u_ns[i]) / NS:.3f} s old"
-                            )
-                            self.faults[a] = f"t={pmeas.t:.4f}: {msg} (> command_timeout): zero wrench"
-                            print(f"formation-sim: agent {a}: {self.faults[a]}", flush=True)
+                u, zeroed = hold.applied(node.wrenches, pns)
+                for i, why in zeroed:
+                    timing.stale[i] += 1
+                    if rec.fault(pmeas.t, "zero_wrench", node.ids[i], f"{why} (> command_timeout)"):
+                        print(f"formation-sim: agent {node.ids[i]}: t={pmeas.t:.4f}: {why}: zero wrench", flush=True)
                 timing.expected += 1
                 rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
                 rec.set_inputs(u)
                 self.shadow.note_errors(pmeas.t, pouts, rec)
-                if not self.advance(u):
-                    prev = None
-                    break
+                prev = None
+                self.advance(u)
+            if budget.late(lag):
+                rec.fault(sim.t, "late_tick", "simulator", f"{lag * 1e3:.1f} ms late")
+            if budget.exceeded(lag):
+                raise RunStoppedError(
+                    Incomplete(
+                        ExitCode.INCOMPLETE,
+                        f"realtime lag budget exceeded: {lag:.3f} s behind the wall clock at t={sim.t:.4f} s "
+                        f"(--lag-budget {budget.budget:g} s)",
+                    )
+                )
             meas = sim.sense()
             ns = self.stamp_ns(k)
             node.current_ns = ns
@@ -411,7 +416,7 @@ class Runner:
             rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
             rec.set_inputs(u)
 
-    def summary(self, wall: float, extra: dict[str, Any]) -> dict[str, Any]:
+    def summary(self, wall: float, incomplete: Incomplete | None, extra: dict[str, Any]) -> dict[str, Any]:
         s = self.spec.simulation
         info = {
             "physics_rate": s.physics_rate,
@@ -420,18 +425,15 @@ class Runner:
             "ground_truth_rate": s.control_rate / self.gt_every,
             "executor": self.args.executor,
             "velocity_margins": "shadow controllers on the published measurements",
+            "recorder_in_step": self.node.ack_sub is not None,
         }
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
-        if self.faults:
-            info["faults"] = self.faults
         refused = self.node.wrench_check.report()
         if refused:
             info["refused_wrenches"] = refused
-        if self.incomplete_reason:
-            info["incomplete_reason"] = self.incomplete_reason
         info["security"] = self.node.watch.watch.report()
         info.update(extra)
-        return self.recorder.summary(wall_time=wall, extra=info)
+        return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)
 
 
 def build_parser() -> OptionParser:
@@ -441,11 +443,17 @@ def build_parser() -> OptionParser:
         "The simulator node of a ROS 2 formation run (docs/ros2.md): publishes /clock, relative "
         "poses, velocities and ground truth, collects every agent's wrench, checks the funnels at every "
         "control step and writes OUT (docs/outputs.md). Agents are separate processes (formation-agent). "
-        "Exit status: 0 every funnel held, 1 violated or fault, 2 invalid, 3 agent missing, 130 interrupted. "
-        "ROS arguments may follow --ros-args.",
+        + EXIT_STATUS_HELP
+        + ". ROS arguments may follow --ros-args.",
     )
 
 
+def _interrupted(runner: Runner | None) -> Incomplete:
+    t = runner.sim.t if runner is not None else 0.0
+    return Incomplete(ExitCode.INTERRUPTED, f"interrupted (SIGINT/SIGTERM) at t={t:.4f} s")
+
+
+@guarded("formation-sim")
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``formation-sim``."""
     raw = list(sys.argv if argv is None else [sys.argv[0], *argv])
@@ -454,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
         run = preflight(opts, lambda spec, o: Path("out") / f"{spec.name}-ros2-{o.mode}")
     except FormationError as exc:
         print(f"formation-sim: {exc}", file=sys.stderr)
-        return EXIT_INVALID
+        return ExitCode.INVALID
     spec, out, args = run.spec, run.out, run.options
     for msg in run.warnings:
         print(f"formation-sim: warning: {msg}", file=sys.stderr)
@@ -466,10 +474,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     rclpy.init(args=raw)
     node = runner = None
-    code = EXIT_OK
+    incomplete: Incomplete | None = None
+    insecure = False
     extra: dict[str, Any] = {}
     try:
-        node = SimNode(spec, args.measurement_qos, args.intruder_policy)
+        node = SimNode(
+            spec,
+            args.measurement_qos,
+            args.intruder_policy,
+            recorder=args.wait_recorder and args.mode == "lockstep",
+        )
         check_secure_transport()
         settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
         settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
@@ -485,31 +499,48 @@ def main(argv: list[str] | None = None) -> int:
             runner.run_lockstep()
         else:
             runner.run_realtime()
-    except AgentMissingError as exc:
+    except ParticipantMissingError as exc:
         print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
-        extra["error"] = str(exc)
-        code = EXIT_MISSING
+        incomplete = Incomplete(ExitCode.PROCESS_DIED, str(exc))
+        extra["missing"] = exc.names
+    except RunStoppedError as exc:
+        print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
+        incomplete = exc.incomplete
     except InsecureTransportError as exc:
         print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
-        code = EXIT_INVALID
+        insecure = True
     except (KeyboardInterrupt, ExternalShutdownException, StopRequestedError):
-        extra["interrupted"] = True
-        code = EXIT_INTERRUPTED
+        incomplete = _interrupted(runner)
+    except Exception:
+        if node is None or rclpy.ok(context=node.context):
+            raise
+        incomplete = _interrupted(runner)  # a publish or wait cut short by SIGINT/SIGTERM
     finally:
         wall = time.monotonic() - runner.started if runner is not None else 0.0
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
-    if code == EXIT_OK and runner is not None and runner.incomplete_reason:
-        code = ExitCode.INCOMPLETE
-    if runner is not None and runner.recorder.samples > 0:
-        summary = runner.summary(wall, extra)
-        write_outputs(out, runner.recorder, summary, plots=not args.no_plots)
-        runner.progress(runner.recorder.t_last, force=True)
-        print(format_summary(summary), flush=True)
-        if code == EXIT_OK and not summary["funnels_held"]:
-            code = EXIT_VIOLATION
-    return code
+        try:
+            rclpy.try_shutdown()
+        except RCLError:
+            pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
+    if insecure:
+        return ExitCode.INVALID
+    if runner is None:
+        return ExitCode.INCOMPLETE if incomplete is None else incomplete.code
+    summary = runner.summary(wall, incomplete, extra)
+    plots = not args.no_plots and incomplete is None
+    print(
+        f"formation-sim: stepping done: {runner.step} steps in {wall:.2f} s; writing {out}/"
+        f"{'' if plots or args.no_plots else ' (stopped early: summary and trajectory, no figures)'}",
+        flush=True,
+    )
+    try:
+        write_outputs(out, runner.recorder, summary, plots=plots)
+    except OSError as exc:
+        print(f"formation-sim: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr, flush=True)
+        return ExitCode.INCOMPLETE
+    print(format_summary(summary), flush=True)
+    return summary["exit_status"]
 
 
 if __name__ == "__main__":

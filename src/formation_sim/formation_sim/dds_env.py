@@ -1,0 +1,111 @@
+"""The DDS environment of a run: a ROS_DOMAIN_ID nobody else uses, discovery kept on this host,
+and (for runs above Fast DDS's per-host participant limit) a private network namespace.
+
+Shared by ``formation-launch`` and the tests' allocator (tests/conftest.py): a domain is taken
+only if no local socket uses its port block *and* an exclusive ``flock`` on
+``/tmp/formation-ros-domain-<id>.lock`` succeeds; the lock is held by the process until it exits,
+so concurrent runs and test sessions on one machine never share a domain.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import IO
+
+from formation_msgs_py.hotloop import FASTDDS_PROFILE
+
+#: Ids Fast DDS accepts whose port blocks stay clear of Linux's ephemeral ports (102..214 may collide).
+DOMAIN_IDS = (*range(1, 102), *range(215, 233))
+#: Above this many DDS participants, run in a private network namespace (Fast DDS LOCALHOST limit).
+NETNS_THRESHOLD = 30
+IN_NETNS = "FORMATION_IN_NETNS"
+_held: tuple[int, IO[str]] | None = None
+
+
+class DomainError(RuntimeError):
+    """No free ROS_DOMAIN_ID on this host."""
+
+
+def used_domain_ids() -> set[int]:
+    """Domain ids whose Fast DDS port block (7400 + 250·id …) has a bound UDP socket here."""
+    used: set[int] = set()
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            port = int(line.split()[1].rsplit(":", 1)[1], 16)
+            if port >= 7400:
+                used.add((port - 7400) // 250)
+    return used
+
+
+def reserve_domain_id() -> int:
+    """A ROS_DOMAIN_ID reserved for this process until it exits (the same one on every call)."""
+    global _held
+    if _held is not None:
+        return _held[0]
+    used = used_domain_ids()
+    start = os.getpid() % len(DOMAIN_IDS)
+    for k in range(len(DOMAIN_IDS)):
+        domain = DOMAIN_IDS[(start + k) % len(DOMAIN_IDS)]
+        if domain in used:
+            continue
+        handle = open(f"/tmp/formation-ros-domain-{domain}.lock", "w")  # held until this process exits
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _held = (domain, handle)
+        return domain
+    raise DomainError("every ROS_DOMAIN_ID is in use on this host; set ROS_DOMAIN_ID")
+
+
+def netns_available() -> str | None:
+    """None if ``unshare -n`` works here, else the reason."""
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        return "unshare or ip (util-linux, iproute2) not found"
+    r = subprocess.run(["unshare", "-n", "ip", "link", "set", "lo", "up"], capture_output=True, text=True)
+    if r.returncode != 0:
+        return f"unshare -n not permitted: {r.stderr.strip() or r.returncode} (needs root or CAP_SYS_ADMIN)"
+    return None
+
+
+def reexec_in_netns(module: str, argv: list[str]) -> None:
+    """Replace this process by ``python -m module argv`` inside a new network namespace (loopback only)."""
+    env = dict(os.environ, **{IN_NETNS: "1"})
+    script = 'ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo && exec "$@"'
+    cmd = ["unshare", "-n", "sh", "-c", script, "sh", sys.executable, "-m", module, *argv]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execvpe("unshare", cmd, env)
+
+
+def in_netns() -> bool:
+    return os.environ.get(IN_NETNS) == "1"
+
+
+def run_environment(base: dict[str, str], *, log_dir: Path) -> dict[str, str]:
+    """The environment of every process of a run: a reserved domain unless ROS_DOMAIN_ID is set,
+    LOCALHOST discovery unless set (in a private namespace: its own loopback, UDP only)."""
+    env = dict(base)
+    env["PYTHONUNBUFFERED"] = "1"
+    env["ROS_LOG_DIR"] = str(log_dir)
+    if in_netns():
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"  # multicast on the namespace's own loopback only
+        # UDP on the namespace's loopback only: Fast DDS's shared-memory transport would use /dev/shm,
+        # which the namespace shares with the host (port files of other runs: "open_and_lock_file failed")
+        env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+    else:
+        env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))  # secure mode sets its own per process
+    if not env.get("ROS_DOMAIN_ID"):
+        env["ROS_DOMAIN_ID"] = str(reserve_domain_id())
+    return env

@@ -1,0 +1,157 @@
+"""The simulator's stepping policy, without ROS (DESIGN.md §6-7).
+
+- :class:`LockstepWait`: who must answer step k before the world advances: every agent (its
+  wrench stamped k) and, when a recorder takes part, the recorder (its acknowledgement that
+  the bag holds the step, at most ``recorder_window`` steps behind). Resends an unanswered step
+  to the agents that have not answered after ``resend`` wall seconds; gives up after
+  ``step_timeout`` and names who stopped answering.
+- :class:`CommandHold`: realtime zero-order hold of each agent's latest wrench, replaced by zero
+  once older than ``command_timeout`` (sim time); every zeroed tick is a counted fault.
+- :class:`LagBudget`: realtime lag behind the wall clock; a run further behind than its budget
+  stops INCOMPLETE.
+- :class:`WrenchBook`: the latest wrench of each agent, kept by stamp (what the node's
+  subscriptions accept).
+
+Times: ``ns`` are simulation stamps in integer nanoseconds, ``now`` wall seconds (monotonic).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+NS = 1_000_000_000
+RECORDER = "recorder"
+
+
+class ParticipantMissingError(RuntimeError):
+    """An agent or the recorder did not answer a lockstep step within the step timeout."""
+
+    def __init__(self, names: list[str], message: str) -> None:
+        super().__init__(message)
+        self.names = names
+
+
+@dataclass
+class WrenchBook:
+    """The latest wrench (stamp ns, 6 values) of each of ``n`` agents."""
+
+    n: int
+    stamp: list[int] = field(default_factory=list)
+    value: list[tuple[float, ...]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.stamp = [-1] * self.n
+        self.value = [(0.0,) * 6] * self.n
+
+    def accept(self, i: int, ns: int, u: tuple[float, ...]) -> bool:
+        """Keep agent i's wrench stamped ns; False if older than what it has (a late duplicate)."""
+        if ns < self.stamp[i]:
+            return False
+        first = ns != self.stamp[i]
+        self.stamp[i] = ns
+        self.value[i] = u
+        return first
+
+
+@dataclass
+class LockstepWait:
+    """Who still owes an answer to the current step, and what to do about it."""
+
+    ids: tuple[str, ...]
+    step_timeout: float
+    resend: float
+    recorder: bool = False
+    recorder_window: int = 1
+    period_ns: int = 1
+    ack_ns: int = -1
+    resends: list[int] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.resends = [0] * len(self.ids)
+        self.ns = -1
+        self.sent = 0.0
+        self.next_resend = 0.0
+
+    def begin(self, ns: int, now: float) -> None:
+        """Step ``ns`` was published at wall time ``now``."""
+        self.ns = ns
+        self.sent = now
+        self.next_resend = now + self.resend
+
+    def on_ack(self, ns: int) -> None:
+        self.ack_ns = max(self.ack_ns, ns)
+
+    def recorder_behind(self, final: bool = False) -> bool:
+        """True while the recorder lags more than its window (none at the final step)."""
+        if not self.recorder:
+            return False
+        window = 0 if final else self.recorder_window
+        return self.ack_ns < self.ns - window * self.period_ns
+
+    def late_agents(self, wrenches: WrenchBook) -> list[int]:
+        return [i for i, s in enumerate(wrenches.stamp) if s != self.ns]
+
+    def done(self, wrenches: WrenchBook, final: bool = False) -> bool:
+        return not self.recorder_behind(final) and all(s == self.ns for s in wrenches.stamp)
+
+    def poll(self, wrenches: WrenchBook, now: float, final: bool = False) -> list[int]:
+        """Agents to send the step again now (empty: keep waiting until :meth:`wake_at`).
+
+        Raises ParticipantMissingError once the step timeout has passed.
+        """
+        late = self.late_agents(wrenches)
+        if now >= self.sent + self.step_timeout:
+            names = [self.ids[i] for i in late] + ([RECORDER] if self.recorder_behind(final) else [])
+            who = ", ".join(f"agent {n}" if n != RECORDER else "the bag recorder" for n in names)
+            raise ParticipantMissingError(
+                names,
+                f"lockstep: no answer from {who} for the step at t={self.ns / NS:.6f} s within "
+                f"step_timeout={self.step_timeout:g} s",
+            )
+        if late and now >= self.next_resend:
+            self.next_resend = now + self.resend
+            for i in late:
+                self.resends[i] += 1
+            return late
+        return []
+
+    def wake_at(self) -> float:
+        """Wall time of the next resend or timeout."""
+        return min(self.sent + self.step_timeout, self.next_resend)
+
+
+@dataclass
+class CommandHold:
+    """Realtime zero-order hold: agent i's latest wrench until it is older than ``timeout_ns``."""
+
+    timeout_ns: int
+
+    def applied(self, wrenches: WrenchBook, ns: int) -> tuple[np.ndarray, list[tuple[int, str]]]:
+        """(u (N,6), [(agent index, reason)] of the agents whose wrench is zeroed at stamp ns)."""
+        u = np.zeros((wrenches.n, 6))
+        zeroed = []
+        for i, (s, val) in enumerate(zip(wrenches.stamp, wrenches.value)):
+            if s >= 0 and ns - s <= self.timeout_ns:
+                u[i] = val
+            elif s < 0 and ns <= self.timeout_ns:
+                pass  # no wrench yet, but the run is younger than the command timeout
+            else:
+                zeroed.append((i, "no wrench yet" if s < 0 else f"last wrench {(ns - s) / NS:.3f} s old"))
+        return u, zeroed
+
+
+@dataclass(frozen=True)
+class LagBudget:
+    """Realtime: how far [wall s] a tick may lag behind its wall-clock target."""
+
+    budget: float
+    period: float
+
+    def exceeded(self, lag: float) -> bool:
+        return lag > self.budget
+
+    def late(self, lag: float) -> bool:
+        """A tick more than half a period late (a counted fault)."""
+        return lag > 0.5 * self.period

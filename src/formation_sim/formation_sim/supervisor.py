@@ -1,0 +1,165 @@
+"""Start, watch and stop the processes of one run (no ROS import).
+
+Each child runs in its own session and process group, writes to its own log file (never a pipe:
+a child must be able to finish when its supervisor is gone), and gets SIGTERM if the supervisor
+dies (PR_SET_PDEATHSIG), so that a SIGKILLed launcher still leaves its children stopped and the
+simulator's summary written. Stopping sends SIGINT to every child at once, then SIGTERM, and
+SIGKILL only after a grace period.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import subprocess
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+@dataclass
+class Child:
+    """One started process: its name, role, log file and (once reaped) its accounting."""
+
+    name: str
+    role: str
+    proc: subprocess.Popen
+    log: Path
+    returncode: int | None = None
+    rusage: dict[str, float] = field(default_factory=dict)
+    reported: bool = False
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                pid, status, ru = os.wait4(self.proc.pid, os.WNOHANG)
+            except ChildProcessError:
+                self.returncode = self.proc.returncode if self.proc.returncode is not None else -1
+                return self.returncode
+            if pid == 0:
+                return None
+            self.returncode = os.waitstatus_to_exitcode(status)
+            self.proc.returncode = self.returncode
+            self.rusage = {"cpu_user_s": ru.ru_utime, "cpu_system_s": ru.ru_stime, "max_rss_mb": ru.ru_maxrss / 1024}
+        return self.returncode
+
+    def signal(self, sig: int) -> None:
+        if self.poll() is None:
+            try:
+                os.killpg(self.proc.pid, sig)  # its own process group (start_new_session)
+            except ProcessLookupError:
+                pass
+
+    def describe_exit(self) -> str:
+        rc = self.returncode
+        if rc is not None and rc < 0:
+            return f"{self.name} was killed by {signal.Signals(-rc).name}"
+        return f"{self.name} exited with status {rc}"
+
+
+class LogFollower:
+    """Reads the lines a child appends to its log file (the simulator's progress and messages)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._pos = 0
+        self._partial = b""
+
+    def new_lines(self) -> list[str]:
+        try:
+            with self.path.open("rb") as fh:
+                fh.seek(self._pos)
+                data = fh.read()
+        except OSError:
+            return []
+        self._pos += len(data)
+        data = self._partial + data
+        *lines, self._partial = data.split(b"\n")
+        return [line.decode("utf-8", "replace") for line in lines]
+
+
+@dataclass
+class Supervisor:
+    """The children of one run and how they are stopped."""
+
+    env: dict[str, str]
+    logs: Path
+    #: child name -> name of its own environment in ``process_env``, where they differ
+    key_names: dict[str, str] = field(default_factory=dict)
+    #: per-process environments (secure mode: each its own certificate and port), by key name
+    process_env: dict[str, dict[str, str]] = field(default_factory=dict)
+    children: list[Child] = field(default_factory=list)
+
+    def start(self, name: str, role: str, cmd: list[str]) -> Child:
+        log = self.logs / f"{name}.log"
+        with open(log, "wb") as fh:
+            proc = subprocess.Popen(
+                cmd,
+                stdin=subprocess.DEVNULL,
+                stdout=fh,
+                stderr=subprocess.STDOUT,
+                env=self.process_env.get(self.key_names.get(name, name), self.env),
+                start_new_session=True,
+                preexec_fn=_die_with_parent,
+            )
+        child = Child(name, role, proc, log)
+        self.children.append(child)
+        return child
+
+    def alive(self, children: Iterable[Child] | None = None) -> list[Child]:
+        return [c for c in (self.children if children is None else children) if c.poll() is None]
+
+    def newly_dead(self) -> list[Child]:
+        """Children that exited since the last call (each reported once)."""
+        dead = [c for c in self.children if not c.reported and c.poll() is not None]
+        for c in dead:
+            c.reported = True
+        return dead
+
+    def wait(self, children: list[Child], timeout: float, tick: Callable[[], None] | None = None) -> bool:
+        """True once every child in ``children`` has exited; False after ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while self.alive(children):
+            if time.monotonic() >= deadline:
+                return False
+            if tick is not None:
+                tick()
+            time.sleep(0.02)
+        return True
+
+    def stop(self, children: list[Child], grace: float, note: Callable[[str], None]) -> None:
+        """SIGINT to every child at once; SIGTERM after ``grace`` s; SIGKILL 1 s later."""
+        for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 1.0), (signal.SIGKILL, 1.0)):
+            left = self.alive(children)
+            if not left:
+                return
+            if sig != signal.SIGINT:
+                note(f"{', '.join(c.name for c in left)} still running: {signal.Signals(sig).name}")
+            for c in left:
+                c.signal(sig)
+            self.wait(left, wait)
+
+    def process_table(self, root: Path) -> list[dict[str, object]]:
+        return [
+            {
+                "name": c.name,
+                "pid": c.proc.pid,
+                "role": c.role,
+                "executable": str(c.proc.args[0]),
+                "returncode": c.returncode,
+                "log": str(c.log.relative_to(root)),
+                **c.rusage,
+            }
+            for c in self.children
+        ]

@@ -1,0 +1,249 @@
+"""The judge on hand-built trajectories: exact first violation, margins and settle times, verdicts.
+
+Every trajectory starts from the formation at rest in its desired shape (e_k = 0, ψ_k = 0 on every
+edge: margin 1 everywhere), and one edge or agent is pushed across one funnel at one sample.
+Expected values are computed here from the formation's numbers with the paper's formulas.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formation_msgs_py.outcome import ExitCode, Incomplete
+from formation_msgs_py.spec import FormationSpec, load_formation
+from formation_sim.rates import rate_needs
+from formation_sim.report import Judge, RunRecorder, judge, write_outputs
+
+T = np.array([0.0, 0.1, 0.2, 0.3, 0.4])
+#: the margins are formed from e/ρ_e with a few float operations: equal to 1e-12
+TOL = 1e-12
+
+
+@pytest.fixture(scope="module")
+def spec(paper_path_module: Path) -> FormationSpec:
+    return load_formation(paper_path_module)
+
+
+@pytest.fixture(scope="module")
+def paper_path_module() -> Path:
+    return Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
+
+
+def rho_e(spec: FormationSpec, k: int, t: float) -> float:
+    """Normalised ρ_e(t) = (1 − ρ∞/C_max)·exp(−l t) + ρ∞/C_max (paper, NOTES.md)."""
+    e = spec.edges[k]
+    floor = e.rho_e_inf / max(e.c_col, e.c_con)
+    return (1.0 - floor) * math.exp(-e.decay_e * t) + floor
+
+
+def rho_psi(spec: FormationSpec, k: int, t: float) -> float:
+    e = spec.edges[k]
+    return (e.rho_psi_0 - e.rho_psi_inf) * math.exp(-e.decay_psi * t) + e.rho_psi_inf
+
+
+def rot_z(theta: float) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def desired_shape(spec: FormationSpec) -> tuple[np.ndarray, np.ndarray]:
+    """p (N,3), R (N,3,3) with every edge at e = 0 and ψ = 0 (heads placed along distinct axes)."""
+    index = {a.id: a.index for a in spec.agents}
+    n = len(spec.agents)
+    p = np.zeros((n, 3))
+    R = np.zeros((n, 3, 3))
+    R[0] = np.eye(3)
+    placed = {0}
+    directions = [np.array(d, dtype=float) for d in ((1, 0, 0), (0, 1, 0), (0, 0, 1), (-1, 0, 0), (0, -1, 0))]
+    while len(placed) < n:
+        for k, e in enumerate(spec.edges):
+            i, j = index[e.tail], index[e.head]
+            if i in placed and j not in placed:
+                # ψ = ½ tr(I − R_desᵀ R_jᵀ R_i) = 0  ⇔  R_j = R_i R_desᵀ
+                p[j] = p[i] + e.d_des * directions[k % len(directions)]
+                R[j] = R[i] @ e.R_des.T
+                placed.add(j)
+            elif j in placed and i not in placed:
+                p[i] = p[j] - e.d_des * directions[k % len(directions)]
+                R[i] = R[j] @ e.R_des
+                placed.add(i)
+    return p, R
+
+
+def trajectory(spec: FormationSpec) -> tuple[np.ndarray, np.ndarray]:
+    p, R = desired_shape(spec)
+    return np.repeat(p[None], len(T), axis=0), np.repeat(R[None], len(T), axis=0)
+
+
+def set_distance_error(spec: FormationSpec, p: np.ndarray, k: int, e_k: float) -> None:
+    """Move edge k's head along the edge so that ‖p_head − p_tail‖² − d² = e_k."""
+    edge = spec.edges[k]
+    i, j = spec.agent(edge.tail).index, spec.agent(edge.head).index
+    u = (p[j] - p[i]) / np.linalg.norm(p[j] - p[i])
+    p[j] = p[i] + math.sqrt(edge.d_des**2 + e_k) * u
+
+
+def set_orientation_error(spec: FormationSpec, R: np.ndarray, k: int, psi: float) -> None:
+    """R_head = R_tail R_desᵀ Rz(θ) gives ψ = 1 − cos θ."""
+    edge = spec.edges[k]
+    i, j = spec.agent(edge.tail).index, spec.agent(edge.head).index
+    R[j] = R[i] @ edge.R_des.T @ rot_z(math.acos(1.0 - psi))
+
+
+def test_desired_shape_has_margin_one_everywhere(spec: FormationSpec) -> None:
+    """The reference trajectory: every edge at e = 0, ψ = 0: margins exactly 1, settled from t = 0, PASS."""
+    p, R = trajectory(spec)
+    j = judge(spec, T, p, R)
+    assert j.first_violation is None
+    np.testing.assert_allclose(j.min_margin_e, 1.0, atol=TOL)
+    np.testing.assert_allclose(j.min_margin_psi, 1.0, atol=TOL)
+    assert j.settle_e == [0.0] * len(spec.edges) and j.settle_psi == [0.0] * len(spec.edges)
+
+
+def test_connectivity_crossed_from_above(spec: FormationSpec) -> None:
+    """e_1 above C_con ρ_e at t = 0.2 s only: distance, edge 1-2, connectivity, margin 1 − 1.01."""
+    p, R = trajectory(spec)
+    edge = spec.edges[0]
+    e_k = 1.01 * edge.c_con * rho_e(spec, 0, 0.2)
+    set_distance_error(spec, p[2], 0, e_k)
+    j = judge(spec, T, p, R)
+    assert j.first_violation is not None
+    assert j.first_violation.as_dict() == {"t": 0.2, "kind": "distance", "edge": edge.name, "channel": "connectivity"}
+    assert j.min_margin_e[0] == pytest.approx(-0.01, abs=1e-9)  # sqrt then square: 1e-9 of e_k
+    np.testing.assert_allclose(j.min_margin_e[1:], 1.0, atol=TOL)
+    # back at e = 0 from t = 0.3 s: settled since then (the band is [−C_col, C_con]·ρ∞/C_max)
+    assert j.settle_e[0] == 0.3 and j.settle_e[1:] == [0.0] * (len(spec.edges) - 1)
+
+
+def test_collision_crossed_from_below(spec: FormationSpec) -> None:
+    """e_2 below −C_col ρ_e from t = 0.3 s on: distance, edge 1-3, collision, margin 1 − 1.02, never settled."""
+    p, R = trajectory(spec)
+    edge = spec.edges[1]
+    for s in (3, 4):
+        set_distance_error(spec, p[s], 1, -1.02 * edge.c_col * rho_e(spec, 1, T[s]))
+    j = judge(spec, T, p, R)
+    assert j.first_violation.as_dict() == {"t": 0.3, "kind": "distance", "edge": edge.name, "channel": "collision"}
+    assert j.min_margin_e[1] == pytest.approx(-0.02, abs=1e-9)
+    assert j.settle_e[1] is None  # outside the band at the last sample
+
+
+def test_orientation_past_rho_psi(spec: FormationSpec) -> None:
+    """ψ_3 = 1.05 ρ_ψ(0.1 s): orientation, edge 3-4, channel psi, margin −0.05."""
+    p, R = trajectory(spec)
+    edge = spec.edges[2]
+    set_orientation_error(spec, R[1], 2, 1.05 * rho_psi(spec, 2, 0.1))
+    j = judge(spec, T, p, R)
+    assert j.first_violation.as_dict() == {"t": 0.1, "kind": "orientation", "edge": edge.name, "channel": "psi"}
+    assert j.min_margin_psi[2] == pytest.approx(-0.05, abs=1e-9)  # acos then cos
+    assert j.settle_psi[2] == 0.2
+
+
+def test_settle_time_is_the_entry_into_the_steady_band(spec: FormationSpec) -> None:
+    """ψ_4 at twice its steady bound ρ_ψ∞ until 0.2 s (inside the funnel), half of it after: settled at 0.3 s."""
+    p, R = trajectory(spec)
+    edge = spec.edges[3]
+    for s in range(len(T)):
+        psi = 2.0 * edge.rho_psi_inf if T[s] <= 0.2 else 0.5 * edge.rho_psi_inf
+        assert psi < rho_psi(spec, 3, T[s])  # still inside the funnel: no violation
+        set_orientation_error(spec, R[s], 3, psi)
+    j = judge(spec, T, p, R)
+    assert j.first_violation is None
+    assert j.settle_psi[3] == 0.3
+    expected = min(1.0 - (2.0 * edge.rho_psi_inf) / rho_psi(spec, 3, t) for t in T[:3])
+    assert j.min_margin_psi[3] == pytest.approx(expected, abs=1e-9)
+
+
+def test_velocity_channel_and_edge_first_at_one_sample(spec: FormationSpec) -> None:
+    """Agent 4's wy margin ≤ 0 at 0.1 s: velocity, agent 4, wy; an edge violated at the same sample wins."""
+    p, R = trajectory(spec)
+    n = len(spec.agents)
+    margin_v = np.full((len(T), n, 6), 0.5)
+    i4 = spec.agent("4").index
+    margin_v[1, i4, 4] = -0.25
+    j = judge(spec, T, p, R, margin_v)
+    assert j.first_violation.as_dict() == {"t": 0.1, "kind": "velocity", "agent": "4", "channel": "wy"}
+    assert j.min_margin_v[i4] == -0.25 and j.min_margin_v[spec.agent("1").index] == 0.5
+    set_distance_error(spec, p[1], 0, 1.5 * spec.edges[0].c_con * rho_e(spec, 0, 0.1))
+    assert judge(spec, T, p, R, margin_v).first_violation.kind == "distance"
+
+
+def test_streaming_judge_equals_the_array_judge(spec: FormationSpec) -> None:
+    """Fed one sample at a time, the judge finds the same violation, margins and settle times."""
+    p, R = trajectory(spec)
+    set_distance_error(spec, p[3], 0, 1.2 * spec.edges[0].c_con * rho_e(spec, 0, 0.3))
+    set_orientation_error(spec, R[2], 2, 0.5 * rho_psi(spec, 2, 0.2))
+    whole = judge(spec, T, p, R)
+    stream = Judge(spec)
+    for s in range(len(T)):
+        stream.update(float(T[s]), p[s], R[s])
+    assert stream.first_violation == whole.first_violation
+    np.testing.assert_array_equal(stream.min_margin_e, whole.min_margin_e)
+    np.testing.assert_array_equal(stream.min_margin_psi, whole.min_margin_psi)
+    assert stream.settle_e == whole.settle_e and stream.settle_psi == whole.settle_psi
+
+
+def _recorder(spec: FormationSpec, n: int, **kw) -> RunRecorder:
+    rec = RunRecorder(spec, control_rate=10.0)
+    p, R = trajectory(spec)
+    for s in range(n):
+        rec.add(float(T[s]), p[s], R[s], np.zeros((len(spec.agents), 6)), np.ones((len(spec.agents), 6)), **kw)
+    return rec
+
+
+def test_verdicts_and_strict_json(spec: FormationSpec, tmp_path: Path) -> None:
+    """PASS over the whole duration; INCOMPLETE (exit 4) short of it or (130) interrupted; no NaN/Infinity."""
+    full = _recorder(spec, len(T))
+    s = full.summary(wall_time=1.0, requested_duration=0.4)
+    assert (s["verdict"], s["exit_status"], s["funnels_held"]) == ("PASS", 0, True)
+    # velocity margins unknown (no shadow controllers): null, not Infinity
+    assert all(a["min_margin_v"] is None for a in s["agents"].values())
+    short = _recorder(spec, 3).summary(wall_time=1.0, requested_duration=0.4)
+    assert (short["verdict"], short["exit_status"], short["funnels_held"]) == ("INCOMPLETE", 4, None)
+    assert short["incomplete_reason"] == "duration not reached: t=0.2 s of 0.4 s"
+    stopped = _recorder(spec, 3).summary(
+        wall_time=1.0, requested_duration=0.4, incomplete=Incomplete(ExitCode.INTERRUPTED, "interrupted (SIGINT)")
+    )
+    assert (stopped["verdict"], stopped["exit_status"]) == ("INCOMPLETE", 130)
+    write_outputs(tmp_path, full, s, plots=False)
+    text = (tmp_path / "summary.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text)["outputs"] == ["trajectory.npz", "summary.json"]
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["summary.json", "trajectory.npz"]  # no temporaries
+
+
+def test_faults_are_counted_with_first_and_last(spec: FormationSpec) -> None:
+    """Every fault is counted per agent and kind; the first and last times are kept; none is a violation."""
+    rec = _recorder(spec, len(T))
+    for t in (0.1, 0.2, 0.3):
+        rec.fault(t, "zero_wrench", "2", f"last wrench {t:.1f} s old")
+    rec.fault(0.2, "measurement", "3", "1")
+    s = rec.summary(wall_time=1.0, requested_duration=0.4)
+    assert s["verdict"] == "PASS"
+    assert s["faults"]["2"]["zero_wrench"] == {
+        "count": 3,
+        "first_t": 0.1,
+        "last_t": 0.3,
+        "first": "last wrench 0.1 s old",
+        "last": "last wrench 0.3 s old",
+    }
+    assert s["faults"]["3"]["measurement"]["count"] == 1
+
+
+def test_rate_need_matches_the_closed_form(spec: FormationSpec) -> None:
+    """NOTES.md "Sampled-data": f_s > 2γ / (M_ll ρ_v,l(t)²), largest channel, at t = 0 and at the end."""
+    duration = spec.simulation.duration
+    for need in rate_needs(spec):
+        a = spec.agent(need.agent_id)
+        vf = a.controller.velocity_funnel
+        assert np.allclose(a.dynamics.inertia, np.diag(np.diag(a.dynamics.inertia)))  # closed form: diagonal M
+        m_ll = np.array([a.dynamics.mass] * 3 + list(np.diag(a.dynamics.inertia)))
+        rho_end = (need.rho_v0 - np.array(vf.rho_inf)) * np.exp(-np.array(vf.decay) * duration) + np.array(vf.rho_inf)
+        gamma = a.controller.gamma
+        assert need.at_start == pytest.approx(max(2 * gamma / (m_ll * need.rho_v0**2)), rel=1e-12)
+        # ρ_v decreases monotonically: the need is largest at the end (rate_needs samples 401 times)
+        assert need.at_end == pytest.approx(max(2 * gamma / (m_ll * rho_end**2)), rel=1e-12)

@@ -1,0 +1,88 @@
+"""The simulator's stepping policy without ROS: who answers a lockstep step, resend, timeout, hold, lag."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from formation_sim.stepping import NS, CommandHold, LagBudget, LockstepWait, ParticipantMissingError, WrenchBook
+
+IDS = ("1", "2", "3")
+PERIOD_NS = 100_000  # 10 kHz
+
+
+def wait(recorder: bool = False) -> LockstepWait:
+    return LockstepWait(IDS, step_timeout=2.0, resend=0.25, recorder=recorder, period_ns=PERIOD_NS)
+
+
+def test_wrench_book_keeps_the_latest_stamp() -> None:
+    """A wrench older than the one kept is a late duplicate (a re-sent step answered twice): ignored."""
+    book = WrenchBook(2)
+    assert book.accept(0, 200, (1.0,) * 6)
+    assert not book.accept(0, 200, (2.0,) * 6)  # the same step again: kept, not a new answer
+    assert book.value[0] == (2.0,) * 6
+    assert not book.accept(0, 100, (3.0,) * 6)
+    assert book.stamp == [200, -1] and book.value[0] == (2.0,) * 6
+
+
+def test_lockstep_waits_for_every_agent() -> None:
+    """The step is done once every agent answered it; a resend goes to the late agents only."""
+    w, book = wait(), WrenchBook(3)
+    w.begin(0, now=10.0)
+    book.accept(0, 0, (0.0,) * 6)
+    book.accept(2, 0, (0.0,) * 6)
+    assert not w.done(book)
+    assert w.poll(book, now=10.1) == []  # before the resend time
+    assert w.wake_at() == 10.25
+    assert w.poll(book, now=10.3) == [1]
+    assert w.resends == [0, 1, 0]
+    book.accept(1, 0, (0.0,) * 6)
+    assert w.done(book)
+
+
+def test_lockstep_names_who_stopped_answering() -> None:
+    """After step_timeout wall seconds the missing agents (and the recorder) are named."""
+    w, book = wait(recorder=True), WrenchBook(3)
+    w.begin(5 * PERIOD_NS, now=0.0)
+    for i in (0, 1):
+        book.accept(i, 5 * PERIOD_NS, (0.0,) * 6)
+    with pytest.raises(ParticipantMissingError, match=r"agent 3, the bag recorder .* t=0\.000500 s") as err:
+        w.poll(book, now=2.0)
+    assert err.value.names == ["3", "recorder"]
+
+
+def test_recorder_may_lag_one_step_but_not_at_the_end() -> None:
+    """The recorder's acknowledgement may be one step behind, except at the final step."""
+    w, book = wait(recorder=True), WrenchBook(3)
+    k = 7
+    w.begin(k * PERIOD_NS, now=0.0)
+    for i in range(3):
+        book.accept(i, k * PERIOD_NS, (0.0,) * 6)
+    assert not w.done(book)  # no acknowledgement yet
+    w.on_ack((k - 1) * PERIOD_NS)
+    assert w.done(book) and not w.done(book, final=True)
+    w.on_ack(k * PERIOD_NS)
+    assert w.done(book, final=True)
+    w.on_ack((k - 3) * PERIOD_NS)  # acknowledgements never go back
+    assert w.ack_ns == k * PERIOD_NS
+
+
+def test_command_hold_zeroes_stale_wrenches() -> None:
+    """Realtime: the latest wrench is held until older than the command timeout, then zero (and named)."""
+    hold = CommandHold(timeout_ns=50 * NS // 1000)  # 50 ms
+    book = WrenchBook(3)
+    book.accept(0, 0, (1.0,) * 6)
+    book.accept(1, 10 * NS // 1000, (2.0,) * 6)
+    u, zeroed = hold.applied(book, 55 * NS // 1000)
+    np.testing.assert_array_equal(u, [[0.0] * 6, [2.0] * 6, [0.0] * 6])
+    assert zeroed == [(0, "last wrench 0.055 s old"), (2, "no wrench yet")]
+    # 40 ms: agent 1's wrench is 40 ms old (held), and a run younger than the timeout needs none yet
+    u, zeroed = hold.applied(book, 40 * NS // 1000)
+    assert zeroed == [] and u[0, 0] == 1.0
+
+
+def test_lag_budget() -> None:
+    """A tick late by more than half a period is a late tick; beyond the budget the run stops."""
+    b = LagBudget(budget=1.0, period=0.01)
+    assert not b.late(0.004) and b.late(0.006)
+    assert not b.exceeded(1.0) and b.exceeded(1.0001)

@@ -1,0 +1,44 @@
+"""What a test must not leave behind: processes it started and Fast DDS shared-memory segments.
+
+A process killed with SIGKILL cannot remove its Fast DDS segments from /dev/shm (rmw_fastrtps uses
+the shared-memory transport for LOCALHOST discovery whatever FASTDDS_BUILTIN_TRANSPORTS says):
+tests that kill on purpose note the victim's segments first and remove exactly those afterwards.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+
+def shm_segments(pid: int) -> set[Path]:
+    """The Fast DDS shared-memory segments process ``pid`` maps (port lock files excluded)."""
+    try:
+        maps = Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return set()
+    return {
+        Path(line.split(None, 5)[-1].replace(" (deleted)", ""))
+        for line in maps.splitlines()
+        if "/dev/shm/fastrtps_" in line and "/dev/shm/fastrtps_port" not in line
+    }
+
+
+def kill_hard(pid: int) -> set[Path]:
+    """SIGKILL ``pid``; returns the shared-memory segments it leaves (Fast DDS cannot remove them)."""
+    segments = shm_segments(pid)
+    os.kill(pid, signal.SIGKILL)
+    return segments
+
+
+def remove_segments(segments: set[Path], timeout: float = 10.0) -> None:
+    """Remove the segments a SIGKILLed process left, once no process maps them any more."""
+    deadline = time.monotonic() + timeout
+    live = [int(d.name) for d in Path("/proc").iterdir() if d.name.isdigit()]
+    while any(seg in shm_segments(p) for p in live for seg in segments) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    for seg in segments:
+        seg.unlink(missing_ok=True)
+        Path(f"{seg}_el").unlink(missing_ok=True)

@@ -22,9 +22,8 @@ the numbers depend on the machine and its load, which is printed with them.
   integrator step per tick), 10 s each.
 - sweep: the realtime preset at 200, 500, 1000 Hz control (physics = control rate), 10 s: the
   control rate five realtime agents sustain.
-- scale: generated random trees of 20 and 50 agents (formation_sim.generate, retuned to hold at
-  20-100 Hz) at 100 Hz realtime (physics 100 Hz), then 20 agents at 50 Hz and 50 agents at 20 Hz;
-  10 s each.
+- scale: config/realtime_20agents_100hz.yaml and realtime_50agents_50hz.yaml (formation-generate
+  --preset realtime), 10 s each.
 """
 
 from __future__ import annotations
@@ -40,12 +39,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / ".venv" / "bin" / "formation-launch"
 PAPER = REPO / "config" / "paper_5agents.yaml"
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
+#: formation-generate --preset realtime: 20 agents at 100 Hz, 50 agents at 50 Hz
+SCALE_PRESETS = (REPO / "config" / "realtime_20agents_100hz.yaml", REPO / "config" / "realtime_50agents_50hz.yaml")
 
 
 def launch(
@@ -139,6 +139,17 @@ def total_cpu(procs: list[dict[str, Any]]) -> dict[str, float]:
 def step_cpu(base: Path, variants: list[str], repeat: int) -> dict[str, Any]:
     """CPU per lockstep step of the paper preset, (CPU(0.55 s) − CPU(0.05 s)) / 5000, per variant."""
     runs: dict[str, list[dict[str, Any]]] = {}
+    for v in variants:  # warm every variant's caches (numba compiles on a checkout's first run)
+        name, _, rest = v.partition("=")
+        words = rest.split()
+        launch(
+            PAPER,
+            base / f"stepcpu_{name}_warmup",
+            "--duration",
+            "0.01",
+            "--no-record",
+            launcher=Path(words[0]) if words else LAUNCH,
+        )
     for r in range(repeat):
         for v in variants:
             name, _, rest = v.partition("=")
@@ -172,35 +183,12 @@ def step_cpu(base: Path, variants: list[str], repeat: int) -> dict[str, Any]:
     return runs
 
 
-def generated(n: int, tmp: Path) -> Path:
-    """A random tree of n agents, realtime at 100 Hz for 10 s (formation_sim.generate).
-
-    The generated gains target 1 kHz; like config/realtime_5agents_100hz.yaml, heavier bodies,
-    δ 0.05, γ 2, a looser steady distance band and slower funnels make it hold at 20-100 Hz
-    (checked with run_headless for 20 and 50 agents).
-    """
-    from formation_sim.generate import generate
-
-    doc = generate(n, topology="random", seed=1, control_rate=100.0, duration=10.0, name=f"bench_{n}agents")
-    doc["simulation"].update(mode="realtime", record_rate=100.0)
-    doc["defaults"]["agent"]["controller"].update(delta=0.05, gamma=2.0)
-    doc["defaults"]["edge"]["distance_funnel"] = {"rho_inf": 1.0, "decay": 0.8}
-    doc["defaults"]["edge"]["orientation_funnel"] = {"rho_0": 1.9, "rho_inf": 0.1, "decay": 0.5}
-    for a in doc["agents"]:
-        a["dynamics"]["mass"] += 1.0
-        a["dynamics"]["inertia"] = [x + 1.0 for x in a["dynamics"]["inertia"]]
-    path = tmp / f"bench_{n}agents.yaml"
-    path.write_text(yaml.safe_dump(doc, sort_keys=False))
-    return path
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--only", default="lockstep,executor,realtime,sweep,scale", help="comma-separated sections")
     p.add_argument("--rates", default="200,500,1000", help="control rates [Hz] of the sweep section")
     p.add_argument("--lockstep-duration", type=float, default=0.5, help="simulated seconds of the paper preset")
     p.add_argument("--full", action="store_true", help="the whole 5 s paper scenario in lockstep")
-    p.add_argument("--sizes", default="20,50", help="agent counts of the scale section")
     p.add_argument("--out", type=Path, help="keep the run directories here (default: a temporary directory)")
     p.add_argument("--variants", nargs="*", default=["this="], help="step_cpu: NAME=[LAUNCH [ARG ...]] per variant")
     p.add_argument("--repeat", type=int, default=2, help="step_cpu: runs of each variant (interleaved)")
@@ -230,14 +218,8 @@ def main(argv: list[str] | None = None) -> int:
             res = launch(REALTIME, base / f"sweep{rate:g}", "--control-rate", str(rate), "--physics-rate", str(rate))
             record(f"realtime_5agents_{rate:g}Hz", res)
     if "scale" in sections:
-        for n in (int(x) for x in args.sizes.split(",")):
-            f = generated(n, base)
-            record(f"realtime_{n}agents_100Hz", launch(f, base / f"rt{n}"))
-        for n, rate in ((20, 50.0), (50, 20.0)):  # rates that fit (see RESULTS_ros.md)
-            if str(n) in args.sizes.split(","):
-                f = generated(n, base)
-                res = launch(f, base / f"rt{n}_{rate:g}", "--control-rate", str(rate), "--physics-rate", str(rate))
-                record(f"realtime_{n}agents_{rate:g}Hz", res)
+        for preset in SCALE_PRESETS:
+            record(preset.stem, launch(preset, base / preset.stem))
     (base / "ros_bench.json").write_text(json.dumps(results, indent=2) + "\n")
     print(f"results: {base / 'ros_bench.json'}")
     return 0

@@ -10,7 +10,9 @@
 # With --formation it acknowledges every lockstep step: start it first, then sim.sh FILE
 # --wait-recorder, and the bag holds every message from the first step; started later, it says
 # which steps it missed. Log times are simulation time in lockstep.
-# ROS_AUTOMATIC_DISCOVERY_RANGE defaults to LOCALHOST (set it to SUBNET to record other hosts).
+# Network: --network host (default: LOCALHOST unless ROS_AUTOMATIC_DISCOVERY_RANGE is set) or lan;
+# --secure KEYS [--hosts FILE] joins a secure run with the key 'recorder' (needs --formation FILE:
+# the ports follow its agents; docs/security.md).
 # All options: formation-record --help; user guide: docs/bags.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -21,5 +23,9 @@ case "${1:-}" in
     exec "$ROOT/.venv/bin/formation-record" --help ;;
 esac
 "$ROOT/ros2_ws/setup.sh"
-export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
-exec "$ROOT/.venv/bin/formation-record" "$@"
+# shellcheck source=lib/network.sh
+. "$ROOT/ros2_ws/lib/network.sh"
+formation=""; prev=""
+for a in "$@"; do [ "$prev" = "--formation" ] && formation="$a"; prev="$a"; done
+formation_network_options recorder "$formation" "$@" || exit 2
+exec "$ROOT/.venv/bin/formation-record" "${REST[@]+"${REST[@]}"}"

@@ -1,4 +1,4 @@
-# Network options shared by sim.sh and agent.sh (sourced, not run).
+# Network options shared by sim.sh, agent.sh and record.sh (sourced, not run).
 #
 #   --network host   discovery on this machine only (default): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 #                    unless the environment sets it (docker/compose.yaml and the image set SUBNET)
@@ -34,6 +34,9 @@ formation_network_options() {
     lan) export ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET ;;
     *) echo "--network: expected host or lan, got '$network'" >&2; return 2 ;;
   esac
+  if [ -n "$keys" ] && [ -z "$file" ]; then
+    echo "--secure needs the formation file (the ports follow its agents)" >&2; return 2
+  fi
   if [ -n "$keys" ]; then
     local args=(profile "$keys" "$name" --formation "$file" --out "${FORMATION_PROFILE_DIR:-$keys/profiles}")
     [ -n "$hosts" ] && args+=(--hosts "$hosts")

@@ -150,3 +150,32 @@ def test_refuses_to_overwrite_outputs(paper_path, tmp_path, capsys) -> None:
     (tmp_path / "keep.txt").write_text("x")
     assert headless.main([str(paper_path), "--out", str(tmp_path), "--duration", "0.001"]) == 2
     assert "--force" in capsys.readouterr().err
+
+
+def test_continuous_mode_substeps_to_rk4_stability_on_a_stiff_plant(paper_path) -> None:
+    """Agent 5 with J_zz = 1e-3 (60× smaller): at the file's physics rate RK4 leaves the velocity funnel at
+    once; the automatic sub-steps (λ·h within half of RK4's limit 2.785) hold every funnel, and halving them
+    again changes e and ψ by less than 1e-6 over 50 ms: the result is the continuous-time closed loop."""
+    import yaml
+
+    from formation_msgs_py.spec import formation_from_dict
+    from formation_sim.loop import continuous_substeps, run_closed_loop
+    from formation_sim.report import RunRecorder
+
+    doc = yaml.safe_load(paper_path.read_text())
+    doc["agents"][4]["dynamics"]["inertia"] = [0.493023, 0.676689, 1e-3]
+    doc["simulation"].update(duration=0.05, record_rate=10000.0)
+    spec = formation_from_dict(doc, source=str(paper_path))
+    auto = continuous_substeps(spec, 1)
+    assert auto >= 3
+
+    def run(substeps: int | None) -> RunRecorder:
+        rec = RunRecorder(spec, record_every=1, mode="headless-continuous", control_rate=10000.0)
+        run_closed_loop(spec, rec, continuous=True, substeps=substeps)
+        return rec
+
+    fixed, sub, finer = run(1), run(None), run(2 * auto)
+    assert fixed.first_violation is not None and fixed.first_violation.where == "5"
+    assert sub.first_violation is None and finer.first_violation is None
+    a, b = sub.arrays(), finer.arrays()
+    assert np.abs(a["e"] - b["e"]).max() < 1e-6 and np.abs(a["psi"] - b["psi"]).max() < 1e-6

@@ -4,10 +4,11 @@ only a loopback: nothing can leave the machine).
     python secure_driver.py WORKDIR DOMAIN_ID
 
 Creates the run's keys and another CA's, starts ``formation-launch --secure --keys`` (realtime
-preset, 4 s) and four outsiders on the same domain, aimed at the run's ports: ``plain`` (default
-UDP/shared-memory transports), ``nocert`` (TLS without a certificate), ``otherca`` (a certificate of
-another CA) and, as the control, ``member`` (a certificate of the run's own CA, publishing a
-harmless stamp-0 wrench). Prints one JSON line: the launcher's exit status and each outsider's report.
+preset, 8 s: long enough for the outsiders, started with it, to join under load) and four
+outsiders on the same domain, aimed at the run's ports: ``plain`` (default UDP/shared-memory
+transports), ``nocert`` (TLS without a certificate), ``otherca`` (a certificate of another CA)
+and, as the control, ``member`` (a certificate of the run's own CA, publishing a harmless
+stamp-0 wrench). Prints one JSON line: the launcher's exit status and each outsider's report.
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ def main() -> None:
             "--keys",
             str(run_keys),
             "--duration",
-            "4",
+            "8",
             "--physics-rate",
             "100",
             "--no-record",

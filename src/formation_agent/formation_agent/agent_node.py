@@ -270,7 +270,7 @@ class AgentNode(Node):
         pose_wait = declare(self, "pose_wait", 0.005, POSE_WAIT_DOC, low=0.0, high=1.0)
         self.diag_period = declare(self, "diagnostics_period", 0.1, DIAG_DOC, low=0.1, high=3600.0)
         self.measurement_qos = declare(self, "measurement_qos", "reliable", QOS_DOC, read_only=True)
-        self.executor_kind = declare(self, "executor", "lean", EXECUTOR_DOC, read_only=True)
+        self.executor_kind = declare(self, "executor", "events", EXECUTOR_DOC, read_only=True)
         check_kind(self.executor_kind)
         policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
         gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
@@ -480,8 +480,8 @@ parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
   formation_file       formation file (YAML); only the agent's own view of it is used   read-only
   agent_id             the agent's id in the file                                      read-only
   measurement_qos      reliable (default) or best-effort, as the simulator's --measurement-qos  read-only
-  executor             lean (default: one wait set over the measurements, raw takes), events or
-                       single (an rclpy executor's spin_once per message)              read-only
+  executor             events (default: rclpy's EventsExecutor), lean (one wait set over the
+                       node's subscriptions, raw takes) or single                       read-only
   intruder_policy      report (default) or refuse: a publisher other than the simulator on the
                        agent's measurements (or other than itself on its wrench) is logged; refuse
                        also ignores that topic's messages while it is there  read-only

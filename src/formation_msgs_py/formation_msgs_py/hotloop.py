@@ -2,7 +2,7 @@
 
 An rclpy executor's ``spin_once`` runs one callback per call: the EventsExecutor wakes the node
 once per message, the SingleThreadedExecutor also rebuilds its wait set from every entity of the
-node each time. ``lean`` (the default) instead waits once on every subscription of the node (a
+node each time. ``lean`` instead waits once on every subscription of the node (a
 step's measurements, wrenches, acknowledgements, and ``/clock``) and takes every message then
 ready (CDR bytes for the raw per-step ones), so a burst of one step's messages costs one
 wake-up (benchmarks/msg_cost_bench.py measures the three). The same wait covers the node's
@@ -25,7 +25,7 @@ from typing import Any
 #: the project's Fast DDS profile of non-secure runs
 FASTDDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
 #: the ways a node can spin (``--executor`` / the ``executor`` parameter)
-EXECUTORS = ("lean", "events", "single")
+EXECUTORS = ("events", "lean", "single")
 #: ``lean``: wall seconds between two turns of the side executor when no timer or service is ready
 SIDE_PERIOD = 1.0
 

@@ -120,7 +120,8 @@ OPTIONS: tuple[Option, ...] = (
     Option("--ground-truth-rate", "ground-truth publication rate [Hz, sim time] (default: the record rate, at "
            "most the control rate; while recording: the control rate)", ROS, positive, forward=True),
     Option("--clock-rate", "/clock publication rate [Hz, sim time]", ROS, positive, forward=True),
-    Option("--executor", "how every node spins (formation_msgs_py.hotloop)", ROS, str, "lean", EXECUTORS, forward=True),
+    Option("--executor", "how every node spins (formation_msgs_py.hotloop)", ROS, str, "events", EXECUTORS,
+           forward=True),
     Option("--measurement-qos", "QoS of relative poses and velocities; best-effort (realtime only) costs less CPU "
            "per message (agents need -p measurement_qos:=best_effort)", ROS, str, "reliable",
            ("reliable", "best-effort"), forward=True),
@@ -174,7 +175,7 @@ class RunOptions:
     lag_budget: float = 1.0
     ground_truth_rate: float | None = None
     clock_rate: float | None = None
-    executor: str = "lean"
+    executor: str = "events"
     measurement_qos: str = "reliable"
     intruder_policy: str = "report"
     marker_rate: float = 30.0

@@ -46,9 +46,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.loader import read_document
 from formation_msgs_py.so3 import exp_so3
 from formation_msgs_py.spec import FormationSpec, SignalModel, load_formation
 
@@ -175,13 +175,16 @@ def parse_campaign(document: Any, base: Path) -> Campaign:
 
 
 def load_campaign(path: Path) -> Campaign:
+    """Read and validate a campaign file with the formation files' reader (duplicate keys, size and
+    alias budgets); errors name the field and its FILE:LINE:COL."""
     try:
-        document = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise CampaignError(str(path), f"cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise CampaignError(str(path), f"not YAML: {exc}") from None
-    campaign = parse_campaign(document, path.parent)
+        document = read_document(path)
+    except FormationSpecError as exc:
+        raise CampaignError("campaign file", str(exc).replace("formation file", "campaign file")) from None
+    try:
+        campaign = parse_campaign(document.data, path.parent)
+    except CampaignError as exc:
+        raise CampaignError(exc.field, f"{exc.args[0].split(': ', 1)[1]} ({document.location(exc.field)})") from None
     load_formation(campaign.formation)  # a bad base formation is an error before anything runs
     return campaign
 
@@ -264,7 +267,7 @@ def run_task(task: Task) -> dict[str, Any]:
         "sample": task.sample,
         "control_rate": task.control_rate,
         "seed": f"{task.entropy}:{'/'.join(map(str, task.spawn_key))}",
-        "verdict": "PASS" if summary["funnels_held"] else "FAIL",
+        "verdict": summary["verdict"],  # PASS, FAIL or INCOMPLETE
         "violation_t": fv.get("t"),
         "violation_kind": fv.get("kind"),
         "violation_where": fv.get("edge") or fv.get("agent"),
@@ -327,10 +330,13 @@ def run_tasks(todo: list[Task], log: Path, *, workers: int, scheduler: str | Non
             for done, task in enumerate(todo, 1):
                 record(run_task(task), done)
         else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            pool = ProcessPoolExecutor(max_workers=workers)
+            try:
                 futures = [pool.submit(run_task, t) for t in todo]
                 for done, fut in enumerate(as_completed(futures), 1):
                     record(fut.result(), done)
+            finally:  # interrupted: the runs not started are dropped, not waited for
+                pool.shutdown(wait=True, cancel_futures=True)
     if not quiet and todo:
         print()
 
@@ -408,7 +414,8 @@ def plot_campaign(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]
     ax.set_ylabel("pass rate (95 % CI)")
     ax.set_ylim(-0.05, 1.05)
     ax.grid(alpha=0.3)
-    ax.set_title(f"{Path(summary['formation']).name}: {summary['samples']} samples")
+    runs = max(per[r]["runs"] for r in per)
+    ax.set_title(f"{Path(summary['formation']).name}: {runs} random plants per rate")
     fig.tight_layout()
     tmp = out / "pass_rate.tmp.png"
     fig.savefig(tmp, dpi=110)

@@ -72,7 +72,7 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
         if m_psi < INITIAL_MARGIN_WARN:
             unsafe.append(f"edge {e.name}: initial orientation error within {m_psi:.1%} of rho_psi0")
     lines.append(f"control rate needed by the velocity loop (zero-order hold at {sim.control_rate:g} Hz):")
-    lines.append("  agent     at t=0 [Hz]   at t=T [Hz]   verdict")
+    lines.append("  agent     at t=0 [Hz]   at t=T [Hz]   verdict   continuous: RK4 step <= [s]")
     for n in rate_needs(spec):
         if n.insufficient_from is None:
             verdict = "ok"
@@ -82,7 +82,7 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
                 f"agent {n.agent_id}: control rate {sim.control_rate:g} Hz is below the {n.at_end:.0f} Hz "
                 f"its velocity loop needs by t={sim.duration:g} s (from t={n.insufficient_from:.2f} s)"
             )
-        lines.append(f"  {n.agent_id:<8} {n.at_start:>11.0f}   {n.at_end:>11.0f}   {verdict}")
+        lines.append(f"  {n.agent_id:<8} {n.at_start:>11.0f}   {n.at_end:>11.0f}   {verdict:<7}   {n.physics_step:.3g}")
     return lines, unsafe
 
 

@@ -5,7 +5,8 @@ does, step for step: the measurements of step k (relative poses with their noise
 twists), every agent's controller (:func:`formation_sim.team.team_step`, with the fault policy),
 the step's ground truth, wrenches and velocity-funnel margins into the recording buffers, then
 ``substeps`` physics steps: with the wrenches held (``sampled``, zero-order hold) or with the
-controller evaluated on every integrator stage (``continuous``, the paper's law). It returns to
+controller evaluated on every integrator stage (``continuous``, the paper's law, sub-stepped to
+within RK4's stability limit: :func:`continuous_substeps`). It returns to
 Python after a buffer's worth of steps, at the first step with a fault while none is recorded
 yet (so the recorder sees faults and funnel checks in the order the streaming runs record them),
 or when a state is no longer finite (naming the agents).
@@ -15,6 +16,7 @@ or when a state is no longer finite (naming the agents).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import NamedTuple
@@ -47,12 +49,13 @@ from formation_sim.plant import (
     rkmk4_step,
     saturate_into,
 )
+from formation_sim.rates import rate_needs
 from formation_sim.report import RunRecorder
 from formation_sim.simulation import Simulation
 from formation_sim.team import note_errors, note_missing, team_step
 
 #: run_steps' reasons to return early
-EVENT_NONE, EVENT_FAULT, EVENT_NON_FINITE = 0, 1, 2
+EVENT_NONE, EVENT_NON_FINITE = 0, 1
 #: (t, real-time factor, worst margin so far)
 ProgressFn = Callable[[float, float, float], None]
 
@@ -145,11 +148,10 @@ def all_finite_state(p, R, v):
 
 
 @kernel
-def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, stop_at_fault, buf):
+def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, buf):
     """Control steps k0 … k_stop − 1 (no physics after step k_last), (p, R, v) in place.
 
-    Returns (steps done, event): ``EVENT_FAULT`` after a step with an agent at ERROR when
-    ``stop_at_fault``; ``EVENT_NON_FINITE`` when the state is no longer finite.
+    Returns (steps done, event): ``EVENT_NON_FINITE`` when the state is no longer finite.
     """
     n = 0
     for k in range(k0, k_stop):
@@ -165,9 +167,6 @@ def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h
         buf.level[n] = out.level
         buf.reason[n] = out.reason
         buf.in_range[n] = loop.in_range
-        fault = False
-        for i in range(out.level.shape[0]):
-            fault = fault or out.level[i] == ERROR
         n += 1
         if k == k_last:
             break
@@ -178,8 +177,6 @@ def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h
                 rkmk4_step(t + s * h, p, R, v, out.u, h, loop.plant, work)
         if not all_finite_state(p, R, v):
             return n, EVENT_NON_FINITE
-        if fault and stop_at_fault:
-            return n, EVENT_FAULT
     return n, EVENT_NONE
 
 
@@ -203,6 +200,18 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
     )
 
 
+#: Fraction of RK4's stability limit used: the linearisation at ξ_v = 0 underestimates the gain
+#: r_v(ξ)/2 near the funnel's bound.
+STABILITY_FRACTION = 0.5
+
+
+def continuous_substeps(spec: FormationSpec, file_substeps: int) -> int:
+    """Physics steps per control period for the continuous closed loop: at least the file's, and enough
+    for every agent's RK4 stability limit (:attr:`formation_sim.rates.RateNeed.physics_step`)."""
+    h_max = STABILITY_FRACTION * min(n.physics_step for n in rate_needs(spec))
+    return max(file_substeps, math.ceil(1.0 / (spec.simulation.control_rate * h_max)))
+
+
 def _refill_noise(loop: ClosedLoop, sim: Simulation, draws: int) -> ClosedLoop:
     """Make sure ``draws`` more noise draws are at hand, continuing the measurement model's stream."""
     if not sim.sensors.noisy:
@@ -223,6 +232,7 @@ def run_closed_loop(
     stop_on_violation: bool = False,
     progress: ProgressFn | None = None,
     chunk: int | None = None,
+    substeps: int | None = None,
 ) -> tuple[float, str]:
     """Run ``spec`` for ``simulation.duration`` into ``recorder``: (wall time [s], why it is incomplete or "").
 
@@ -230,6 +240,8 @@ def run_closed_loop(
     runs record them (:func:`formation_sim.team.note_missing` before a step's funnel check,
     :func:`formation_sim.team.note_errors` after it). A state that stops being finite ends the
     run, incomplete, naming the agents (as :func:`formation_sim.inputs.advance_checked`).
+    ``substeps`` overrides the physics steps per control period (default: the file's, and in
+    continuous mode at least :func:`continuous_substeps`).
     """
     started = time.perf_counter()
     sim_spec = spec.simulation
@@ -241,7 +253,10 @@ def run_closed_loop(
     chunk = chunk or int(np.clip(8e6 / (len(ids) * 8 * 36), 100, 2000))
     neighbours = [ie.neighbour for a in ids for ie in agent_view(spec, a).edges]
     buf = new_buffers(chunk, len(ids), len(neighbours))
-    draws_per_step = 1 + (4 * sim.substeps if continuous else 0)
+    if substeps is None:  # physics steps per control period
+        substeps = continuous_substeps(spec, sim.substeps) if continuous else sim.substeps
+    h = 1.0 / (sim_spec.control_rate * substeps)
+    draws_per_step = 1 + (4 * substeps if continuous else 0)
     p, R, v = sim.state.p, sim.state.R, sim.state.v  # advanced in place
     work = new_workspace(len(ids))
     k = 0
@@ -249,29 +264,22 @@ def run_closed_loop(
     last_report = started
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
-        watch = recorder.first_violation is None
         done, event = run_steps(
             loop, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
-            sim.substeps, sim.h, continuous, watch, buf,
+            substeps, h, continuous, buf,
         )  # fmt: skip
-        if watch and buf.level[done - 1].max() == ERROR:
-            # a fault at the last step done: the checks before it, then its faults around its own check
-            j = done - 1
-            if j:
-                recorder.add_many(*_samples(buf, slice(0, j)), stop_at_violation=stop_on_violation)
-            if not (stop_on_violation and recorder.first_violation is not None):
-                t = float(buf.t[j])
-                first = loop.agents.first_end
-                missing = {
-                    i: [neighbours[e] for e in range(first[i], first[i + 1]) if not buf.in_range[j, e]]
-                    for i in range(len(ids))
-                    if not buf.in_range[j, first[i] : first[i + 1]].all()
-                }
-                note_missing(recorder, t, ids, missing)
-                recorder.add_many(*_samples(buf, slice(j, done)))
-                note_errors(recorder, t, ids, buf.level[j], [REASON_MESSAGES[r] for r in buf.reason[j]])
-        else:
-            recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
+        done = recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
+        first = loop.agents.first_end
+        for j in np.flatnonzero(buf.level[:done].max(axis=1) == ERROR):  # the fault policy's record
+            t = float(buf.t[j])
+            missing = {
+                i: [neighbours[e] for e in range(first[i], first[i + 1]) if not buf.in_range[j, e]]
+                for i in range(len(ids))
+                if not buf.in_range[j, first[i] : first[i + 1]].all()
+            }
+            note_missing(recorder, t, ids, missing)
+            errors = [i not in missing and buf.level[j, i] == ERROR for i in range(len(ids))]
+            note_errors(recorder, t, ids, errors, [REASON_MESSAGES[r] for r in buf.reason[j]])
         k += done
         if event == EVENT_NON_FINITE:  # the run stops; the non-finite state is never recorded
             bad = ", ".join(non_finite_agents(ids, p, R, v))

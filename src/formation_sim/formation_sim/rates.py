@@ -2,7 +2,8 @@
 
 Near ξ_v = 0 the wrench is u ≈ −4γ ρ_v⁻² e_v per channel, so agent i's velocity loop is
 v̇ ≈ −M⁻¹ K(t) v with K = diag(4γ/ρ_v,ℓ(t)²). A zero-order-hold controller at rate f_s is
-stable only if f_s > λ_max(M⁻¹K(t))/2 (:func:`rate_need`). ρ_v decreases, so the need grows over
+stable only if f_s > λ_max(M⁻¹K(t))/2 (:func:`rate_need`), and fixed-step RK4 on the continuous
+closed loop only if λ_max·h < 2.785 (:attr:`RateNeed.physics_step`). ρ_v decreases, so the need grows over
 the run and is largest at the end. ``auto`` velocity funnels are evaluated as the agent will:
 from e_v(0), computed by the agents' controllers on the initial measurements.
 """
@@ -18,6 +19,9 @@ from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.simulation import Simulation
 from formation_sim.team import AgentTeam
 
+#: Fixed-step RK4 is stable on ẋ = −λx for λ·h < 2.785 (the real stability interval of RK4).
+RK4_STABILITY = 2.785
+
 
 @dataclass(frozen=True)
 class RateNeed:
@@ -29,6 +33,14 @@ class RateNeed:
     rho_v0: np.ndarray
     #: first time (s) at which the configured control rate stops being enough, or None
     insufficient_from: float | None
+
+    @property
+    def physics_step(self) -> float:
+        """Largest RK4 step [s] for the continuous closed loop: λ·h < 2.785 with λ = 2·(rate need).
+
+        The need is largest at the end of the run (ρ_v decreases), so this holds over the run.
+        """
+        return RK4_STABILITY / (2.0 * self.at_end)
 
 
 def rate_need(M: np.ndarray, gamma: float, rho_v: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from formation_msgs_py.spec import SimulatorView
-from formation_sim.measurement import MeasurementModel, RelativePoses
+from formation_sim.measurement import MeasurementModel, RelativePoses, relative_poses
 from formation_sim.plant import Plant, PlantState
 
 
@@ -54,6 +54,19 @@ class Simulation:
         self.state: PlantState = self.plant.initial_state(view)
         self.step_index = 0
         self.agent_ids = tuple(a.id for a in view.agents)
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Load (or compile) the kernels now, not at the first step a realtime clock is running for.
+
+        Every call works on copies: the state and the noise stream are untouched.
+        """
+        s = self.state.copy()
+        self.plant.step(0.0, s, np.zeros((len(self.agent_ids), 6)), self.h)
+        self.plant.measured_velocity(0.0, s)
+        m = self.sensors
+        relative_poses(s.p, s.R, m.sensing, np.zeros((0, 0, 3)) if not m.noisy else np.zeros((2, m.n_links, 3)),
+                       m.p_rel.copy(), m.R_rel.copy(), m.in_range.copy())  # fmt: skip
 
     @property
     def t(self) -> float:

@@ -6,8 +6,8 @@ simulator node published (its *shadow* of the agents: in lockstep these are what
 answer, so the velocity-funnel margins and faults it records are the agents' own) and on the
 decoded messages of a synthesised bag. The fault policy is the same everywhere: an agent missing
 a neighbour's pose answers a zero wrench at ERROR (:func:`fault_wrench`) and is a ``measurement``
-fault (:func:`note_missing`); otherwise the first agent at ERROR (saturated: outside a funnel) is a
-``controller`` fault (:func:`note_errors`).
+fault (:func:`note_missing`); every other agent at ERROR (saturated: outside a funnel) is a
+``controller`` fault (:func:`note_errors`), counted per agent and step.
 """
 
 from __future__ import annotations
@@ -56,14 +56,13 @@ def note_missing(
 
 
 def note_errors(
-    recorder: RunRecorder, t: float, agent_ids: Sequence[str], levels: Sequence[int], messages: Sequence[str]
+    recorder: RunRecorder, t: float, agent_ids: Sequence[str], errors: Sequence[bool], messages: Sequence[str]
 ) -> None:
-    """The first agent at ERROR (saturated: outside a funnel) is a ``controller`` fault (after the check)."""
-    if recorder.first_violation is None:
-        for aid, level, message in zip(agent_ids, levels, messages):
-            if level == ERROR:
-                recorder.fault(t, "controller", aid, message)
-                return
+    """Every agent at ERROR for its controller (saturated: outside a funnel, or a non-finite wrench)
+    is a ``controller`` fault; ``errors`` excludes agents already recorded by :func:`note_missing`."""
+    for aid, error, message in zip(agent_ids, errors, messages):
+        if error:
+            recorder.fault(t, "controller", aid, message)
 
 
 class AgentTeam:
@@ -80,6 +79,11 @@ class AgentTeam:
         self._p = np.zeros((n, 3))
         self._R = np.tile(np.eye(3), (n, 1, 1))
         self._in_range = np.zeros(n, dtype=np.bool_)
+        # load (or compile) the kernels now, on scratch outputs: not at a realtime run's first step
+        v = np.zeros((len(self.ids), 6))
+        scratch = (new_funnel_start(len(self.ids)), new_outputs(len(self.ids), n))
+        everyone = np.ones(n, dtype=np.bool_)  # every agent steps (a missing pose would skip agent_step)
+        team_step(0.0, self._p, self._R, everyone, v, self.agents, self.ends, *scratch)
 
     def evaluate(
         self, meas: Measurements, recorder: RunRecorder | None
@@ -109,5 +113,6 @@ class AgentTeam:
         return self.out.u.copy(), self.out.margin_v.copy(), outputs
 
     def note_errors(self, t: float, outputs: list[ControlOutput], recorder: RunRecorder) -> None:
-        """The first agent at ERROR is a ``controller`` fault."""
-        note_errors(recorder, t, self.ids, [o.level for o in outputs], [o.message for o in outputs])
+        """Every agent at ERROR (not for a missing pose: :meth:`evaluate` recorded those) is a ``controller`` fault."""
+        errors = [o.level == ERROR and "no relative pose" not in o.message for o in outputs]
+        note_errors(recorder, t, self.ids, errors, [o.message for o in outputs])

@@ -13,12 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from ros_helpers import BIN, PAPER, REALTIME, read_log
+from ros_helpers import BIN, PAPER, REALTIME, read_log, ros_context
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics
@@ -59,11 +58,7 @@ def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: 
             f"intruder_policy:={policy}",
         ],
     )
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    os.environ.update({k: ros_env[k] for k in saved})
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    try:
+    with ros_context(ros_env) as context:
         node = Node("outsider", context=context)
         got: list[int] = []
         codec = conversions.wrench_codec("3")
@@ -112,13 +107,6 @@ def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: 
         else:
             assert stamp not in got, read_log(agent)  # no wrench answered the outsider's measurements
         node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=context)
-        for k, value in saved.items():
-            if value is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = value
 
 
 @pytest.mark.parametrize("policy", ["report", "refuse"])
@@ -128,45 +116,37 @@ def test_simulator_applies_an_outsiders_wrench_only_when_reporting(
     """Realtime run with an outsider answering each of agent 3's velocities with 50 N on /agent_3/wrench
     (the same stamp: plausible): the simulator names it in summary.json; report applies its 50 N (the
     threat), refuse never does and counts what it refused."""
-    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
-    os.environ.update({k: ros_env[k] for k in saved})
-    context = rclpy.Context()
-    rclpy.init(context=context)
     out = tmp_path / "out"
     cmd = [str(BIN / "formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
-    cmd += ["--duration", "3", "--physics-rate", "100", "--intruder-policy", policy]
+    # the lag budget is not what this test is about: a loaded machine must not end the run INCOMPLETE
+    cmd += ["--duration", "3", "--physics-rate", "100", "--intruder-policy", policy, "--lag-budget", "30"]
     launch = subprocess.Popen(
         cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
     )
     try:
-        node = Node("outsider", context=context)
-        pub = node.create_publisher(WrenchStamped, topics.wrench("3"), qos.CONTROL)
-        wrench, twist = conversions.wrench_codec("3"), conversions.twist_codec("3")
-        force = [50.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-        node.create_subscription(
-            TwistStamped,
-            topics.velocity("3"),
-            lambda data: pub.publish(wrench.encode(twist.decode(data)[0], force)),
-            qos.CONTROL,
-            raw=True,
-        )
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        deadline = time.monotonic() + 240
-        while launch.poll() is None:
-            assert time.monotonic() < deadline
-            executor.spin_once(timeout_sec=0.05)
-        node.destroy_node()
+        with ros_context(ros_env) as context:
+            node = Node("outsider", context=context)
+            pub = node.create_publisher(WrenchStamped, topics.wrench("3"), qos.CONTROL)
+            wrench, twist = conversions.wrench_codec("3"), conversions.twist_codec("3")
+            force = [50.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+            node.create_subscription(
+                TwistStamped,
+                topics.velocity("3"),
+                lambda data: pub.publish(wrench.encode(twist.decode(data)[0], force)),
+                qos.CONTROL,
+                raw=True,
+            )
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(node)
+            deadline = time.monotonic() + 240
+            while launch.poll() is None:
+                assert time.monotonic() < deadline
+                executor.spin_once(timeout_sec=0.05)
+            node.destroy_node()
     finally:
         if launch.poll() is None:
             os.killpg(launch.pid, signal.SIGINT)
             launch.wait(timeout=60)
-        rclpy.try_shutdown(context=context)
-        for k, value in saved.items():
-            if value is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = value
     log = launch.stdout.read().decode(errors="replace") if launch.stdout else ""
     assert launch.returncode in (0, 1), log  # the verdict may be FAIL: agent 3's command is lost or wrong
     summary = json.loads((out / "summary.json").read_text())

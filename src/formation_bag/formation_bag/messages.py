@@ -8,7 +8,6 @@ node saw.
 from __future__ import annotations
 
 import re
-import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
@@ -18,7 +17,7 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from formation_msgs_py import topics, wire
-from formation_msgs_py.so3 import matrix_from_quaternion, quaternion_from_matrix
+from formation_msgs_py.so3 import quaternion_from_matrix
 from formation_msgs_py.wire import NS_PER_S, stamp_ns
 
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
@@ -122,28 +121,9 @@ decode_poses = wire.poses_from_msg
 
 # -- fast decoding of the fixed-layout messages (little-endian CDR), same numbers as rosbags ---------
 
-_U32 = struct.Struct("<I")
-_STAMP = struct.Struct("<iI")
-_D7 = struct.Struct("<7d")
 # the nodes' codecs (formation_msgs_py.wire); decoding ignores the frame names
 _POSE_CODEC = wire.StampedCodec(["", ""], 7)
 _SIX_CODEC = wire.StampedCodec([""], 6)
-
-
-def _align(off: int, a: int) -> int:
-    """CDR alignment, relative to the end of the 4-byte encapsulation header."""
-    return 4 + ((off - 4 + a - 1) // a) * a
-
-
-def _skip_string(data: bytes | memoryview, off: int) -> int:
-    off = _align(off, 4)
-    return off + 4 + _U32.unpack_from(data, off)[0]
-
-
-def _header(data: bytes | memoryview) -> tuple[int, int]:
-    """(stamp ns, offset after std_msgs/Header)."""
-    sec, nsec = _STAMP.unpack_from(data, 4)
-    return sec * NS_PER_S + nsec, _skip_string(data, 12)
 
 
 def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int, Any]:
@@ -164,24 +144,15 @@ def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int,
         }[kind](obj)
         return stamp_ns(obj.header.stamp), value
     if kind == "clock":
-        sec, nsec = _STAMP.unpack_from(data, 4)
-        return sec * NS_PER_S + nsec, None
+        return wire.stamp_of(data), None
     if kind == "relative_pose":
         stamp, values = _POSE_CODEC.decode(data)
         return stamp, wire.relative_pose_from_values(values)
     if kind in ("velocity", "wrench"):
         stamp, values = _SIX_CODEC.decode(data)
         return stamp, list(values)
-    stamp, off = _header(data)
     if kind == "ground_truth":
-        off = _align(off, 4)
-        n = _U32.unpack_from(data, off)[0]
-        off = _align(off + 4, 8)
-        p, R = [], []
-        for k in range(n):
-            x, y, z, qx, qy, qz, qw = _D7.unpack_from(data, off + 56 * k)
-            p.append([x, y, z])
-            R.append(matrix_from_quaternion(qx, qy, qz, qw))
+        stamp, p, R = wire.ground_truth_from_bytes(data)
         return stamp, (p, R)
     raise ValueError(f"no fast decoder for {kind!r}")
 

@@ -154,6 +154,25 @@ def ground_truth_bytes(
     return head + struct.pack(f"<{len(values)}d", *values)
 
 
+def _cdr_align(off: int, a: int) -> int:
+    """CDR alignment of a byte offset: relative to the end of the 4-byte encapsulation header."""
+    return 4 + ((off - 4 + a - 1) // a) * a
+
+
+def ground_truth_from_bytes(data: bytes | memoryview) -> tuple[int, list[list[float]], list[list[list[float]]]]:
+    """(stamp ns, p_world (N,3), R_world_body (N,3,3)) of little-endian CDR bytes of a
+    geometry_msgs/PoseArray: the inverse of :func:`ground_truth_bytes` (any frame name)."""
+    ns = stamp_of(data)
+    off = _cdr_align(16 + _U32.unpack_from(data, 12)[0], 4)  # after header.frame_id (length, bytes)
+    n = _U32.unpack_from(data, off)[0]
+    off = _cdr_align(off + 4, 8)
+    p, R = [], []
+    for x, y, z, qx, qy, qz, qw in struct.iter_unpack("<7d", data[off : off + 56 * n]):
+        p.append([x, y, z])
+        R.append(matrix_from_quaternion(qx, qy, qz, qw))
+    return ns, p, R
+
+
 def relative_pose_values(p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]) -> tuple[float, ...]:
     """The 7 doubles of a relative pose: translation (m, frame agent_i) and quaternion (x, y, z, w)."""
     return (*p_i_j_in_i, *quaternion_from_matrix(R_i_j))

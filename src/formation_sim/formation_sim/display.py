@@ -146,5 +146,4 @@ SETTING_DOCS = {
     "mode": "lockstep or realtime (--mode)",
     "control_rate": "control rate [Hz] (--control-rate or simulation.control_rate)",
     "measurement_qos": "reliable or best-effort (--measurement-qos)",
-    "executor": "rclpy executor: events or single (--executor)",
 }

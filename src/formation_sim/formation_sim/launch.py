@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from formation_agent.process import compiled_pays
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser, RunOptions
@@ -152,6 +153,7 @@ class Launcher:
             "sim", "sim", [sys.executable, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec)]
         )
         self._follow = LogFollower(sim.log)
+        jit = "0" if compiled_pays(spec.simulation.control_rate) else "1"
         for a in spec.agents:
             cmd = [
                 str(_bin("formation-agent")),
@@ -165,10 +167,10 @@ class Launcher:
                 "-p",
                 f"measurement_qos:={args.measurement_qos}",
                 "-p",
-                f"executor:={args.executor}",
-                "-p",
                 f"intruder_policy:={args.intruder_policy}",
             ]
+            key = self.sup.key_names.get(f"agent_{a.id}", f"agent_{a.id}")
+            self.sup.process_env[key] = {**self.sup.process_env.get(key, self.sup.env), "NUMBA_DISABLE_JIT": jit}
             self.sup.start(f"agent_{a.id}", "agent", cmd)
         return sim
 

@@ -39,13 +39,13 @@ import rclpy
 from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, options, qos, topics, wire
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.graph_watch import GraphWatch
-from formation_msgs_py.hotloop import Spinner
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
@@ -423,7 +423,6 @@ class Runner:
             "steps": self.step,
             "clock_rate": s.control_rate / self.clock_every,
             "ground_truth_rate": s.control_rate / self.gt_every,
-            "executor": self.args.executor,
             "velocity_margins": "shadow controllers on the published measurements",
             "recorder_in_step": self.node.ack_sub is not None,
         }
@@ -486,9 +485,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         check_secure_transport()
         settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
-        settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
+        settings["measurement_qos"] = args.measurement_qos
         node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
-        executor = Spinner(args.executor, node)
+        executor = EventsExecutor(context=node.context)
+        executor.add_node(node)
         runner = Runner(node, executor, spec, args)
         timeout = args.discovery_timeout or 30.0 + len(spec.agents)
         t_disc = time.monotonic()

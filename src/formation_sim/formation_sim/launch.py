@@ -153,7 +153,8 @@ class Launcher:
             "sim", "sim", [sys.executable, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec)]
         )
         self._follow = LogFollower(sim.log)
-        jit = "0" if compiled_pays(spec.simulation.control_rate) else "1"
+        # the agents' controller: compiled or interpreted (formation_agent.process), unless the environment says
+        jit = self.sup.env.get("NUMBA_DISABLE_JIT") or ("0" if compiled_pays(spec.simulation.control_rate) else "1")
         for a in spec.agents:
             cmd = [
                 str(_bin("formation-agent")),

@@ -10,7 +10,8 @@ lockstep the recorder takes part in every step (``formation-sim --wait-recorder`
 holds every message. After the last step, agents and recorder are stopped together (the
 recorder takes what it holds and closes the bag), then OUT/summary.json is completed with the
 verdict of the whole run: the simulator's, made INCOMPLETE when a process died, the run was
-interrupted, or the bag misses messages in lockstep. ``OUT/logs/processes.json`` lists every
+interrupted, or the bag misses messages in lockstep, and with every agent's own fault counts
+(``faults_file``: resets, refused measurements, missing poses). ``OUT/logs/processes.json`` lists every
 process with its exit status, CPU time and peak memory.
 """
 
@@ -22,11 +23,13 @@ import shutil
 import signal
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
+from formation_msgs_py.faults import FaultLog
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
 from formation_msgs_py.spec import FormationSpec
@@ -84,6 +87,27 @@ def check_space(out: Path, spec: FormationSpec, record: bool) -> str | None:
     if free < need:
         return f"{out} has {free / 1e6:.0f} MB free, the run needs about {need / 1e6:.0f} MB"
     return None
+
+
+def agent_faults_file(logs: Path, agent_id: str) -> Path:
+    """Where agent ``agent_id`` writes its fault counts when it stops (its ``faults_file`` parameter)."""
+    return logs / f"agent_{agent_id}_faults.json"
+
+
+def merge_agent_faults(summary: dict[str, Any], logs: Path, agent_ids: Sequence[str]) -> None:
+    """Every agent's own fault counts (resets, refused measurements, missing poses) into ``summary["faults"]``;
+    ``summary["agent_faults_unknown"]`` names the agents that wrote none (killed, or never started)."""
+    faults = FaultLog()
+    faults.merge(summary.get("faults") or {})
+    unknown = []
+    for a in agent_ids:
+        try:
+            faults.merge(json.loads(agent_faults_file(logs, a).read_text(encoding="utf-8")))
+        except (OSError, ValueError):
+            unknown.append(a)
+    summary["faults"] = faults.as_dict()
+    if unknown:
+        summary["agent_faults_unknown"] = unknown
 
 
 def build_parser() -> OptionParser:
@@ -168,6 +192,8 @@ class Launcher:
                 f"executor:={args.executor}",
                 "-p",
                 f"intruder_policy:={args.intruder_policy}",
+                "-p",
+                f"faults_file:={agent_faults_file(self.out / 'logs', a.id)}",
             ]
             self.sup.start(f"agent_{a.id}", "agent", cmd)
         return sim
@@ -267,6 +293,7 @@ class Launcher:
             if self.stop is None:
                 sim = next(c for c in self.sup.children if c.role == "sim")
                 self.stop = Incomplete(ExitCode.PROCESS_DIED, f"{sim.describe_exit()}: no summary written")
+        merge_agent_faults(summary, self.out / "logs", self.spec.agent_ids)
         incomplete = self.stop
         if incomplete is None and self.agent_died:
             incomplete = Incomplete(ExitCode.PROCESS_DIED, "; ".join(self.agent_died))

@@ -28,6 +28,7 @@ from ros_helpers import (
     wait_for_line,
 )
 
+from formation_bag.reader import Bag
 from formation_msgs_py.spec import agent_view, load_formation
 
 
@@ -232,6 +233,33 @@ def test_realtime_slower_than_its_lag_budget(launched) -> None:
     assert late["count"] >= 2 and late["last_t"] > late["first_t"], late
     assert "Traceback" not in text + run.logs()
     assert processes_mentioning(str(run.formation)) == []
+
+
+def test_realtime_recorder_that_falls_behind_drops_with_an_exact_count(launched) -> None:
+    """Realtime: a recorder stopped (SIGSTOP) for 2 s while the run goes on cannot keep everything; the
+    run does not wait for it, and summary.json's recorder counts say exactly what is not in the bag."""
+    run = launched("--mode", "realtime", "--duration", "4", "--lag-budget", "30", formation=REALTIME)
+    run.wait_stepping()
+    recorder = run.pid_of("recorder")
+    os.kill(recorder, signal.SIGSTOP)
+    try:
+        time.sleep(2.0)
+    finally:
+        os.kill(recorder, signal.SIGCONT)
+    code, summary = run.finish()
+    assert code == summary["exit_status"] == (1 if summary["first_violation"] else 0), run.text()
+    counts = summary["recorder"]
+    assert counts["not_recorded"] > 0, counts
+    assert f"the recorder fell behind: {counts['not_recorded']} published messages are not in the bag" in run.text()
+    with Bag(run.out / "bag") as bag:
+        in_bag = {name: info.count for name, info in bag.topics.items()}
+    assert counts["written"] == sum(in_bag.values())
+    # one velocity per step (k = 0 … steps) was published: what is in the bag plus what the summary
+    # says is missing is exactly that
+    for a in load_formation(REALTIME).agent_ids:
+        topic = f"/agent_{a}/velocity"
+        assert in_bag[topic] + counts["not_recorded_by_topic"].get(topic, 0) == summary["steps"] + 1, (topic, counts)
+    assert any(t.endswith("/velocity") for t in counts["not_recorded_by_topic"]), counts
 
 
 def test_full_disk_mid_run(launched, tmp_path: Path) -> None:

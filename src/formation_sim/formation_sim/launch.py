@@ -7,10 +7,11 @@ bag recorder through :class:`formation_sim.supervisor.Supervisor`, in the DDS en
 completion, Ctrl-C, SIGTERM, SIGHUP or the death of a process (in realtime an agent's death is
 reported and the run goes on: the simulator zeroes that agent's wrench); the death is named. In
 lockstep the recorder takes part in every step (``formation-sim --wait-recorder``), so the bag
-holds every message. After the last step, agents and recorder are stopped together (the
-recorder takes what it holds and closes the bag), then OUT/summary.json is completed with the
-verdict of the whole run: the simulator's, made INCOMPLETE when a process died, the run was
-interrupted, or the bag misses messages in lockstep, and with every agent's own fault counts
+holds every message. After the last step, agents and recorder are stopped together while the
+simulator writes OUT (the recorder takes what it holds and closes the bag), then OUT/summary.json
+is completed with the verdict of the whole run: the simulator's, made INCOMPLETE when a process
+died, the run was interrupted, the bag misses messages in lockstep or was not closed cleanly, and
+with every agent's own fault counts
 (``faults_file``: resets, refused measurements, missing poses). ``OUT/logs/processes.json`` lists every
 process with its exit status, CPU time and peak memory.
 """
@@ -146,6 +147,8 @@ class Launcher:
         self._tty = sys.stdout.isatty()
         self._follow: LogFollower | None = None
         self.timing: dict[str, float] = {}
+        #: children sent SIGINT after the last step (their exit is no death)
+        self.interrupted: set[str] = set()
 
     def on_signal(self, signum: int, _frame: Any) -> None:
         if self.signalled is None:
@@ -220,12 +223,28 @@ class Launcher:
                 if self._tty:
                     print()
                 print(line, flush=True)
+                self.stop_others()
+            elif line.startswith("formation-sim: ") and " written in " in line and "(figures " in line:
+                self.timing["figures_s"] = float(line.rsplit("(figures ", 1)[1].split(" s)")[0])
+                print(line, flush=True)
             elif line.startswith(("formation ", "PASS", "FAIL", "INCOMPLETE", "  ")):
                 continue  # the summary: printed at the end from summary.json
             elif line:
                 if self._tty:
                     print()
                 print(line, flush=True)
+
+    def stop_others(self) -> None:
+        """After the last step: SIGINT to the agents and the recorder (which takes what it holds and
+        closes the bag) while the simulator writes OUT."""
+        if self.interrupted:
+            return
+        others = [c for c in self.sup.alive() if c.role != "sim"]
+        for c in others:
+            c.signal(signal.SIGINT)
+        self.interrupted = {c.name for c in others}
+        if not self.args.quiet:
+            print("formation-launch: stepping done; stopping agents and recorder, closing the bag", flush=True)
 
     def note(self, text: str) -> None:
         print(f"formation-launch: {text}", file=sys.stderr, flush=True)
@@ -243,6 +262,8 @@ class Launcher:
                 self.relay()
                 return
             for c in self.sup.newly_dead():
+                if c.name in self.interrupted:
+                    continue  # stopped after the last step: checked once every process has exited
                 msg = f"{c.describe_exit()} (log: {c.log})"
                 if c.role == "agent" and self.mode == "realtime":
                     self.note(msg + "; realtime run continues, its wrench is zeroed by the simulator")
@@ -267,13 +288,14 @@ class Launcher:
             if sim.returncode not in tuple(ExitCode) and self.stop is None:
                 self.stop = Incomplete(ExitCode.PROCESS_DIED, sim.describe_exit() + _last_error(sim.log))
                 self.note(f"{sim.describe_exit()} (log: {sim.log})")
-            if not self.args.quiet:
-                if self._tty:
-                    print()
-                print("formation-launch: simulator done; stopping agents and recorder, closing the bag", flush=True)
-            self.sup.stop(self.sup.alive(), 1.5, self.note)
+            self.stop_others()
+            self.sup.stop(self.sup.alive(), 1.5, self.note, interrupted=self.interrupted)
         self.relay()
         self.timing["stopped"] = time.monotonic()
+        recorder = next((c for c in self.sup.children if c.role == "recorder"), None)
+        if recorder is not None and recorder.returncode != 0 and self.stop is None:
+            # a bag that was not closed cleanly (I/O error, killed after the grace period) holds less than it says
+            self.stop = Incomplete(ExitCode.INCOMPLETE, recorder.describe_exit() + _last_error(recorder.log))
 
     def summary(self) -> dict[str, Any]:
         """The simulator's summary, completed with what only the launcher knows."""
@@ -327,6 +349,7 @@ class Launcher:
             # after the last step: the simulator writes OUT, then agents and recorder stop
             "wall_stop_s": t["stopped"] - done,
             "wall_sim_outputs_s": t["stop_from"] - done if "stepping_done" in t else None,
+            "wall_figures_s": t.get("figures_s"),  # part of wall_stop_s
         }
         return summary
 

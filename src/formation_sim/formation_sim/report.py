@@ -20,6 +20,7 @@ import io
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -421,9 +422,10 @@ class RunRecorder:
         return strict_json(out)
 
 
-def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> None:
+def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> float:
     """trajectory.npz, the figures (:mod:`formation_sim.figures`, unless ``plots`` is false), then summary.json; each
     written under a temporary name and renamed. summary.json comes last and names what is there.
+    Returns the wall seconds the figures took.
 
     Raises OSError (disk full, …) after writing a summary marked INCOMPLETE if it still can.
     """
@@ -434,6 +436,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
         np.savez(npz, **recorder.arrays())
         write_atomic(out_dir / "trajectory.npz", npz.getvalue())
         written.append("trajectory.npz")
+        figures_from = time.monotonic()
         if plots:
             from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
 
@@ -459,6 +462,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
             pass
         raise
     write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
+    return time.monotonic() - figures_from
 
 
 def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:

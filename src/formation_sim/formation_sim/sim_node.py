@@ -539,16 +539,17 @@ def main(argv: list[str] | None = None) -> int:
         return ExitCode.INCOMPLETE if incomplete is None else incomplete.code
     summary = runner.summary(wall, incomplete, extra)
     plots = not args.no_plots and incomplete is None
-    print(
-        f"formation-sim: stepping done: {runner.step} steps in {wall:.2f} s; writing {out}/"
-        f"{'' if plots or args.no_plots else ' (stopped early: summary and trajectory, no figures)'}",
-        flush=True,
-    )
+    what = "summary, trajectory" + (", figures" if plots else "")
+    early = "" if plots or args.no_plots else "; stopped early: no figures"
+    done = f"formation-sim: stepping done: {runner.step} steps in {wall:.2f} s"
+    print(f"{done}; writing {out}/ ({what}{early})", flush=True)
+    t_out = time.monotonic()
     try:
-        write_outputs(out, runner.recorder, summary, plots=plots)
+        figures = write_outputs(out, runner.recorder, summary, plots=plots)
     except OSError as exc:
         print(f"formation-sim: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr, flush=True)
         return ExitCode.INCOMPLETE
+    print(f"formation-sim: {out}/ written in {time.monotonic() - t_out:.2f} s (figures {figures:.2f} s)", flush=True)
     print(format_summary(summary), flush=True)
     return summary["exit_status"]
 

@@ -45,9 +45,8 @@ launch._sim_args = lambda *a: [x for x in plain(*a) if x != "--wait-recorder"] +
 sys.exit(launch.main(sys.argv[1:]))
 """
 
-BLOCKING_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <data_writer profile_name="blocking_writer" is_default_profile="true">
+#: one DDS endpoint kind (data_writer or data_reader): reliable, KEEP_ALL, at most {n} samples
+ENDPOINT = """  <{kind} profile_name="blocking_{kind}" is_default_profile="true">
     <topic>
       <historyQos><kind>KEEP_ALL</kind></historyQos>
       <resourceLimitsQos>
@@ -56,25 +55,23 @@ BLOCKING_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
       </resourceLimitsQos>
     </topic>
     <qos>
-      <reliability><kind>RELIABLE</kind><max_blocking_time><sec>30</sec></max_blocking_time></reliability>
+      <reliability><kind>RELIABLE</kind>{blocking}</reliability>
       <durability><kind>VOLATILE</kind></durability>
     </qos>
-  </data_writer>
-  <data_reader profile_name="blocking_reader" is_default_profile="true">
-    <topic>
-      <historyQos><kind>KEEP_ALL</kind></historyQos>
-      <resourceLimitsQos>
-        <max_samples>{n}</max_samples><max_instances>1</max_instances>
-        <max_samples_per_instance>{n}</max_samples_per_instance><allocated_samples>{n}</allocated_samples>
-      </resourceLimitsQos>
-    </topic>
-    <qos>
-      <reliability><kind>RELIABLE</kind></reliability>
-      <durability><kind>VOLATILE</kind></durability>
-    </qos>
-  </data_reader>
-</profiles>
+  </{kind}>
 """
+
+
+def blocking_profile(n: int) -> str:
+    """The Fast DDS profile of the ``blocking`` design: a full writer blocks up to 30 s in publish()."""
+    wait = "<max_blocking_time><sec>30</sec></max_blocking_time>"
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+        + ENDPOINT.format(kind="data_writer", n=n, blocking=wait)
+        + ENDPOINT.format(kind="data_reader", n=n, blocking="")
+        + "</profiles>\n"
+    )
 
 
 def _recorder_pid(out: Path) -> int | None:
@@ -110,7 +107,7 @@ def run(design: str, duration: float, out: Path, samples: int, pause: float = 0.
         cmd = [str(PYTHON), "-m", "formation_sim.launch", *argv]
     else:
         profile = out.parent / f"blocking_{samples}.xml"
-        profile.write_text(BLOCKING_PROFILE.format(n=samples))
+        profile.write_text(blocking_profile(samples))
         env.update(FASTRTPS_DEFAULT_PROFILES_FILE=str(profile), RMW_FASTRTPS_USE_QOS_FROM_XML="1")
         cmd = [str(PYTHON), "-c", NO_ACK_LAUNCH, *argv]
     load = os.getloadavg()

@@ -238,7 +238,9 @@ def test_realtime_slower_than_its_lag_budget(launched) -> None:
 def test_realtime_recorder_that_falls_behind_drops_with_an_exact_count(launched) -> None:
     """Realtime: a recorder stopped (SIGSTOP) for 2 s while the run goes on cannot keep everything; the
     run does not wait for it, and summary.json's recorder counts say exactly what is not in the bag."""
-    run = launched("--mode", "realtime", "--duration", "4", "--lag-budget", "30", formation=REALTIME)
+    # physics at the control rate keeps the simulator on the wall clock on a loaded machine
+    args = ("--mode", "realtime", "--duration", "4", "--physics-rate", "100", "--lag-budget", "30")
+    run = launched(*args, formation=REALTIME)
     run.wait_stepping()
     recorder = run.pid_of("recorder")
     os.kill(recorder, signal.SIGSTOP)
@@ -247,7 +249,7 @@ def test_realtime_recorder_that_falls_behind_drops_with_an_exact_count(launched)
     finally:
         os.kill(recorder, signal.SIGCONT)
     code, summary = run.finish()
-    assert code == summary["exit_status"] == (1 if summary["first_violation"] else 0), run.text()
+    assert code == summary["exit_status"] == 0, run.text()  # the recorder is no part of the control loop
     counts = summary["recorder"]
     assert counts["not_recorded"] > 0, counts
     assert f"the recorder fell behind: {counts['not_recorded']} published messages are not in the bag" in run.text()

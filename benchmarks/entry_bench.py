@@ -18,6 +18,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from importlib.metadata import entry_points
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -41,13 +42,8 @@ def measure(cmd: list[str], expect: int = 0) -> tuple[float, float]:
 
 
 def console_scripts() -> list[str]:
-    names = []
-    for setup in sorted((REPO / "src").glob("*/setup.py")):
-        for line in setup.read_text().splitlines():
-            line = line.strip().strip('",')
-            if " = " in line and line.startswith("formation-"):
-                names.append(line.split(" = ")[0])
-    return names
+    """The project's console scripts, as installed in .venv."""
+    return sorted(e.name for e in entry_points(group="console_scripts") if e.name.startswith("formation-"))
 
 
 def row(what: str, cmd: list[str], expect: int = 0) -> None:

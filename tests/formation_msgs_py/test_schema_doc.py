@@ -45,7 +45,8 @@ def test_every_number_of_the_file_reaches_its_attribute() -> None:
     holds the file's value at its field's key."""
     doc = yaml.safe_load((REPO / "config" / "paper_5agents.yaml").read_text(encoding="utf-8"))
     edge = doc["edges"][0]
-    edge.update(distance=2.6, distance_funnel={"rho_inf": 0.11, "decay": 1.7}, orientation_funnel={"rho_0": 1.98, "rho_inf": 0.12})
+    edge.update(distance=2.6, distance_funnel={"rho_inf": 0.11, "decay": 1.7})
+    edge.update(orientation_funnel={"rho_0": 1.98, "rho_inf": 0.12})
     doc["agents"][0]["measurement_noise"] = {"position_std": 0.003, "rotation_std": 0.004}
     built = spec.formation_from_dict(doc)
     agent, e = built.agents[0], built.edges[0]

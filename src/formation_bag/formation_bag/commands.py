@@ -20,6 +20,8 @@ STORAGE_NAMES = ("mcap", "sqlite3")
 VELOCITY_MARGIN_MODES = ("rerun", "none")
 #: formation-rerun --tolerance: max |Δu| counted as equal
 DEFAULT_TOLERANCE = 1e-12
+BAG_HELP = "bag directory (or a single .mcap/.db3 file)"
+NAMESPACE_HELP = "namespace of the run's topics (default none)"
 
 
 def record_parser() -> argparse.ArgumentParser:
@@ -40,7 +42,7 @@ def record_parser() -> argparse.ArgumentParser:
         help="formation file: subscribe to its topics before they appear, and store the file in the bag "
         "(custom_data) so formation-analyze needs nothing else",
     )
-    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
+    p.add_argument("--namespace", default="", help=NAMESPACE_HELP)
     p.add_argument(
         "--segment-seconds",
         type=float,
@@ -76,7 +78,7 @@ def replay_parser() -> argparse.ArgumentParser:
         description="Publish a bag's messages with their recorded timing (and /clock). Waits for subscribers "
         "first; shows progress. Stop with Ctrl-C.",
     )
-    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
+    p.add_argument("bag", type=Path, help=BAG_HELP)
     p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1.0)")
     p.add_argument("--topics", nargs="+", metavar="TOPIC", help="replay only these topics (default all)")
     p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
@@ -115,7 +117,7 @@ def analyze_parser() -> argparse.ArgumentParser:
         "realtime bags and on bags left by a killed recorder; missing data makes the verdict INCOMPLETE (never FAIL) "
         "and is listed. " + EXIT_STATUS_HELP + ".",
     )
-    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
+    p.add_argument("bag", type=Path, help=BAG_HELP)
     p.add_argument("--out", type=Path, help="output directory (default: <bag>-analysis next to the bag)")
     p.add_argument("--formation", type=Path, help="formation file (default: the copy the recorder stored in the bag)")
     p.add_argument(
@@ -125,7 +127,7 @@ def analyze_parser() -> argparse.ArgumentParser:
         help="rerun: velocity-funnel margins and controller faults from re-running the agents' controllers on the "
         "recorded measurements (default); none: check the distance and orientation funnels only",
     )
-    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
+    p.add_argument("--namespace", default="", help=NAMESPACE_HELP)
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument(
         "--animate",
@@ -144,7 +146,7 @@ def rerun_parser() -> argparse.ArgumentParser:
         "the bag lacks are not compared and are counted. Exit status: 0 equal within --tolerance on complete "
         "data, 1 a recorded wrench differs, 2 bad input, 4 equal where compared but data missing.",
     )
-    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
+    p.add_argument("bag", type=Path, help=BAG_HELP)
     p.add_argument("--agent", action="append", default=None, metavar="ID", help="agent id (repeatable; default all)")
     p.add_argument("--formation", type=Path, help="formation file (default: the copy stored in the bag)")
     p.add_argument(
@@ -153,7 +155,7 @@ def rerun_parser() -> argparse.ArgumentParser:
         help="YAML file changing gains/funnels: {agents: {ID: {...}}, edges: {TAIL-HEAD: {...}}, defaults: {...}}",
     )
     p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="max |Δu| counted as equal (1e-12)")
-    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
+    p.add_argument("--namespace", default="", help=NAMESPACE_HELP)
     p.add_argument("--out", type=Path, help="write rerun.json and rerun_<agent>.npz into this new directory")
     return p
 

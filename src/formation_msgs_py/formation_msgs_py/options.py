@@ -123,7 +123,7 @@ OPTIONS: tuple[Option, ...] = (
     Option("--executor", "how every node spins (formation_msgs_py.hotloop)", ROS, str, "events", EXECUTORS,
            forward=True),
     Option("--measurement-qos", "QoS of relative poses and velocities; best-effort (realtime only) costs less CPU "
-           "per message (agents need -p measurement_qos:=best_effort)", ROS, str, "reliable",
+           "per message (agents need -p measurement_qos:=best-effort)", ROS, str, "reliable",
            ("reliable", "best-effort"), forward=True),
     Option("--intruder-policy", "a publisher the formation does not expect on its topics: report it (default), or "
            "also refuse that topic's messages while it is there, in the simulator and every agent (docs/security.md)",

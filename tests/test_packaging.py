@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import configparser
 import os
 import re
 import subprocess
@@ -202,6 +203,18 @@ def colcon(tmp_path: Path, *args: str, symlink: bool = False) -> None:
         timeout=600,
     )
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+
+
+def test_colcon_test_covers_every_test_directory() -> None:
+    """`colcon test` runs pytest in each package's directory with its setup.cfg testpaths: together they
+    hold every directory of tests/ (this file, the workspace's own test, runs with test.sh)."""
+    covered = set()
+    for pkg in PACKAGES:
+        cfg = configparser.ConfigParser()
+        cfg.read(REPO / "src" / pkg / "setup.cfg")
+        covered |= {(REPO / "src" / pkg / p).resolve() for p in cfg["tool:pytest"]["testpaths"].split()}
+    wanted = {d for d in (REPO / "tests").iterdir() if d.is_dir() and any(d.glob("test_*.py"))}
+    assert wanted == covered, (sorted(map(str, wanted - covered)), sorted(map(str, covered - wanted)))
 
 
 def test_colcon_symlink_install_builds(tmp_path: Path) -> None:

@@ -11,10 +11,11 @@ import pytest
 from rclpy.node import Node
 from ros_helpers import PAPER, REPO, ros_context
 
-from formation_agent.agent_node import USAGE, AgentNode
+from formation_agent.agent_node import AgentNode
+from formation_agent.process import USAGE
 from formation_msgs_py import options
+from formation_sim.commands import sim_parser, sim_preflight
 from formation_sim.display import declare_simulator_parameters
-from formation_sim.preflight import preflight
 
 OPTION = {o.dest: o for o in options.OPTIONS}
 ROS_OWN = {"use_sim_time", "start_type_description_service"}  # declared by rclpy itself
@@ -63,10 +64,7 @@ def test_agent_parameters_spelled_as_the_options(ros_env: dict[str, str]) -> Non
 
 def test_simulator_parameters_spelled_as_the_options(ros_env: dict[str, str]) -> None:
     """The simulator's parameters are its options' names with their values, as formation-sim declares them."""
-    from formation_sim.sim_node import build_parser
-
-    args = options.parse(options.SIM, build_parser(), [str(PAPER), "--executor", "lean", "--marker-rate", "12.5"])
-    run = preflight(args, None)
+    run = sim_preflight(["formation-sim", str(PAPER), "--executor", "lean", "--marker-rate", "12.5"])
     with ros_context(ros_env) as context:
         node = Node("formation_sim", context=context)
         declare_simulator_parameters(node, run.spec, run.options)
@@ -76,7 +74,7 @@ def test_simulator_parameters_spelled_as_the_options(ros_env: dict[str, str]) ->
     assert params["mode"][0] == "lockstep" and params["formation_file"][0] == str(PAPER)
     for name in params:
         assert name == "formation_file" or options.SIM in OPTION[name].commands, f"formation-sim has no --{name}"
-    check_spelling(params, build_parser().format_help())
+    check_spelling(params, sim_parser().format_help())
 
 
 @pytest.mark.parametrize(

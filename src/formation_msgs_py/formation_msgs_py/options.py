@@ -251,6 +251,21 @@ def build_parser(command: str, prog: str, description: str, *, file_required: bo
     return p
 
 
+def without_ros_args(argv: Sequence[str]) -> list[str]:
+    """``argv`` without its ROS arguments (each ``--ros-args`` up to ``--`` or the end), as
+    ``rclpy.utilities.remove_ros_args`` does, without importing rclpy."""
+    out: list[str] = []
+    ros = False
+    for arg in argv:
+        if arg == "--ros-args":
+            ros = True
+        elif ros and arg == "--":
+            ros = False
+        elif not ros:
+            out.append(arg)
+    return out
+
+
 def parse(command: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> RunOptions:
     """Parse ``argv`` (exit 2 with one line on a bad option) into :class:`RunOptions`."""
     return RunOptions.from_namespace(command, parser.parse_args(argv))

@@ -26,7 +26,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from formation_msgs_py import conversions, parameters, qos, topics
 from formation_msgs_py.hotloop import EXECUTORS
 from formation_msgs_py.options import RunOptions
-from formation_msgs_py.so3 import quaternion_from_matrix
+from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.markers import FormationScene, Shape
 

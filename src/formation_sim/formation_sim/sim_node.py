@@ -31,7 +31,6 @@ from __future__ import annotations
 import struct
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,19 +41,19 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from formation_msgs_py import conversions, options, qos, topics, wire
-from formation_msgs_py.errors import FormationError
+from formation_msgs_py import conversions, qos, topics, wire
 from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.hotloop import Spinner
-from formation_msgs_py.options import OptionParser, RunOptions
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
+from formation_msgs_py.options import RunOptions
+from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 from formation_sim import inputs
+from formation_sim.commands import sim_preflight
 from formation_sim.deployment import Timing
 from formation_sim.display import DisplayPublisher, declare_simulator_parameters
-from formation_sim.preflight import preflight
+from formation_sim.preflight import Prepared
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
 from formation_sim.stepping import NS, CommandHold, LagBudget, LockstepWait, ParticipantMissingError, WrenchBook
@@ -436,33 +435,16 @@ class Runner:
         return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)
 
 
-def build_parser() -> OptionParser:
-    return options.build_parser(
-        options.SIM,
-        "formation-sim",
-        "The simulator node of a ROS 2 formation run (docs/ros2.md): publishes /clock, relative "
-        "poses, velocities and ground truth, collects every agent's wrench, checks the funnels at every "
-        "control step and writes OUT (docs/outputs.md). Agents are separate processes (formation-agent). "
-        + EXIT_STATUS_HELP
-        + ". ROS arguments may follow --ros-args.",
-    )
-
-
 def _interrupted(runner: Runner | None) -> Incomplete:
     t = runner.sim.t if runner is not None else 0.0
     return Incomplete(ExitCode.INTERRUPTED, f"interrupted (SIGINT/SIGTERM) at t={t:.4f} s")
 
 
 @guarded("formation-sim")
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``formation-sim``."""
+def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> int:
+    """The simulator process (``formation_sim.commands.sim`` pre-flights ``argv`` first)."""
     raw = list(sys.argv if argv is None else [sys.argv[0], *argv])
-    opts = options.parse(options.SIM, build_parser(), rclpy.utilities.remove_ros_args(raw)[1:])
-    try:
-        run = preflight(opts, lambda spec, o: Path("out") / f"{spec.name}-ros2-{o.mode}")
-    except FormationError as exc:
-        print(f"formation-sim: {exc}", file=sys.stderr)
-        return ExitCode.INVALID
+    run = prepared or sim_preflight(raw)
     spec, out, args = run.spec, run.out, run.options
     for msg in run.warnings:
         print(f"formation-sim: warning: {msg}", file=sys.stderr)

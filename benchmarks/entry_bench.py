@@ -66,22 +66,25 @@ def main() -> None:
         bomb.write_text("\n".join(lines) + "\nagents: *p\nedges: *p\n")
         png = Path(tmp) / "image.png"
         png.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR" + bytes(range(256)) * 8)
-        out = ["--out", str(Path(tmp) / "out")]
+        out = str(Path(tmp) / "out")
+        commands = {  # every command that reads a formation file
+            "formation-check": ["{F}"],
+            "formation-headless": ["{F}", "--out", out],
+            "formation-sim": ["{F}", "--out", out],
+            "formation-launch": ["{F}", "--out", out],
+            "formation-record": ["--out", out, "--formation", "{F}"],
+            "formation-analyze": [out, "--formation", "{F}"],
+            "formation-rerun": [out, "--formation", "{F}"],
+            "formation-campaign": ["--sweep-rate", "{F}", "1000", "--out", out],
+            "formation-compose": ["{F}", "--out", out],
+            "formation-keys": ["init", out, "--formation", "{F}"],
+            "formation-agent": ["--ros-args", "-p", "formation_file:={F}", "-p", "agent_id:='1'"],
+        }
         for bad in (bomb, png):
             what = f"{bad.stat().st_size / 1000:.1f} kB {'alias bomb' if bad is bomb else 'PNG'}"
-            for name, extra in (
-                ("formation-check", []),
-                ("formation-headless", out),
-                ("formation-sim", out),
-                ("formation-launch", out),
-            ):
-                row(f"`{name}` {what}", [str(BIN / name), str(bad), *extra], expect=2)
-            row(f"`ros2_ws/run.sh` {what}", [str(REPO / "ros2_ws" / "run.sh"), str(bad), *out], expect=2)
-            row(
-                f"`formation-agent` {what}",
-                [str(BIN / "formation-agent"), "--ros-args", "-p", f"formation_file:={bad}", "-p", "agent_id:='1'"],
-                expect=2,
-            )
+            for name, template in commands.items():
+                row(f"`{name}` {what}", [str(BIN / name), *(a.replace("{F}", str(bad)) for a in template)], 2)
+            row(f"`ros2_ws/run.sh` {what}", [str(REPO / "ros2_ws" / "run.sh"), str(bad), "--out", out], 2)
     for preset in ("paper_5agents", "realtime_50agents_50hz"):
         path = REPO / "config" / f"{preset}.yaml"
         code = f"from formation_msgs_py.spec import load_formation; load_formation({str(path)!r})"

@@ -8,6 +8,7 @@ so it holds on a busy machine. The timings are in BENCHMARKS.md ("Bad input").
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -76,17 +77,32 @@ ALIAS_BOMB = "a: &a [" + ", ".join(['"lol"'] * 10) + "]\n" + "".join(
 ) + "agents: *j\nedges: *j\n"
 
 
-@pytest.mark.parametrize("script", ["formation-check", "formation-headless", "formation-sim", "formation-launch"])
+#: every command that reads a formation file, with its arguments around the file (F) and OUT (O)
+FILE_COMMANDS = {
+    "formation-check": ["F"],
+    "formation-headless": ["F", "--out", "O"],
+    "formation-sim": ["F", "--out", "O", "--ros-args", "-p", "x:=1"],
+    "formation-launch": ["F", "--out", "O"],
+    "formation-record": ["--out", "O", "--formation", "F"],
+    "formation-analyze": ["O", "--formation", "F"],
+    "formation-rerun": ["O", "--formation", "F"],
+    "formation-campaign": ["--sweep-rate", "F", "1000", "--out", "O"],
+    "formation-compose": ["F", "--out", "O"],
+    "formation-keys": ["init", "O", "--formation", "F"],
+}
+
+
+@pytest.mark.parametrize("script", sorted(FILE_COMMANDS))
 @pytest.mark.parametrize("case", ["bomb", "binary"])
 def test_bad_file_is_refused_before_the_cores_load(tmp_path, script: str, case: str) -> None:
     """An alias bomb or a binary file: exit 2 naming FILE:LINE:COL, with neither numba, scipy nor
-    rclpy imported (the loader needs numpy and yaml only)."""
+    rclpy imported (the loader needs numpy and yaml only), nothing written."""
     path = tmp_path / "bad.yaml"
     path.write_bytes(ALIAS_BOMB.encode() if case == "bomb" else b"\x89PNG\r\n\x1a\n\x00")
-    out = [] if script == "formation-check" else ["--out", str(tmp_path / "out")]
-    code, heavy, r = probe(script, str(path), *out)
+    args = [{"F": str(path), "O": str(tmp_path / "out")}.get(a, a) for a in FILE_COMMANDS[script]]
+    code, heavy, r = probe(script, *args)
     assert code == 2, r.stderr
-    assert f"{path}:" in r.stderr and "Traceback" not in r.stderr
+    assert re.search(rf"{re.escape(str(path))}:\d+:\d+: ", r.stderr) and "Traceback" not in r.stderr, r.stderr
     assert set(heavy) <= {"numpy"}, f"{script} imported {heavy} before refusing {case}"
     assert not (tmp_path / "out").exists()
 

@@ -21,7 +21,6 @@ setup(
         "PyYAML",
         "pillow",
         "numba",
-        "distributed",
     ],
     # colcon test runs pytest when "test" lists it; "dask": formation-campaign --scheduler
     extras_require={"test": ["pytest"], "dask": ["distributed"]},

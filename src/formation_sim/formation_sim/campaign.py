@@ -473,9 +473,9 @@ def run_campaign(
 def sweep_rate(formation: Path, rates: list[float], out: Path, *, workers: int, scheduler: str | None) -> int:
     """The file's own plant at each rate, with the rate each agent needs."""
     from formation_msgs_py.spec import load_formation
-    from formation_sim.rates import rate_needs
 
     spec = load_formation(formation)
+    from formation_sim.rates import rate_needs  # numba: once the file is valid
     campaign = Campaign(formation.resolve(), 1, 0, tuple(rates), None, {})
     summary = run_campaign(campaign, out, workers=workers, scheduler=scheduler, quiet=True)
     rows = {r["control_rate"]: r for r in _finished(out / "runs.jsonl").values()}

@@ -477,9 +477,7 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             recorder=args.wait_recorder and args.mode == "lockstep",
         )
         check_secure_transport()
-        settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": s.control_rate}
-        settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
-        node.display = declare_simulator_parameters(node, spec, settings, args.marker_rate)
+        node.display = declare_simulator_parameters(node, spec, args)
         executor = Spinner(args.executor, node)
         runner = Runner(node, executor, spec, args)
         timeout = args.discovery_timeout or 30.0 + len(spec.agents)

@@ -431,7 +431,7 @@ class RunRecorder:
         incomplete: Incomplete | None = None,
         extra: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
-        """summary.json (DESIGN.md §8); ``requested_duration`` None: whatever was fed is the run."""
+        """summary.json (docs/outputs.md); ``requested_duration`` None: whatever was fed is the run."""
         j = self.judge
         result = self.outcome(requested_duration, incomplete)
         duration = self.t_last

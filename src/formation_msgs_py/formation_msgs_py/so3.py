@@ -5,8 +5,9 @@ are axis * angle in radians; quaternions are (x, y, z, w), scalar last, the orde
 geometry_msgs and of scipy's default; :func:`quaternion_from_matrix` and
 :func:`matrix_from_quaternion` are the only quaternion conversions of the project (pure
 Python: they run per message). The maps of the controller, the plant and the measurement
-model (``exp_so3``, ``dexpinv_so3`` and 3×3 products) are compiled kernels on one 3-vector or
-3×3 matrix; parsing uses scipy's ``Rotation``.
+model (``exp_rows``, ``dexpinv`` and 3×3 products) are formulas compiled into the kernels that
+call them (:func:`formation_msgs_py.compiled.formula`) on one 3-vector or 3×3 matrix, given as
+arrays or tuples; parsing uses scipy's ``Rotation``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from formation_msgs_py.compiled import kernel
+from formation_msgs_py.compiled import formula
 from formation_msgs_py.errors import RotationError
 
 FloatArray = NDArray[np.float64]
@@ -31,34 +32,34 @@ def vee(S: ArrayLike) -> FloatArray:
     return np.stack([S[..., 2, 1], S[..., 0, 2], S[..., 1, 0]], axis=-1)
 
 
-# --- compiled 3-vector / 3×3 kernels: vectors as tuples (x, y, z), no heap allocation -------
+# --- compiled 3-vector / 3×3 formulas: vectors as tuples (x, y, z), no heap allocation ------
 
 
-@kernel
+@formula
 def add3(a, b):
     """a + b."""
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
 
-@kernel
+@formula
 def sub3(a, b):
     """a − b."""
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-@kernel
+@formula
 def scale3(s, a):
     """s·a."""
     return (s * a[0], s * a[1], s * a[2])
 
 
-@kernel
+@formula
 def cross3(a, b):
     """a × b."""
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-@kernel
+@formula
 def matvec3(A, x):
     """A x for a 3×3 array A."""
     return (
@@ -68,7 +69,7 @@ def matvec3(A, x):
     )
 
 
-@kernel
+@formula
 def matTvec3(A, x):
     """Aᵀ x for a 3×3 array A."""
     return (
@@ -78,23 +79,31 @@ def matTvec3(A, x):
     )
 
 
-@kernel
-def matmul3_into(A, B, out):
-    """out = A B for 3×3 A and B (arrays, or B as rows of tuples); out must not alias A or B."""
+@formula
+def matmul3_entry(A, B, i, j):
+    """(A B)[i, j] for 3×3 A and B given as arrays or as rows of tuples."""
+    return A[i][0] * B[0][j] + A[i][1] * B[1][j] + A[i][2] * B[2][j]
+
+
+@formula
+def matmul3(A, B):
+    """A B for 3×3 A and B (arrays or rows of tuples), as three row tuples."""
+    return (
+        (matmul3_entry(A, B, 0, 0), matmul3_entry(A, B, 0, 1), matmul3_entry(A, B, 0, 2)),
+        (matmul3_entry(A, B, 1, 0), matmul3_entry(A, B, 1, 1), matmul3_entry(A, B, 1, 2)),
+        (matmul3_entry(A, B, 2, 0), matmul3_entry(A, B, 2, 1), matmul3_entry(A, B, 2, 2)),
+    )
+
+
+@formula
+def set3x3(out, rows):
+    """out[:, :] = rows (a 3×3 array from three row tuples), element by element."""
     for i in range(3):
         for j in range(3):
-            out[i, j] = A[i, 0] * B[0][j] + A[i, 1] * B[1][j] + A[i, 2] * B[2][j]
+            out[i, j] = rows[i][j]
 
 
-@kernel
-def matTmul3_into(A, B, out):
-    """out = Aᵀ B for 3×3 arrays; out must not alias A or B."""
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
-
-
-@kernel
+@formula
 def exp_rows(theta):
     """exp(S(θ)) of a rotation vector θ [rad] as three row tuples, by Rodrigues' formula.
 
@@ -118,18 +127,12 @@ def exp_rows(theta):
     )
 
 
-@kernel
-def exp_so3(theta):
+def exp_so3(theta: ArrayLike) -> FloatArray:
     """exp(S(θ)) (3,3) of a rotation vector θ (3,) [rad]."""
-    out = np.empty((3, 3))
-    rows = exp_rows(theta)
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = rows[i][j]
-    return out
+    return np.array(exp_rows(np.asarray(theta, dtype=np.float64)))
 
 
-@kernel
+@formula
 def dexpinv(theta, omega):
     """Θ̇ such that R0·exp(S(Θ)) moves with body rate ω: Θ̇ = dexp⁻¹_{−Θ}(ω) (RKMK chart).
 
@@ -145,11 +148,9 @@ def dexpinv(theta, omega):
     return add3(add3(omega, scale3(0.5, txw)), scale3(c, cross3(theta, txw)))
 
 
-@kernel
-def dexpinv_so3(theta, omega):
+def dexpinv_so3(theta: ArrayLike, omega: ArrayLike) -> FloatArray:
     """:func:`dexpinv` as a (3,) array."""
-    x = dexpinv(theta, omega)
-    return np.array([x[0], x[1], x[2]])
+    return np.array(dexpinv(np.asarray(theta, dtype=np.float64), np.asarray(omega, dtype=np.float64)))
 
 
 def log_so3(R: ArrayLike) -> FloatArray:

@@ -25,11 +25,11 @@ import numpy as np
 
 from formation_agent.controller import (
     ERROR,
+    LEVEL,
+    MARGIN_V,
+    REASON,
     REASON_MESSAGES,
-    AgentGains,
-    EdgeGains,
-    FunnelStart,
-    Outputs,
+    U,
     gains,
     new_funnel_start,
     new_outputs,
@@ -40,6 +40,7 @@ from formation_sim.inputs import non_finite_agents
 from formation_sim.measurement import Sensing, relative_poses
 from formation_sim.plant import (
     PlantParams,
+    body_chart_rates,
     body_rates,
     chart_rates,
     measured_velocity_into,
@@ -65,10 +66,12 @@ class ClosedLoop(NamedTuple):
 
     plant: PlantParams
     sensing: Sensing
-    agents: AgentGains
-    ends: EdgeGains
-    start: FunnelStart
-    out: Outputs
+    first_end: np.ndarray  # (N+1,) agent i owns ends first_end[i]:first_end[i+1]
+    agents: np.ndarray  # (N, AGENT_COLUMNS) formation_agent.controller's gains
+    ends: np.ndarray  # (n_ends, END_COLUMNS)
+    start: np.ndarray  # (N, 7) the velocity funnels' start
+    out: np.ndarray  # (N, OUT_COLUMNS) the step's wrenches, margins, levels
+    edge_out: np.ndarray  # (n_ends, 6)
     p_rel: np.ndarray  # (n_ends, 3) scratch: the step's measurements
     R_rel: np.ndarray  # (n_ends, 3, 3)
     in_range: np.ndarray  # (n_ends,) bool
@@ -115,21 +118,24 @@ def sense_and_control(loop, t, p, R, v):
         loop.cursor[0] += 1
     relative_poses(p, R, loop.sensing, draws, loop.p_rel, loop.R_rel, loop.in_range)
     measured_velocity_into(t, p, R, v, loop.plant.noise, loop.v_measured)
-    team_step(t, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured, loop.agents, loop.ends, loop.start, loop.out)
+    team_step(
+        t, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured,
+        loop.first_end, loop.agents, loop.ends, loop.start, loop.out, loop.edge_out,
+    )  # fmt: skip
 
 
 @kernel
 def continuous_step(loop, t, p, R, v, h, work):
     """One RKMK4 step (as :func:`formation_sim.plant.rkmk4_step`) with the controller at every stage."""
     sense_and_control(loop, t, p, R, v)
-    saturate_into(loop.out.u, loop.plant, work.u)
+    saturate_into(loop.out[:, U : U + 6], loop.plant, work.u)
     body_rates(t, p, R, v, work.u, loop.plant, work.p_dot[0], work.v_dot[0])
-    work.theta_dot[0] = v[:, 3:]
+    body_chart_rates(v, work)
     for k in range(3):
         c = h if k == 2 else 0.5 * h
         rkmk4_stage(c, p, R, v, k, work)
         sense_and_control(loop, t + c, work.p, work.R, work.v)
-        saturate_into(loop.out.u, loop.plant, work.u)
+        saturate_into(loop.out[:, U : U + 6], loop.plant, work.u)
         body_rates(t + c, work.p, work.R, work.v, work.u, loop.plant, work.p_dot[k + 1], work.v_dot[k + 1])
         chart_rates(k + 1, work)
     rkmk4_combine(h, p, R, v, work)
@@ -148,6 +154,25 @@ def all_finite_state(p, R, v):
 
 
 @kernel
+def record_step(buf, n, t, p, R, v, out, in_range):
+    """Row n of the buffers: the step's ground truth, wrenches, velocity margins, levels and ranges."""
+    buf.t[n] = t
+    for i in range(p.shape[0]):
+        for x in range(3):
+            buf.p[n, i, x] = p[i, x]
+            for y in range(3):
+                buf.R[n, i, x, y] = R[i, x, y]
+        for c in range(6):
+            buf.v[n, i, c] = v[i, c]
+            buf.u[n, i, c] = out[i, U + c]
+            buf.margin_v[n, i, c] = out[i, MARGIN_V + c]
+        buf.level[n, i] = out[i, LEVEL]
+        buf.reason[n, i] = out[i, REASON]
+    for k in range(in_range.shape[0]):
+        buf.in_range[n, k] = in_range[k]
+
+
+@kernel
 def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, buf):
     """Control steps k0 … k_stop − 1 (no physics after step k_last), (p, R, v) in place.
 
@@ -157,16 +182,7 @@ def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h
     for k in range(k0, k_stop):
         t = k / control_rate
         sense_and_control(loop, t, p, R, v)
-        out = loop.out
-        buf.t[n] = t
-        buf.p[n] = p
-        buf.R[n] = R
-        buf.v[n] = v
-        buf.u[n] = out.u
-        buf.margin_v[n] = out.margin_v
-        buf.level[n] = out.level
-        buf.reason[n] = out.reason
-        buf.in_range[n] = loop.in_range
+        record_step(buf, n, t, p, R, v, loop.out, loop.in_range)
         n += 1
         if k == k_last:
             break
@@ -174,7 +190,7 @@ def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h
             if continuous:
                 continuous_step(loop, t + s * h, p, R, v, h, work)
             else:
-                rkmk4_step(t + s * h, p, R, v, out.u, h, loop.plant, work)
+                rkmk4_step(t + s * h, p, R, v, loop.out[:, U : U + 6], h, loop.plant, work)
         if not all_finite_state(p, R, v):
             return n, EVENT_NON_FINITE
     return n, EVENT_NONE
@@ -182,15 +198,16 @@ def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h
 
 def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
     """The compiled loop's inputs for ``spec``, with the plant and measurement model of ``sim``."""
-    agents, ends = gains([agent_view(spec, a) for a in spec.agent_ids])
-    n, n_ends = len(spec.agents), len(ends.d2)
+    first_end, agents, ends = gains([agent_view(spec, a) for a in spec.agent_ids])
+    n, n_ends = len(agents), len(ends)
     return ClosedLoop(
         sim.plant.params,
         sim.sensors.sensing,
+        first_end,
         agents,
         ends,
         new_funnel_start(n),
-        new_outputs(n, n_ends),
+        *new_outputs(n, n_ends),
         np.zeros((n_ends, 3)),
         np.zeros((n_ends, 3, 3)),
         np.zeros(n_ends, dtype=np.bool_),
@@ -269,7 +286,7 @@ def run_closed_loop(
             substeps, h, continuous, buf,
         )  # fmt: skip
         done = recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
-        first = loop.agents.first_end
+        first = loop.first_end
         for j in np.flatnonzero(buf.level[:done].max(axis=1) == ERROR):  # the fault policy's record
             t = float(buf.t[j])
             missing = {

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from formation_agent.controller import START_RHO_V0
 from formation_msgs_py import funnels
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.simulation import Simulation
@@ -69,7 +70,7 @@ def initial_rho_v0(spec: FormationSpec) -> np.ndarray:
     sim = Simulation(simulator_view(spec))
     team = AgentTeam(spec)
     team.evaluate(sim.sense(), None)
-    rho_v0 = team.start.rho_v0.copy()
+    rho_v0 = team.start[:, START_RHO_V0:].copy()
     for i, a in enumerate(spec.agents):
         if np.isnan(rho_v0[i, 0]):
             vf = a.controller.velocity_funnel

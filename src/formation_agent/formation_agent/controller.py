@@ -270,9 +270,7 @@ def agent_step(t, i, lo, hi, p_rel, R_rel, v_measured, agents, ends, start, out,
     starts at the agent's first step (row i of ``start`` is set then).
     """
     gains, row = agents[i], out[i]
-    v_des, saturated = desired_velocity(
-        t, p_rel, R_rel, ends, lo, hi, gains[DELTA], gains[SATURATION_MARGIN], edge_out
-    )
+    v_des, saturated = desired_velocity(t, p_rel, R_rel, ends, lo, hi, gains[DELTA], gains[SATURATION_MARGIN], edge_out)
     e_v = (
         v_measured[0] - v_des[0],
         v_measured[1] - v_des[1],
@@ -370,8 +368,10 @@ def control_output(
     row = out[i].tolist()
     edge = edge_out[lo:hi].T.tolist()
     level = int(row[LEVEL])
-    if message is None:
-        message = REASON_MESSAGES[int(row[REASON])] if level == ERROR else ("near a funnel bound" if level == WARN else "")
+    if message is None and level == ERROR:
+        message = REASON_MESSAGES[int(row[REASON])]
+    elif message is None:
+        message = "near a funnel bound" if level == WARN else ""
     return ControlOutput(
         t,
         tuple(row[U : U + 6]),

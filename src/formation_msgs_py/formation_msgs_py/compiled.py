@@ -3,8 +3,9 @@
 The controller, the SO(3) maps, the funnels, the plant and the closed-loop stepping are written
 once, as plain Python on floats and small numpy arrays, and compiled with :func:`kernel`
 (``numba.njit``, cached on disk so that a second process loads the machine code instead of
-compiling it); the small formulas they share are :func:`formula` (compiled into their callers). ``NUMBA_DISABLE_JIT=1`` runs every kernel as the Python it is written in; each
-compiled kernel also keeps that Python as ``.py_func``.
+compiling it); the small formulas they share are :func:`formula` (compiled into their callers).
+``NUMBA_DISABLE_JIT=1`` runs every kernel as the Python it is written in; each compiled kernel
+also keeps that Python as ``.py_func``.
 
 ``error_model="numpy"``: a division by zero gives inf/NaN as in numpy instead of raising; the
 callers check finiteness where the paper's law can leave its domain.

@@ -20,8 +20,8 @@ from formation_agent.controller import (
     ERROR,
     MARGIN_V,
     REASON_MISSING,
-    U,
     ControlOutput,
+    U,
     agent_step,
     control_output,
     fault_wrench,
@@ -107,8 +107,9 @@ class AgentTeam:
                     self._p[k], self._R[k] = pose
         v = np.asarray(meas.velocities, dtype=np.float64)
         team_step(
-            meas.t, self._p, self._R, self._in_range, v, first, self.agents, self.ends, self.start, self.out, self.edge_out
-        )
+            meas.t, self._p, self._R, self._in_range, v,
+            first, self.agents, self.ends, self.start, self.out, self.edge_out,
+        )  # fmt: skip
         if recorder is not None:
             note_missing(recorder, meas.t, self.ids, missing)
         outputs = []

@@ -10,7 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from formation_agent.controller import ERROR, OK, AgentController, MissingMeasurementError
-from formation_msgs_py.so3 import exp_so3, vee
+from formation_msgs_py.rotations import vee
+from formation_msgs_py.so3 import exp_so3
 from formation_msgs_py.spec import FormationSpec, agent_view, load_formation
 
 RNG = np.random.default_rng(5)

@@ -10,7 +10,7 @@ import pytest
 from formation_agent import inputs
 from formation_agent.agent_node import StepSynchroniser
 from formation_agent.controller import ERROR, AgentController
-from formation_msgs_py import so3, wire
+from formation_msgs_py import rotations, wire
 from formation_msgs_py.errors import RotationError
 from formation_msgs_py.spec import agent_view, load_formation, simulator_view
 from formation_sim.simulation import Simulation
@@ -84,7 +84,7 @@ def test_zero_quaternion_cannot_crash_the_conversion() -> None:
     with pytest.raises(RotationError, match="has no rotation"):
         wire.relative_pose_from_values((1, 0, 0, 0, 0, 0, 0))
     with pytest.raises(RotationError):
-        so3.matrix_from_quaternion(math.nan, 0, 0, 1)
+        rotations.matrix_from_quaternion(math.nan, 0, 0, 1)
 
 
 def test_refused_measurement_answers_its_step_with_zero_and_error() -> None:

@@ -1,4 +1,4 @@
-"""SO(3) helpers: round trips, tiny angles, near-π rotations."""
+"""SO(3) kernels and rotation conversions: round trips, tiny angles, near-π rotations."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from formation_msgs_py import so3
+from formation_msgs_py import rotations, so3
 
 RNG = np.random.default_rng(20261122)
 
@@ -37,7 +37,7 @@ def test_small_products_and_vee() -> None:
         np.testing.assert_array_equal(out, B[k])
         S = np.cross(np.eye(3), -w[k]).T  # S(w): column j is w × e_j
         np.testing.assert_allclose(S @ x[k], np.cross(w[k], x[k]), atol=1e-14)
-        np.testing.assert_allclose(so3.vee(S), w[k], atol=0)
+        np.testing.assert_allclose(rotations.vee(S), w[k], atol=0)
 
 
 @pytest.mark.parametrize("scale", [1e-12, 1e-6, 1e-3, 1.0, np.pi - 1e-9])
@@ -46,7 +46,7 @@ def test_exp_matches_scipy(scale: float) -> None:
     axes = RNG.normal(size=(20, 3))
     theta = axes / np.linalg.norm(axes, axis=1, keepdims=True) * scale
     np.testing.assert_allclose(exp_rows(theta), Rotation.from_rotvec(theta).as_matrix(), atol=2e-15)
-    assert so3.orthonormality_error(exp_rows(theta)) < 1e-14
+    assert rotations.orthonormality_error(exp_rows(theta)) < 1e-14
 
 
 def test_log_exp_round_trip_near_pi() -> None:
@@ -55,7 +55,7 @@ def test_log_exp_round_trip_near_pi() -> None:
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     for angle in (1e-10, 0.3, 3.0, np.pi - 1e-9):
         theta = axes * angle
-        back = np.array([so3.log_so3(R) for R in exp_rows(theta)])
+        back = np.array([rotations.log_so3(R) for R in exp_rows(theta)])
         np.testing.assert_allclose(back, theta, atol=1e-7 if angle > 3.1 else 1e-12)
 
 
@@ -80,9 +80,9 @@ def test_quaternion_round_trip_all_branches() -> None:
         mats.append(Rotation.from_rotvec(axis * (np.pi - 1e-12)).as_matrix())
     mats.append(np.eye(3))
     for R in mats:
-        q = so3.quaternion_from_matrix(R)
+        q = rotations.quaternion_from_matrix(R)
         assert q[3] >= 0
-        np.testing.assert_allclose(np.array(so3.matrix_from_quaternion(*q)), R, atol=2e-15)
+        np.testing.assert_allclose(np.array(rotations.matrix_from_quaternion(*q)), R, atol=2e-15)
         ref = Rotation.from_matrix(R).as_quat()
         assert min(np.abs(ref - q).max(), np.abs(ref + q).max()) < 1e-12
 
@@ -90,21 +90,21 @@ def test_quaternion_round_trip_all_branches() -> None:
 def test_projection_of_the_papers_R2() -> None:
     """R_2(0) as printed is not a rotation (‖RᵀR − I‖_F ≈ 0.37); its projection is."""
     R2 = np.array([[-0.8253, 0, 0.5646], [0, 1, 0.2562], [-0.5646, 0, -0.8253]])
-    assert not so3.is_rotation(R2)
+    assert not rotations.is_rotation(R2)
     assert np.linalg.norm(R2.T @ R2 - np.eye(3)) == pytest.approx(0.37, abs=0.01)
-    P = so3.project_to_so3(R2)
-    assert so3.is_rotation(P, tol=1e-14)
+    P = rotations.project_to_so3(R2)
+    assert rotations.is_rotation(P, tol=1e-14)
     assert np.linalg.norm(P - R2) < 0.2
 
 
 def test_rpy_and_axis_angle() -> None:
     """rpy is fixed-axis x-y-z (R = Rz Ry Rx); axis-angle normalises the axis."""
-    R = so3.matrix_from_rpy([0.1, -0.2, 0.3])
+    R = rotations.matrix_from_rpy([0.1, -0.2, 0.3])
     ref = Rotation.from_euler("z", 0.3).as_matrix() @ Rotation.from_euler("y", -0.2).as_matrix()
     ref = ref @ Rotation.from_euler("x", 0.1).as_matrix()
     np.testing.assert_allclose(R, ref, atol=1e-15)
     np.testing.assert_allclose(
-        so3.matrix_from_axis_angle([0, 0, 2.0], np.pi / 2), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15
+        rotations.matrix_from_axis_angle([0, 0, 2.0], np.pi / 2), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15
     )
-    with pytest.raises(so3.RotationError, match="no direction"):
-        so3.matrix_from_axis_angle([0, 0, 0], 1.0)
+    with pytest.raises(rotations.RotationError, match="no direction"):
+        rotations.matrix_from_axis_angle([0, 0, 0], 1.0)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from formation_msgs_py.so3 import orthonormality_error
+from formation_msgs_py.rotations import orthonormality_error
 from formation_msgs_py.spec import SignalModel, formation_from_dict, load_formation, simulator_view
 from formation_sim.measurement import MeasurementModel
 from formation_sim.plant import Plant, PlantState

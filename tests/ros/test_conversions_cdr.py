@@ -56,7 +56,8 @@ def test_clock_bytes() -> None:
 
 def test_ground_truth_bytes_deserialize_in_rclpy() -> None:
     """The ground-truth PoseArray as CDR bytes: stamp, frame 'world', one pose per agent, any count."""
-    from formation_msgs_py.so3 import exp_so3, quaternion_from_matrix
+    from formation_msgs_py.rotations import quaternion_from_matrix
+    from formation_msgs_py.so3 import exp_so3
 
     rng = np.random.default_rng(2)
     for n in (0, 1, 5, 50):

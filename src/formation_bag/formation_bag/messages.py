@@ -17,7 +17,7 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from formation_msgs_py import topics, wire
-from formation_msgs_py.so3 import quaternion_from_matrix
+from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.wire import NS_PER_S, stamp_ns
 
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"

@@ -4,7 +4,7 @@ The decoders and the raw-CDR codecs live in :mod:`formation_msgs_py.wire` (no RO
 are re-exported here.
 
 geometry_msgs quaternions are fields (x, y, z, w); our rotations are 3×3 row-major matrices,
-converted by :func:`formation_msgs_py.so3.quaternion_from_matrix` and its inverse only. Time
+converted by :func:`formation_msgs_py.rotations.quaternion_from_matrix` and its inverse only. Time
 stamps are float seconds on our side and (sec, nanosec) on the wire; simulation times are
 multiples of the control period, so :func:`stamp_from_seconds` rounds to the nanosecond
 and :func:`seconds_from_stamp` maps it back to the same float.
@@ -19,7 +19,7 @@ from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import topics
-from formation_msgs_py.so3 import quaternion_from_matrix
+from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.wire import (  # noqa: F401 - the ROS-free half, re-exported for the nodes
     NS_PER_S,
     StampedCodec,

@@ -20,9 +20,15 @@ from typing import Any
 
 import numpy as np
 
-from formation_msgs_py import funnels
 from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
 from formation_msgs_py.loader import locate, read_document, split_path
+from formation_msgs_py.rotations import (
+    is_rotation,
+    matrix_from_axis_angle,
+    matrix_from_quaternion,
+    matrix_from_rpy,
+    project_to_so3,
+)
 from formation_msgs_py.schema import (
     AGENT_FIELDS,
     SIMULATION_FIELDS,
@@ -33,13 +39,6 @@ from formation_msgs_py.schema import (
     record,
     short,
     unknown_key,
-)
-from formation_msgs_py.so3 import (
-    is_rotation,
-    matrix_from_axis_angle,
-    matrix_from_quaternion,
-    matrix_from_rpy,
-    project_to_so3,
 )
 
 #: ``project: true`` accepts a matrix with ‖RᵀR − I‖_F up to this and det > 0: the paper's printed
@@ -140,16 +139,15 @@ class EdgeSpec:
 
     def rho_e(self, t):
         """Normalised distance performance function ρ_e(t)."""
+        from formation_msgs_py import funnels  # compiled kernels: not on the path of loading a file
+
         return funnels.rho(t, 1.0, funnels.rho_e_floor(self.c_col, self.c_con, self.rho_e_inf), self.decay_e)
 
     def rho_psi(self, t):
         """Orientation performance function ρ_ψ(t)."""
-        return funnels.rho(t, self.rho_psi_0, self.rho_psi_inf, self.decay_psi)
+        from formation_msgs_py import funnels
 
-    def e_bounds(self, t):
-        """(lower, upper) bounds of e_k(t) in m²."""
-        r = self.rho_e(t)
-        return -self.c_col * r, self.c_con * r
+        return funnels.rho(t, self.rho_psi_0, self.rho_psi_inf, self.decay_psi)
 
 
 SimulationSpec = record(

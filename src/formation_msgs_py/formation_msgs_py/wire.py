@@ -3,7 +3,7 @@
 The decoders read fields by name, so they take rclpy messages (the nodes) and rosbags
 messages (bag analysis, no ROS) alike; :mod:`formation_msgs_py.conversions` re-exports them next
 to the encoders that need the ROS message classes. Quaternions are converted only by
-:func:`formation_msgs_py.so3.matrix_from_quaternion` and its inverse.
+:func:`formation_msgs_py.rotations.matrix_from_quaternion` and its inverse.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from formation_msgs_py import topics
-from formation_msgs_py.so3 import matrix_from_quaternion, quaternion_from_matrix
+from formation_msgs_py.rotations import matrix_from_quaternion, quaternion_from_matrix
 
 NS_PER_S = 1_000_000_000
 

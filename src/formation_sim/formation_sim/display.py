@@ -24,7 +24,7 @@ from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
 from formation_msgs_py import conversions, parameters, qos, topics
-from formation_msgs_py.so3 import quaternion_from_matrix
+from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.markers import FormationScene, Shape
 

@@ -11,16 +11,18 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
-from formation_msgs_py.spec import FormationSpec
-from formation_sim.loop import ProgressFn, run_closed_loop
 from formation_sim.preflight import preflight
-from formation_sim.report import RunRecorder, format_summary, report_animation, write_outputs
+
+if TYPE_CHECKING:  # the cores (numba) are imported once the options and the file are valid
+    from formation_msgs_py.spec import FormationSpec
+    from formation_sim.loop import ProgressFn
+    from formation_sim.report import RunRecorder
 
 
 @dataclass
@@ -37,6 +39,9 @@ def run_headless(
     stop_on_violation: bool = False,
 ) -> HeadlessResult:
     """Run the closed loop for ``spec.simulation.duration``; funnels checked at every control step."""
+    from formation_sim.loop import run_closed_loop
+    from formation_sim.report import RunRecorder
+
     mode = controller_mode or spec.simulation.controller
     if mode not in ("sampled", "continuous"):
         raise ValueError(f"controller mode {mode!r} is not sampled or continuous")
@@ -75,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     spec, out, mode = run.spec, run.out, run.options.controller
     for msg in run.warnings:
         print(f"formation-headless: warning: {msg}", file=sys.stderr)
+    from formation_sim.report import format_summary, report_animation, write_outputs
 
     def progress(t: float, rtf: float, margin: float) -> None:
         print(

@@ -23,17 +23,18 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
-from formation_msgs_py.spec import FormationSpec
 from formation_sim import dds_env
 from formation_sim.preflight import preflight
-from formation_sim.report import format_summary, report_animation, verdict_line, write_json
 from formation_sim.supervisor import Child, LogFollower, Supervisor
+
+if TYPE_CHECKING:
+    from formation_msgs_py.spec import FormationSpec
 
 #: child name -> formation-keys process name, where they differ
 _KEY_NAMES = {"sim": "simulator"}
@@ -407,6 +408,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if secure is not None:
             secure.close()
+    from formation_sim.report import format_summary, report_animation, verdict_line, write_json  # numba: not for --help
+
     summary = launcher.summary()
     if secure is not None:
         summary["launch"]["secure"] = secure.describe()

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from formation_msgs_py import funnels
-from formation_msgs_py.so3 import quaternion_from_matrix
+from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.spec import FormationSpec
 
 # visualization_msgs/Marker type codes (a ROS message constant, repeated here to stay ROS-free)

@@ -12,11 +12,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import HEADLESS, RunOptions
-from formation_msgs_py.spec import FormationSpec, load_formation
-from formation_sim.rates import rate_needs
+
+if TYPE_CHECKING:
+    from formation_msgs_py.spec import FormationSpec
+
+# The file is read and validated before the numerical cores are imported (rate_problems): a bad
+# file costs the loader (numpy, yaml) and no more (BENCHMARKS.md, "Bad input").
 
 
 class InvalidRunError(FormationError):
@@ -39,6 +44,8 @@ def load_spec(options: RunOptions) -> FormationSpec:
     A new control rate without a physics rate keeps the file's physics rate when it is an
     integer multiple of it, else runs physics at the control rate.
     """
+    from formation_msgs_py.spec import load_formation
+
     over = options.overrides()
     if "control_rate" in over and "physics_rate" not in over:
         spec = load_formation(options.file)
@@ -50,6 +57,8 @@ def load_spec(options: RunOptions) -> FormationSpec:
 
 def rate_problems(spec: FormationSpec) -> list[str]:
     """One message per agent whose velocity loop needs more than the configured control rate."""
+    from formation_sim.rates import rate_needs
+
     f_s = spec.simulation.control_rate
     return [
         f"agent {n.agent_id} needs {n.at_end:.0f} Hz by t={spec.simulation.duration:g} s "

@@ -32,9 +32,9 @@ from formation_agent.controller import (
     REASON_MESSAGES,
     U,
     gains,
-    rows3,
     new_funnel_start,
     new_outputs,
+    rows3,
 )
 from formation_msgs_py import funnels
 from formation_msgs_py.compiled import kernel
@@ -309,6 +309,22 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
     )
 
 
+def first_step(spec: FormationSpec) -> np.ndarray:
+    """``start`` (N, 7) after every agent's first step on the initial measurements: the run core's
+    step 0, without physics (the velocity funnels as the agents set them)."""
+    sim = Simulation(simulator_view(spec), warm_up=False)
+    loop = closed_loop(spec, sim)
+    n, n_ends = loop.agents.shape[0], loop.ends.shape[0]
+    buf = new_buffers(1, n, n_ends, len(spec.edges))
+    s = sim.state
+    rate = float(spec.simulation.control_rate)
+    run_steps(
+        loop, new_watch(spec, Judge(spec)), s.p, s.R, s.v, new_workspace(n), 0, 1, 0, rate, 1, 1.0 / rate, False,
+        False, buf,
+    )  # fmt: skip
+    return loop.start
+
+
 #: Fraction of RK4's stability limit used: the linearisation at ξ_v = 0 underestimates the gain
 #: r_v(ξ)/2 near the funnel's bound.
 STABILITY_FRACTION = 0.5
@@ -354,7 +370,7 @@ def run_closed_loop(
     """
     started = time.perf_counter()
     sim_spec = spec.simulation
-    sim = Simulation(simulator_view(spec))
+    sim = Simulation(simulator_view(spec), warm_up=False)
     loop = closed_loop(spec, sim)
     ids = spec.agent_ids
     n_steps = round(sim_spec.duration * sim_spec.control_rate)

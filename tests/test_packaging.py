@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import configparser
 import os
 import re
 import subprocess
@@ -40,7 +41,9 @@ CORE_MODULES = [
 
 #: Every module a package imports, by its rosdep key (package.xml) and, for PyPI projects, its
 #: requirement name (setup.py install_requires; ROS packages are not PyPI projects under their own
-#: names, so rosdep alone declares them). Keys ending in -pip name pip-installed rosdep keys.
+#: names, so rosdep alone declares them). Each key was checked in ros/rosdistro (commit 8468e88,
+#: rosdep/python.yaml; the ROS packages in jazzy/distribution.yaml). ``mcap`` has no key of its own:
+#: ``mcap-ros2-support`` (a pip key) installs it, as the PyPI project mcap-ros2-support requires mcap.
 DEPENDENCIES = {
     "numpy": ("python3-numpy", "numpy"),
     "scipy": ("python3-scipy", "scipy"),
@@ -50,8 +53,8 @@ DEPENDENCIES = {
     "cryptography": ("python3-cryptography", "cryptography"),
     "numba": ("python3-numba", "numba"),
     "rosbags": ("python3-rosbags-pip", "rosbags"),
-    "mcap": ("python3-mcap-pip", "mcap"),
-    "mcap_ros2": ("python3-mcap-ros2-support-pip", "mcap-ros2-support"),
+    "mcap": ("mcap-ros2-support", "mcap"),
+    "mcap_ros2": ("mcap-ros2-support", "mcap-ros2-support"),
     **{
         ros: (ros, None)
         for ros in (
@@ -63,16 +66,21 @@ DEPENDENCIES = {
             "diagnostic_msgs",
             "std_msgs",
             "visualization_msgs",
+            "tf2_msgs",
         )
     },
 }
+#: The keys a package.xml may name: the verified ones above, the workspace's packages, pytest.
+KNOWN_KEYS = {key for key, _ in DEPENDENCIES.values()} | set(PACKAGES) | {"python3-pytest"}
 
-#: Modules only an optional feature imports: declared as a setup.py extra, not in package.xml.
+#: Modules only an optional feature imports: declared as a setup.py extra, not in package.xml
+#: (rosdistro has no key for dask's distributed).
 OPTIONAL = {"distributed": "dask"}  # formation-campaign --scheduler
 
 
 def imported_modules(pkg: str) -> set[str]:
-    """Top-level names of the non-stdlib modules ``pkg``'s code imports (other formation packages included)."""
+    """Top-level names of the non-stdlib modules ``pkg``'s code imports (other formation packages
+    included), also through ``importlib.import_module("NAME…")`` with a literal name."""
     names: set[str] = set()
     for path in (REPO / "src" / pkg / pkg).rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
@@ -80,25 +88,40 @@ def imported_modules(pkg: str) -> set[str]:
                 names |= {a.name.split(".")[0] for a in node.names}
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                 names.add(node.module.split(".")[0])
+            elif (
+                isinstance(node, ast.Call)
+                and getattr(node.func, "attr", getattr(node.func, "id", None)) == "import_module"
+                and node.args
+                and isinstance(node.args[0], ast.Constant)
+            ):
+                names.add(node.args[0].value.split(".")[0])
     return {n for n in names if n not in sys.stdlib_module_names and n != pkg}
+
+
+def setup_arguments(pkg: str) -> dict[str, object]:
+    """The literal keyword arguments of ``setup(...)`` in ``pkg``'s setup.py (package_name resolved)."""
+    tree = ast.parse((REPO / "src" / pkg / "setup.py").read_text(encoding="utf-8"))
+    call = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "setup")
+    wanted = ("install_requires", "extras_require")
+    return {kw.arg: ast.literal_eval(kw.value) for kw in call.keywords if kw.arg in wanted}
 
 
 @pytest.mark.parametrize("pkg", PACKAGES)
 def test_every_import_is_declared(pkg: str) -> None:
-    """package.xml has a rosdep key and setup.py a requirement for every module the package imports."""
-    root = REPO / "src" / pkg
-    xml = ET.parse(root / "package.xml").getroot()
+    """package.xml has a rosdep key and setup.py a requirement for every module the package imports;
+    package.xml names no key that was not checked against rosdistro."""
+    xml = ET.parse(REPO / "src" / pkg / "package.xml").getroot()
     keys = {d.text for tag in ("depend", "exec_depend") for d in xml.findall(tag)}
-    requires = set(re.findall(r'"([A-Za-z0-9_.-]+)"', (root / "setup.py").read_text().split("install_requires=")[1]))
+    unknown = {d.text for d in xml.iter() if d.tag.endswith("depend")} - KNOWN_KEYS
+    assert not unknown, f"{pkg}/package.xml: keys not checked against rosdistro: {sorted(unknown)}"
+    setup = setup_arguments(pkg)
+    requires = set(setup["install_requires"])
     for module in sorted(imported_modules(pkg)):
-        if module in PACKAGES:
-            assert module in keys and module in requires, (pkg, module)
-            continue
         if module in OPTIONAL:
-            assert f'"{OPTIONAL[module]}": ["{module}"]' in (root / "setup.py").read_text(), (pkg, module)
+            assert module in setup["extras_require"][OPTIONAL[module]], f"{pkg}/setup.py: extra {OPTIONAL[module]!r}"
             continue
-        assert module in DEPENDENCIES, f"{pkg} imports {module}: add it to DEPENDENCIES with its rosdep key"
-        key, requirement = DEPENDENCIES[module]
+        key, requirement = (module, module) if module in PACKAGES else DEPENDENCIES.get(module, (None, None))
+        assert key is not None, f"{pkg} imports {module}: add it to DEPENDENCIES with its rosdistro key"
         assert key in keys, f"{pkg}/package.xml: <exec_depend>{key}</exec_depend> missing (imports {module})"
         if requirement is not None:
             assert requirement in requires, f"{pkg}/setup.py: install_requires lacks {requirement!r} ({module})"
@@ -180,6 +203,18 @@ def colcon(tmp_path: Path, *args: str, symlink: bool = False) -> None:
         timeout=600,
     )
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+
+
+def test_colcon_test_covers_every_test_directory() -> None:
+    """`colcon test` runs pytest in each package's directory with its setup.cfg testpaths: together they
+    hold every directory of tests/ (this file, the workspace's own test, runs with test.sh)."""
+    covered = set()
+    for pkg in PACKAGES:
+        cfg = configparser.ConfigParser()
+        cfg.read(REPO / "src" / pkg / "setup.cfg")
+        covered |= {(REPO / "src" / pkg / p).resolve() for p in cfg["tool:pytest"]["testpaths"].split()}
+    wanted = {d for d in (REPO / "tests").iterdir() if d.is_dir() and any(d.glob("test_*.py"))}
+    assert wanted == covered, (sorted(map(str, wanted - covered)), sorted(map(str, covered - wanted)))
 
 
 def test_colcon_symlink_install_builds(tmp_path: Path) -> None:

@@ -29,10 +29,10 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "formation-record = formation_bag.record_node:main",
-            "formation-replay = formation_bag.replay_node:main",
-            "formation-analyze = formation_bag.analysis:main",
-            "formation-rerun = formation_bag.rerun:main",
+            "formation-record = formation_bag.commands:record",
+            "formation-replay = formation_bag.commands:replay",
+            "formation-analyze = formation_bag.commands:analyze",
+            "formation-rerun = formation_bag.commands:rerun",
             "formation-bag = formation_bag.cli:main",
         ],
     },

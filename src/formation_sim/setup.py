@@ -21,7 +21,6 @@ setup(
         "PyYAML",
         "pillow",
         "numba",
-        "distributed",
     ],
     # colcon test runs pytest when "test" lists it; "dask": formation-campaign --scheduler
     extras_require={"test": ["pytest"], "dask": ["distributed"]},
@@ -34,7 +33,7 @@ setup(
         "console_scripts": [
             "formation-check = formation_sim.check:main",
             "formation-headless = formation_sim.headless:main",
-            "formation-sim = formation_sim.sim_node:main",
+            "formation-sim = formation_sim.commands:sim",
             "formation-launch = formation_sim.launch:main",
             "formation-generate = formation_sim.generate:main",
             "formation-campaign = formation_sim.campaign:main",

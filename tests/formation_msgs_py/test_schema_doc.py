@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
-from formation_msgs_py.schema import schema_markdown
+import yaml
+
+from formation_msgs_py import spec
+from formation_msgs_py.schema import AGENT_FIELDS, EDGE_FIELDS, SIMULATION_FIELDS, block, schema_markdown
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -16,18 +20,36 @@ def test_docs_reference_matches_schema() -> None:
 
 
 def test_built_records_have_exactly_the_declared_fields() -> None:
-    """One declaration: the simulation, controller, velocity-funnel and dynamics objects have the schema's fields."""
-    import dataclasses
-
-    from formation_msgs_py import spec
-    from formation_msgs_py.schema import AGENT_FIELDS, SIMULATION_FIELDS, block
-
+    """One declaration: every object a block builds has the schema's fields as attributes, in order
+    (an ``attr`` renames, an ``inline`` map's fields belong to the agent or edge; ``index`` is derived)."""
     pairs = [
-        (spec.SimulationSpec, SIMULATION_FIELDS),
-        (spec.ControllerGains, block(AGENT_FIELDS, "controller")),
-        (spec.VelocityFunnel, block(AGENT_FIELDS, "controller", "velocity_funnel")),
-        (spec.Dynamics, block(AGENT_FIELDS, "dynamics")),
+        (spec.SimulationSpec, SIMULATION_FIELDS, []),
+        (spec.ControllerGains, block(AGENT_FIELDS, "controller"), []),
+        (spec.VelocityFunnel, block(AGENT_FIELDS, "controller", "velocity_funnel"), []),
+        (spec.Dynamics, block(AGENT_FIELDS, "dynamics"), []),
+        (spec.AgentSpec, AGENT_FIELDS, ["index"]),
+        (spec.EdgeSpec, EDGE_FIELDS, ["index"]),
     ]
-    for cls, fields in pairs:
-        assert [f.name for f in dataclasses.fields(cls)] == [f.name for f in fields], cls
+
+    def attributes(fields):
+        return [n for f in fields for n in (attributes(f.children) if f.inline else [f.attr or f.name])]
+
+    for cls, fields, derived in pairs:
+        assert [f.name for f in dataclasses.fields(cls)] == derived + attributes(fields), cls
         assert cls.__module__ == "formation_msgs_py.spec" and "Attributes" in cls.__doc__
+    assert [f.name for f in dataclasses.fields(spec.EdgeSpec)][3:5] == ["d_des", "R_des"]
+
+
+def test_every_number_of_the_file_reaches_its_attribute() -> None:
+    """The paper preset with the renamed and inline numbers of an agent and an edge changed: each attribute
+    holds the file's value at its field's key."""
+    doc = yaml.safe_load((REPO / "config" / "paper_5agents.yaml").read_text(encoding="utf-8"))
+    edge = doc["edges"][0]
+    edge.update(distance=2.6, distance_funnel={"rho_inf": 0.11, "decay": 1.7})
+    edge.update(orientation_funnel={"rho_0": 1.98, "rho_inf": 0.12})
+    doc["agents"][0]["measurement_noise"] = {"position_std": 0.003, "rotation_std": 0.004}
+    built = spec.formation_from_dict(doc)
+    agent, e = built.agents[0], built.edges[0]
+    assert (agent.position_noise_std, agent.rotation_noise_std) == (0.003, 0.004)
+    assert (e.rho_e_inf, e.decay_e, e.rho_psi_0, e.rho_psi_inf, e.decay_psi) == (0.11, 1.7, 1.98, 0.12, 1.5)
+    assert e.d_des == 2.6 and agent.radius == doc["defaults"]["agent"]["radius"]

@@ -6,7 +6,7 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,15 +21,16 @@ REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
 
 
 @contextmanager
-def ros_context(ros_env: dict[str, str]) -> Iterator:
-    """An rclpy context of the test itself in the test's domain (this host only); shut down and the
-    environment restored on exit."""
+def ros_context(ros_env: dict[str, str], ros_args: Sequence[str] = ()) -> Iterator:
+    """An rclpy context of the test itself in the test's domain (this host only), with ``ros_args``
+    (e.g. ``-p name:=value`` for every node of the context); shut down and the environment restored
+    on exit."""
     import rclpy
 
     saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
     os.environ.update({k: ros_env[k] for k in saved})
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(args=["test", "--ros-args", *ros_args] if ros_args else None, context=context)
     try:
         yield context
     finally:
@@ -57,18 +58,11 @@ class Procs:
         self.started.append(proc)
         return proc
 
-    def agent(self, formation: Path, agent_id: str) -> subprocess.Popen:
-        return self.start(
-            f"agent_{agent_id}",
-            [
-                str(BIN / "formation-agent"),
-                "--ros-args",
-                "-p",
-                f"formation_file:={formation}",
-                "-p",
-                f"agent_id:='{agent_id}'",
-            ],
-        )
+    def agent(self, formation: Path, agent_id: str, *params: str) -> subprocess.Popen:
+        """An agent process; ``params`` are more ``NAME:=VALUE`` parameters."""
+        cmd = [str(BIN / "formation-agent"), "--ros-args", "-p", f"formation_file:={formation}"]
+        cmd += ["-p", f"agent_id:='{agent_id}'", *(x for p in params for x in ("-p", p))]
+        return self.start(f"agent_{agent_id}", cmd)
 
     def sim(self, formation: Path, out: Path, *extra: str) -> subprocess.Popen:
         return self.start("sim", [str(BIN / "formation-sim"), str(formation), "--out", str(out), "--no-plots", *extra])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -13,6 +14,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from ros_helpers import BIN, PAPER, read_log, ros_context
 from rosgraph_msgs.msg import Clock
 
+from formation_agent.agent_node import AgentNode, resolve_agent_id
 from formation_msgs_py import conversions, qos, topics
 from formation_msgs_py.spec import load_formation, simulator_view
 from formation_sim.simulation import Simulation
@@ -93,3 +95,31 @@ def test_agent_parameters_read_only_live_and_checked(procs, ros_env: dict[str, s
         assert np.linalg.norm(u_12) > 1e-5  # ~2e-4 at the first step: ρ_v0 = 2|e_v(0)| + 1 keeps ξ_v small
         np.testing.assert_allclose(u_24, 2.0 * u_12, rtol=1e-5)
         node.destroy_node()
+
+
+ONE_AGENT = "/**:\n  ros__parameters:\n    agent_id: '3'\n    formation_file: {paper}\n    gamma: 7.5\n"
+ALL_AGENTS = (
+    "/**:\n  ros__parameters:\n    formation_file: {paper}\n"
+    "/agent_3/formation_agent:\n  ros__parameters:\n    gamma: 12.0\n"
+    "/agent_4/formation_agent:\n  ros__parameters:\n    gamma: 99.0\n"
+)
+
+
+@pytest.mark.parametrize(
+    ("text", "extra", "gamma"),
+    [(ONE_AGENT, [], 7.5), (ALL_AGENTS, ["-p", "agent_id:=3"], 12.0), (ALL_AGENTS, ["-r", "__ns:=/agent_3"], 12.0)],
+    ids=["one-agent", "all-agents-by-id", "all-agents-by-namespace"],
+)
+def test_params_file_for_one_agent_and_for_all(ros_env: dict[str, str], tmp_path, text, extra, gamma) -> None:
+    """--params-file: a file for one agent (/** with agent_id), or one for all with a section per
+    agent, chosen by -p agent_id:=ID or by the namespace; the node is /agent_3/formation_agent."""
+    params = tmp_path / "params.yaml"
+    params.write_text(text.format(paper=PAPER))
+    ros_args = ["--params-file", str(params), *extra]
+    with ros_context(ros_env, ros_args) as context:
+        node = AgentNode(resolve_agent_id(["formation-agent", "--ros-args", *ros_args], context), context=context)
+        try:
+            assert node.get_fully_qualified_name() == "/agent_3/formation_agent"
+            assert (node.agent_id, node.get_parameter("gamma").value) == ("3", gamma)
+        finally:
+            node.destroy_node()

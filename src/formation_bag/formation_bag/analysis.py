@@ -26,7 +26,6 @@ data; a violation seen in the data present is still FAIL.
 
 from __future__ import annotations
 
-import argparse
 import bisect
 import csv
 import json
@@ -40,14 +39,13 @@ import numpy as np
 
 from formation_agent.controller import ERROR
 from formation_bag import messages as m
+from formation_bag.commands import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.errors import BagError
 from formation_bag.rerun import AgentRerun, rerun_all
 from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
+from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
 from formation_sim.report import RunRecorder, format_summary, report_animation, write_json, write_outputs
-
-VELOCITY_MARGIN_MODES = ("rerun", "none")
 
 
 def _rate_from_stamps(stamps: list[int]) -> float | None:
@@ -408,39 +406,9 @@ def write_csv(out: Path, recorder: RunRecorder, ages: dict[str, Any]) -> list[Pa
     return paths
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="formation-analyze",
-        description="Analyse a recorded run without ROS: recompute e_k and ψ_k from /formation/ground_truth, check "
-        "every funnel, write OUT as docs/outputs.md (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
-        "inputs.png) plus errors.csv, inputs.csv, positions.csv, ages.json, ages.csv. Works on lockstep and "
-        "realtime bags and on bags left by a killed recorder; missing data makes the verdict INCOMPLETE (never FAIL) "
-        "and is listed. " + EXIT_STATUS_HELP + ".",
-    )
-    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
-    p.add_argument("--out", type=Path, help="output directory (default: <bag>-analysis next to the bag)")
-    p.add_argument("--formation", type=Path, help="formation file (default: the copy the recorder stored in the bag)")
-    p.add_argument(
-        "--velocity-margins",
-        choices=VELOCITY_MARGIN_MODES,
-        default="rerun",
-        help="rerun: velocity-funnel margins and controller faults from re-running the agents' controllers on the "
-        "recorded measurements (default); none: check the distance and orientation funnels only",
-    )
-    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
-    p.add_argument("--no-plots", action="store_true", help="skip the figures")
-    p.add_argument(
-        "--animate",
-        action="store_true",
-        help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for a 5 s run)",
-    )
-    p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
-    return p
-
-
 @guarded("formation-analyze")
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = analyze_parser().parse_args(argv)
     started = time.perf_counter()
     bag = args.bag.resolve()
     out = args.out or bag.parent / f"{bag.stem if bag.is_file() else bag.name}-analysis"

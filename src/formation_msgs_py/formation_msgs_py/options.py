@@ -123,7 +123,7 @@ OPTIONS: tuple[Option, ...] = (
     Option("--executor", "how every node spins (formation_msgs_py.hotloop)", ROS, str, "events", EXECUTORS,
            forward=True),
     Option("--measurement-qos", "QoS of relative poses and velocities; best-effort (realtime only) costs less CPU "
-           "per message (agents need -p measurement_qos:=best_effort)", ROS, str, "reliable",
+           "per message (agents need -p measurement_qos:=best-effort)", ROS, str, "reliable",
            ("reliable", "best-effort"), forward=True),
     Option("--intruder-policy", "a publisher the formation does not expect on its topics: report it (default), or "
            "also refuse that topic's messages while it is there, in the simulator and every agent (docs/security.md)",
@@ -133,7 +133,7 @@ OPTIONS: tuple[Option, ...] = (
     Option("--keys", "with --secure: key directory of formation-keys init (default: a CA and keys for this run only)",
            frozenset({LAUNCH}), Path),
     Option("--marker-rate", "display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off]; "
-           "also the live parameter marker_rate", frozenset({SIM}), nonnegative, 30.0),
+           "also the live parameter marker_rate", ROS, nonnegative, 30.0, forward=True),
     Option("--record", "record a bag into OUT/bag with formation-record (default: on; --no-record to skip). While "
            "recording, ground truth is published at every control step unless --ground-truth-rate is given, so "
            "that formation-analyze OUT/bag reproduces the run's summary", frozenset({LAUNCH}), "bool", True),
@@ -249,6 +249,21 @@ def build_parser(command: str, prog: str, description: str, *, file_required: bo
             extra = {"choices": o.choices} if o.choices else {}
             p.add_argument(o.flag, type=o.kind, default=o.default, help=o.help, **extra)
     return p
+
+
+def without_ros_args(argv: Sequence[str]) -> list[str]:
+    """``argv`` without its ROS arguments (each ``--ros-args`` up to ``--`` or the end), as
+    ``rclpy.utilities.remove_ros_args`` does, without importing rclpy."""
+    out: list[str] = []
+    ros = False
+    for arg in argv:
+        if arg == "--ros-args":
+            ros = True
+        elif ros and arg == "--":
+            ros = False
+        elif not ros:
+            out.append(arg)
+    return out
 
 
 def parse(command: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> RunOptions:

@@ -4,14 +4,17 @@ Every field has a kind, a default (or ``REQUIRED``), a unit and a description.
 :func:`parse_mapping` walks a YAML document against the schema and returns plain Python values
 with defaults filled in; it reports every unknown key (with the nearest valid one) and wrong
 type of a mapping as :class:`FormationSpecError` naming the field path (shortened values).
-:func:`record` makes the frozen dataclass a block builds (``SimulationSpec``,
-``ControllerGains``, ``VelocityFunnel``, ``Dynamics`` in :mod:`formation_msgs_py.spec`), and
+:func:`record` makes the frozen dataclass a block builds (``SimulationSpec``, ``AgentSpec``,
+``EdgeSpec``, ``ControllerGains``, ``VelocityFunnel``, ``Dynamics`` in :mod:`formation_msgs_py.spec`), and
 :func:`schema_markdown` renders the reference table of ``docs/formation_file.md`` (a test keeps
 the two in step): no second list of fields anywhere.
 
-Semantic checks (tree, distance bounds, funnels) and the derived objects (``AgentSpec``,
-``EdgeSpec``) live in :mod:`formation_msgs_py.spec`.
+``AgentSpec`` and ``EdgeSpec`` are records too: a field's ``attr`` names its attribute where it
+differs from the key (``distance`` -> ``d_des``), an ``inline`` map's fields are attributes of the
+agent or edge itself (``distance_funnel.rho_inf`` -> ``rho_e_inf``). Semantic checks (tree,
+distance bounds, funnels) live in :mod:`formation_msgs_py.spec`.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -54,6 +57,10 @@ class Field:
     variants: Mapping[str, tuple[Field, ...]] = field(default_factory=dict)
     #: ``positive``, ``nonnegative`` or ``""`` for numbers
     sign: str = ""
+    #: the attribute of the built object (:func:`record`) that holds the value; ``""``: ``name``
+    attr: str = ""
+    #: a ``map`` whose fields are attributes of the enclosing object (not an object of their own)
+    inline: bool = False
 
 
 # --- shared blocks ----------------------------------------------------------------------------
@@ -106,7 +113,7 @@ AGENT_FIELDS: tuple[Field, ...] = (
     Field("radius", "float", REQUIRED, "radius r_i of the ball the agent occupies", "m", sign="positive"),
     Field("sensing_radius", "float", REQUIRED, "sensing radius s_i", "m", sign="positive"),
     Field("position", "vec3", REQUIRED, "initial position p_i(0) in the world frame", "m"),
-    Field("orientation", "rotation", "identity", "initial R_world_body R_i(0); " + _ROTATION_DOC),
+    Field("orientation", "rotation", "identity", "initial R_world_body R_i(0); " + _ROTATION_DOC, attr="R_world_body"),
     Field("linear_velocity", "vec3", (0.0, 0.0, 0.0), "initial body-frame linear velocity", "m/s"),
     Field("angular_velocity", "vec3", (0.0, 0.0, 0.0), "initial body-frame angular velocity", "rad/s"),
     Field(
@@ -197,19 +204,34 @@ AGENT_FIELDS: tuple[Field, ...] = (
         {},
         "noise on the relative poses this agent receives (simulator only, seeded)",
         children=(
-            Field("position_std", "float", 0.0, "std of Gaussian noise per axis", "m", sign="nonnegative"),
             Field(
-                "rotation_std", "float", 0.0, "std of a Gaussian rotation vector per axis", "rad", sign="nonnegative"
+                "position_std",
+                "float",
+                0.0,
+                "std of Gaussian noise per axis",
+                "m",
+                sign="nonnegative",
+                attr="position_noise_std",
+            ),
+            Field(
+                "rotation_std",
+                "float",
+                0.0,
+                "std of a Gaussian rotation vector per axis",
+                "rad",
+                sign="nonnegative",
+                attr="rotation_noise_std",
             ),
         ),
+        inline=True,
     ),
 )
 
 EDGE_FIELDS: tuple[Field, ...] = (
     Field("tail", "agent_id", REQUIRED, "k1, the tail of the edge"),
     Field("head", "agent_id", REQUIRED, "k2, the head of the edge"),
-    Field("distance", "float", REQUIRED, "desired distance d_k,des", "m", sign="positive"),
-    Field("orientation", "rotation", "identity", "desired R_k,des = R_headᵀ R_tail; " + _ROTATION_DOC),
+    Field("distance", "float", REQUIRED, "desired distance d_k,des", "m", sign="positive", attr="d_des"),
+    Field("orientation", "rotation", "identity", "desired R_k,des = R_headᵀ R_tail; " + _ROTATION_DOC, attr="R_des"),
     Field("d_col", "optional_float", None, "collision distance (default r_tail + r_head)", "m", sign="positive"),
     Field("d_con", "optional_float", None, "connectivity distance (default min(s_tail, s_head))", "m", sign="positive"),
     Field(
@@ -218,9 +240,18 @@ EDGE_FIELDS: tuple[Field, ...] = (
         {},
         "ρ_e of the edge",
         children=(
-            Field("rho_inf", "float", 0.1, "steady width ρ_e∞ in (0, max(C_col, C_con))", "m²", sign="positive"),
-            Field("decay", "float", 1.5, "decay rate l_e", "1/s", sign="positive"),
+            Field(
+                "rho_inf",
+                "float",
+                0.1,
+                "steady width ρ_e∞ in (0, max(C_col, C_con))",
+                "m²",
+                sign="positive",
+                attr="rho_e_inf",
+            ),
+            Field("decay", "float", 1.5, "decay rate l_e", "1/s", sign="positive", attr="decay_e"),
         ),
+        inline=True,
     ),
     Field(
         "orientation_funnel",
@@ -228,10 +259,11 @@ EDGE_FIELDS: tuple[Field, ...] = (
         {},
         "ρ_ψ of the edge",
         children=(
-            Field("rho_0", "float", 1.99, "initial width ρ_ψ0 in (ψ(0), 2)", sign="positive"),
-            Field("rho_inf", "float", 0.1, "steady width ρ_ψ∞ in (0, ρ_ψ0)", sign="positive"),
-            Field("decay", "float", 1.5, "decay rate l_ψ", "1/s", sign="positive"),
+            Field("rho_0", "float", 1.99, "initial width ρ_ψ0 in (ψ(0), 2)", sign="positive", attr="rho_psi_0"),
+            Field("rho_inf", "float", 0.1, "steady width ρ_ψ∞ in (0, ρ_ψ0)", sign="positive", attr="rho_psi_inf"),
+            Field("decay", "float", 1.5, "decay rate l_ψ", "1/s", sign="positive", attr="decay_psi"),
         ),
+        inline=True,
     ),
 )
 
@@ -560,21 +592,53 @@ def block(fields: tuple[Field, ...], *names: str) -> tuple[Field, ...]:
     return fields
 
 
+def _attributes(fields: tuple[Field, ...], prefix: str = "") -> list[tuple[str, Field]]:
+    """(file key, field) of each attribute of the built object: inline maps contribute their children."""
+    out: list[tuple[str, Field]] = []
+    for f in fields:
+        out.extend(_attributes(f.children, f"{prefix}{f.name}.") if f.inline else [(prefix + f.name, f)])
+    return out
+
+
+def record_values(fields: tuple[Field, ...], parsed: Mapping[str, Any]) -> dict[str, Any]:
+    """The keyword arguments of a :func:`record` class from a block :func:`parse_mapping` returned."""
+    out: dict[str, Any] = {}
+    for f in fields:
+        if f.inline:
+            out.update(record_values(f.children, parsed[f.name]))
+        else:
+            out[f.attr or f.name] = parsed[f.name]
+    return out
+
+
 def record(
-    name: str, fields: tuple[Field, ...], doc: str, *, module: str, namespace: Mapping[str, Any] | None = None
+    name: str,
+    fields: tuple[Field, ...],
+    doc: str,
+    *,
+    module: str,
+    derived: tuple[tuple[str, str, str], ...] = (),
+    base: type = object,
 ) -> type:
     """The frozen dataclass one block of the file builds: an attribute per field, in declaration order.
 
     The schema is the one declaration of a block: validation, the reference table and this class
-    come from it (its docstring lists the fields with their units and meaning).
+    come from it (its docstring lists the attributes with their units, meaning and file key).
+    ``derived``: (name, type, doc) of attributes that are not in the file (an index), first;
+    ``base``: methods and properties.
     """
+    attrs = _attributes(fields)
     lines = [doc, "", "Attributes (declared in formation_msgs_py.schema):"]
-    lines += [f"    {f.name}{f' [{f.unit}]' if f.unit else ''}: {f.doc}" for f in fields]
+    lines += [f"    {n}: {d}" for n, _, d in derived]
+    lines += [
+        f"    {f.attr or f.name}{f' [{f.unit}]' if f.unit else ''}: {f.doc}" + (f" (file: {key})" if f.attr else "")
+        for key, f in attrs
+    ]
     cls = dataclasses.make_dataclass(
         name,
-        [(f.name, _KIND_TYPES.get(f.kind, "Any")) for f in fields],
+        [(n, t) for n, t, _ in derived] + [(f.attr or f.name, _KIND_TYPES.get(f.kind, "Any")) for _, f in attrs],
+        bases=(base,),
         frozen=True,
-        namespace=dict(namespace or {}),
     )
     cls.__module__ = module  # pickles by name, as a class written there would
     cls.__doc__ = "\n".join(lines)

@@ -31,12 +31,14 @@ from formation_msgs_py.rotations import (
 )
 from formation_msgs_py.schema import (
     AGENT_FIELDS,
+    EDGE_FIELDS,
     SIMULATION_FIELDS,
     TOP_FIELDS,
     block,
     check_partial,
     parse_mapping,
     record,
+    record_values,
     short,
     unknown_key,
 )
@@ -50,8 +52,7 @@ _SIGNALS = ("disturbance", "velocity_noise")
 # --- result objects ---------------------------------------------------------------------------
 
 
-# The blocks that the file declares field for field are built as records of the schema (one
-# declaration: schema.py); AgentSpec and EdgeSpec below hold what is derived from them.
+# Every object a block of the file builds is a record of the schema (one declaration: schema.py).
 VelocityFunnel = record(
     "VelocityFunnel",
     block(AGENT_FIELDS, "controller", "velocity_funnel"),
@@ -84,44 +85,28 @@ Dynamics = record(
 )
 
 
-@dataclass(frozen=True)
-class AgentSpec:
-    """One agent: geometry, initial state (world pose, body twist), controller, plant."""
-
-    index: int
-    id: str
-    radius: float
-    sensing_radius: float
-    position: np.ndarray
-    R_world_body: np.ndarray
-    twist: np.ndarray
-    controller: ControllerGains
-    dynamics: Dynamics
-    position_noise_std: float
-    rotation_noise_std: float
+class _Agent:
+    """What an agent derives from its fields."""
 
     @property
-    def frame(self) -> str:
-        """Frame and namespace name of the agent: ``agent_<id>``."""
-        return f"agent_{self.id}"
+    def twist(self) -> np.ndarray:
+        """Initial body-frame twist [v_x, v_y, v_z, ω_x, ω_y, ω_z] (m/s, rad/s)."""
+        return np.array(self.linear_velocity + self.angular_velocity)
 
 
-@dataclass(frozen=True)
-class EdgeSpec:
-    """Edge k = (tail k1, head k2) with its desired offsets, bounds and funnels."""
+AgentSpec = record(
+    "AgentSpec",
+    AGENT_FIELDS,
+    "One agent: geometry, initial state (world position and R_world_body as numpy arrays, body twist), "
+    "controller (ControllerGains), plant (Dynamics).",
+    module=__name__,
+    derived=(("index", "int", "position in the file's list of agents"),),
+    base=_Agent,
+)
 
-    index: int
-    tail: str
-    head: str
-    d_des: float
-    R_des: np.ndarray
-    d_col: float
-    d_con: float
-    rho_e_inf: float
-    decay_e: float
-    rho_psi_0: float
-    rho_psi_inf: float
-    decay_psi: float
+
+class _Edge:
+    """What an edge derives from its fields."""
 
     @property
     def c_col(self) -> float:
@@ -150,16 +135,26 @@ class EdgeSpec:
         return funnels.rho(t, self.rho_psi_0, self.rho_psi_inf, self.decay_psi)
 
 
-SimulationSpec = record(
-    "SimulationSpec",
-    SIMULATION_FIELDS,
-    "Run settings (gravity a numpy 3-vector).",
+EdgeSpec = record(
+    "EdgeSpec",
+    EDGE_FIELDS,
+    "Edge k = (tail k1, head k2) with its desired offsets (R_des a numpy array), bounds (d_col, d_con "
+    "resolved) and funnels.",
     module=__name__,
-    namespace={
-        "substeps": property(
-            lambda self: round(self.physics_rate / self.control_rate), doc="Integrator steps per control period."
-        )
-    },
+    derived=(("index", "int", "position among the kept edges"),),
+    base=_Edge,
+)
+
+
+class _Simulation:
+    @property
+    def substeps(self) -> int:
+        """Integrator steps per control period."""
+        return round(self.physics_rate / self.control_rate)
+
+
+SimulationSpec = record(
+    "SimulationSpec", SIMULATION_FIELDS, "Run settings (gravity a numpy 3-vector).", module=__name__, base=_Simulation
 )
 
 
@@ -338,8 +333,6 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
     if sim is not None:
         errors.run(lambda: _check_rates(sim["physics_rate"], sim["control_rate"]))
 
-    agent_fields = next(f for f in TOP_FIELDS if f.name == "agents").children
-    edge_fields = next(f for f in TOP_FIELDS if f.name == "edges").children
     defaults = document.get("defaults") or {}
     if not isinstance(defaults, Mapping):
         errors.add(
@@ -350,7 +343,7 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
         if key not in ("agent", "edge"):
             errors.add(unknown_key(f"defaults.{key}", key, ("agent", "edge")))
     blocks = {}
-    for key, fields in (("agent", agent_fields), ("edge", edge_fields)):
+    for key, fields in (("agent", AGENT_FIELDS), ("edge", EDGE_FIELDS)):
         block = defaults.get(key) or {}
         if not isinstance(block, Mapping):
             errors.add(FormationSpecError(f"defaults.{key}", f"expected a mapping, got {short(block)}", block))
@@ -375,7 +368,7 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
             errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
             continue
         with errors.item(path, raw, "defaults.agent"):
-            a = parse_mapping(_deep_merge(blocks["agent"], raw), agent_fields, path)
+            a = parse_mapping(_deep_merge(blocks["agent"], raw), AGENT_FIELDS, path)
             if a["id"] in ids:
                 raise FormationSpecError(f"{path}.id", f"{a['id']!r} is used by agents[{ids[a['id']]}] too", a["id"])
             ids[a["id"]] = i
@@ -390,7 +383,7 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
             errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
             continue
         with errors.item(path, raw, "defaults.edge"):
-            e = parse_mapping(_deep_merge(blocks["edge"], raw), edge_fields, path)
+            e = parse_mapping(_deep_merge(blocks["edge"], raw), EDGE_FIELDS, path)
             if agents_ok:
                 for end in ("tail", "head"):
                     if e[end] not in ids:
@@ -579,16 +572,13 @@ def _make_agent(index: int, a: Mapping[str, Any], path: str) -> AgentSpec:
     dyn = Dynamics(**{**d, "inertia": J, **signals})
     return AgentSpec(
         index=index,
-        id=a["id"],
-        radius=a["radius"],
-        sensing_radius=a["sensing_radius"],
-        position=np.array(a["position"]),
-        R_world_body=_rotation_from(a["orientation"], f"{path}.orientation"),
-        twist=np.array(a["linear_velocity"] + a["angular_velocity"]),
-        controller=gains,
-        dynamics=dyn,
-        position_noise_std=a["measurement_noise"]["position_std"],
-        rotation_noise_std=a["measurement_noise"]["rotation_std"],
+        **{
+            **record_values(AGENT_FIELDS, a),
+            "position": np.array(a["position"]),
+            "R_world_body": _rotation_from(a["orientation"], f"{path}.orientation"),
+            "controller": gains,
+            "dynamics": dyn,
+        },
     )
 
 
@@ -638,17 +628,4 @@ def _make_edge(index: int, e: Mapping[str, Any], path: str, tail: AgentSpec, hea
             f"{df['rho_inf']:g} must be below max(C_col, C_con)={c_max:g}",
             df["rho_inf"],
         )
-    return EdgeSpec(
-        index=index,
-        tail=tail.id,
-        head=head.id,
-        d_des=d_des,
-        R_des=R_des,
-        d_col=d_col,
-        d_con=d_con,
-        rho_e_inf=df["rho_inf"],
-        decay_e=df["decay"],
-        rho_psi_0=of["rho_0"],
-        rho_psi_inf=of["rho_inf"],
-        decay_psi=of["decay"],
-    )
+    return EdgeSpec(index=index, **{**record_values(EDGE_FIELDS, e), "R_des": R_des, "d_col": d_col, "d_con": d_con})

@@ -100,7 +100,9 @@ class RunFigure:
         self.centre = (lo + hi) / 2
         self.half = max(float(np.max(hi - lo)) / 2, 1.0) + float(np.max(self.scene.radius))
         self.fig = plt.figure(figsize=(10.0, 4.8))
-        self.ax3d = self.fig.add_subplot(1, 2, 1, projection="3d")
+        # no tight_layout: it ignores the 3D axis labels, and z [m] then sits against the margins' axis
+        grid = self.fig.add_gridspec(1, 2, width_ratios=(1.2, 1.0), left=0.0, right=0.98, bottom=0.11, wspace=0.3)
+        self.ax3d = self.fig.add_subplot(grid[0], projection="3d")
         for setter, c in zip((self.ax3d.set_xlim, self.ax3d.set_ylim, self.ax3d.set_zlim), self.centre):
             setter(c - self.half, c + self.half)
         self.ax3d.set_xlabel("x [m]")
@@ -110,7 +112,7 @@ class RunFigure:
             axis.set_major_locator(MaxNLocator(4))  # tick labels are most of a 3D frame's drawing time
         self.ax3d.tick_params(labelsize=7)
         self.shapes = SceneArtists(self.ax3d)
-        axm = self.fig.add_subplot(1, 2, 2)
+        axm = self.fig.add_subplot(grid[1])
         every = max(1, len(t) // 1000)  # a line of ≤ 1000 points draws as well and much faster
         for k, e in enumerate(spec.edges):
             axm.plot(t[::every], margins[::every, k], lw=1.2, label=f"edge {e.tail}-{e.head}")
@@ -122,7 +124,6 @@ class RunFigure:
         axm.grid(alpha=0.3)
         axm.legend(fontsize=7, loc="lower right")
         self.cursor = axm.axvline(t[0], color="C3", lw=1.0)
-        self.fig.tight_layout()
 
     def draw(self, s: int) -> None:
         """Show sample ``s`` of the trajectory."""

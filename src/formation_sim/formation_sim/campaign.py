@@ -43,14 +43,13 @@ from collections.abc import Iterable, Mapping
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.loader import read_document
-from formation_msgs_py.so3 import exp_so3
-from formation_msgs_py.spec import FormationSpec, SignalModel, load_formation
+
+if TYPE_CHECKING:  # numpy, the loader of formations and the cores: imported where used, not for --help
+    from formation_msgs_py.spec import FormationSpec, SignalModel
 
 VARY_KEYS = ("mass", "inertia", "disturbance_amplitude", "noise_amplitude", "initial_rotation")
 TOP_KEYS = ("formation", "samples", "seed", "control_rates", "duration", "vary")
@@ -177,6 +176,8 @@ def parse_campaign(document: Any, base: Path) -> Campaign:
 def load_campaign(path: Path) -> Campaign:
     """Read and validate a campaign file with the formation files' reader (duplicate keys, size and
     alias budgets); errors name the field and its FILE:LINE:COL."""
+    from formation_msgs_py.spec import load_formation
+
     try:
         document = read_document(path)
     except FormationSpecError as exc:
@@ -191,6 +192,8 @@ def load_campaign(path: Path) -> Campaign:
 
 def tasks(campaign: Campaign) -> list[Task]:
     """Every run, sample-major; sample i's plant is drawn from the i-th child seed, the same at every rate."""
+    import numpy as np
+
     root = np.random.SeedSequence(campaign.seed)
     out = []
     for child in root.spawn(campaign.samples):
@@ -214,6 +217,8 @@ def tasks(campaign: Campaign) -> list[Task]:
 
 
 def _scaled_amplitude(model: SignalModel, value: float) -> SignalModel:
+    from formation_msgs_py.spec import SignalModel
+
     if model.model != "paper":
         return model
     return SignalModel(model.model, {**model.params, "amplitude": value})
@@ -221,6 +226,11 @@ def _scaled_amplitude(model: SignalModel, value: float) -> SignalModel:
 
 def sample_spec(task: Task) -> FormationSpec:
     """The base formation with sample ``task.sample``'s plant, initial orientations and control rate."""
+    import numpy as np
+
+    from formation_msgs_py.so3 import exp_so3
+    from formation_msgs_py.spec import load_formation
+
     spec = load_formation(task.formation)
     rng = np.random.default_rng(np.random.SeedSequence(task.entropy, spawn_key=task.spawn_key))
     vary = task.vary
@@ -399,6 +409,7 @@ def write_results(out: Path, rows: list[dict[str, Any]], campaign: Campaign) -> 
 def plot_campaign(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> None:
     """pass_rate.png (pass rate vs control rate, 95 % intervals) and worst_margin.png (histograms)."""
     import matplotlib
+    import numpy as np
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -461,9 +472,10 @@ def run_campaign(
 
 def sweep_rate(formation: Path, rates: list[float], out: Path, *, workers: int, scheduler: str | None) -> int:
     """The file's own plant at each rate, with the rate each agent needs."""
-    from formation_sim.rates import rate_needs
+    from formation_msgs_py.spec import load_formation
 
     spec = load_formation(formation)
+    from formation_sim.rates import rate_needs  # numba: once the file is valid
     campaign = Campaign(formation.resolve(), 1, 0, tuple(rates), None, {})
     summary = run_campaign(campaign, out, workers=workers, scheduler=scheduler, quiet=True)
     rows = {r["control_rate"]: r for r in _finished(out / "runs.jsonl").values()}

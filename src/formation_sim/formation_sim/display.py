@@ -24,6 +24,8 @@ from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
 from formation_msgs_py import conversions, parameters, qos, topics
+from formation_msgs_py.hotloop import EXECUTORS
+from formation_msgs_py.options import RunOptions
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.markers import FormationScene, Shape
@@ -115,17 +117,17 @@ class DisplayPublisher:
             self.tf_pub.publish(self.tf_class(transforms=transforms))
 
 
-def declare_simulator_parameters(
-    node: Node, spec: FormationSpec, settings: dict[str, str | float], marker_rate: float
-) -> DisplayPublisher:
+def declare_simulator_parameters(node: Node, spec: FormationSpec, args: RunOptions) -> DisplayPublisher:
     """The simulator's parameters and its display publisher.
 
-    ``settings`` (formation_file, mode, control_rate, …) are declared read-only: they show what
-    the command line chose and cannot change a running simulation. ``marker_rate`` is live.
+    The settings of :data:`SETTING_DOCS` are declared read-only: they show what the command line
+    (``args``, after preflight) chose and cannot change a running simulation. ``marker_rate`` is live.
     """
-    for name, value in settings.items():
-        parameters.declare(node, name, value, SETTING_DOCS.get(name, name), read_only=True)
-    rate = parameters.declare(node, "marker_rate", float(marker_rate), MARKER_RATE_DOC, low=0.0, high=1000.0)
+    settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": spec.simulation.control_rate}
+    settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
+    for name, doc in SETTING_DOCS.items():
+        parameters.declare(node, name, settings[name], doc, read_only=True)
+    rate = parameters.declare(node, "marker_rate", float(args.marker_rate), MARKER_RATE_DOC, low=0.0, high=1000.0)
     display = DisplayPublisher(node, spec, rate)
 
     def on_set(params: list) -> SetParametersResult:
@@ -146,5 +148,5 @@ SETTING_DOCS = {
     "mode": "lockstep or realtime (--mode)",
     "control_rate": "control rate [Hz] (--control-rate or simulation.control_rate)",
     "measurement_qos": "reliable or best-effort (--measurement-qos)",
-    "executor": "rclpy executor: events or single (--executor)",
+    "executor": f"how the node spins: {', '.join(EXECUTORS)} (--executor)",
 }

@@ -1,15 +1,18 @@
 """The run's figures, like the paper's (errors in their funnels, control inputs), from trajectory.npz.
 
 - ``errors.png``: per edge k, e_k [m²] with its two bounds C_con·ρ_e (upper, dashed) and
-  −C_col·ρ_e (lower, dash-dotted); an inset zooms on the last 40 % of the run, where the steady
+  −C_col·ρ_e (lower, dash-dotted); an inset zooms on the second half of the run, where the steady
   band (ρ_e∞-wide) is visible;
 - ``orientation_errors.png``: per edge, ψ_k with its bound ρ_ψ, and the same zoomed inset;
-- ``inputs.png``: per agent, the body-frame force (f_x, f_y, f_z) [N] and torque (τ_x, τ_y, τ_z) [N·m];
+- ``inputs.png``: per agent, the body-frame force (f_x, f_y, f_z) [N] above the torque
+  (τ_x, τ_y, τ_z) [N·m];
 - ``velocity_errors.png``: per agent, e_v = v_i − v_i,des per channel inside ±ρ_v. The agents'
   own e_v uses their noisy velocity; here it is recomputed from the recorded ground truth (the
   same controller on noise-free relative poses and velocity), so it differs by the noise.
 
-Each panel has its own legend. Arrays as in trajectory.npz (agents and edges in file order).
+Each panel has its own legend, in its upper right corner: the transients (and the lower bound's
+start at −C_col) are at the left, the converged part at the bottom right is under the inset.
+Arrays as in trajectory.npz (agents and edges in file order).
 """
 
 from __future__ import annotations
@@ -25,21 +28,20 @@ from formation_msgs_py.spec import FormationSpec, agent_view
 
 VELOCITY_LABELS = ("$v_x$", "$v_y$", "$v_z$", r"$\omega_x$", r"$\omega_y$", r"$\omega_z$")
 COMPONENT_COLOURS = ("C0", "C1", "C2")
-ZOOM_FROM = 0.6  # the insets show t from 60 % of the run to its end
+ZOOM_FROM = 0.5  # the insets show the second half of the run, over which they sit
 
 
-def _grid(n: int, max_cols: int = 4) -> tuple[int, int]:
+def _panels(plt, n: int, *, stacked: int = 1, max_cols: int = 4, width: float = 4.2, height: float = 3.0):
+    """A grid of n cells (at most ``max_cols`` per row), each a column of ``stacked`` panels sharing t;
+    returns the figure and, per cell, its list of panels."""
     cols = min(n, max_cols)
-    return math.ceil(n / cols), cols
-
-
-def _panels(plt, n: int, width: float = 4.2, height: float = 3.0):
-    rows, cols = _grid(n)
+    rows = math.ceil(n / cols) * stacked
     fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False)
-    flat = [axes[k // cols][k % cols] for k in range(rows * cols)]
-    for ax in flat[n:]:
-        ax.axis("off")
-    return fig, flat[:n]
+    cells = [[axes[(k // cols) * stacked + j][k % cols] for j in range(stacked)] for k in range(n)]
+    for k in range(n, rows // stacked * cols):
+        for j in range(stacked):
+            axes[(k // cols) * stacked + j][k % cols].axis("off")
+    return fig, cells
 
 
 def _zoom_inset(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> None:
@@ -47,7 +49,7 @@ def _zoom_inset(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> Non
     if len(t) < 10:
         return
     sel = t >= t[0] + ZOOM_FROM * (t[-1] - t[0])
-    ins = ax.inset_axes([0.45, 0.45, 0.52, 0.5])
+    ins = ax.inset_axes([0.5, 0.1, 0.47, 0.42])
     lo, hi = np.inf, -np.inf
     for y, style in series:
         ins.plot(t[sel], y[sel], **style)
@@ -77,8 +79,8 @@ def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) 
     paths = []
     upper = {"color": "C3", "ls": "--", "lw": 1.0}
     lower = {"color": "C2", "ls": "-.", "lw": 1.0}
-    fig, axes = _panels(plt, len(spec.edges))
-    for k, (e, ax) in enumerate(zip(spec.edges, axes)):
+    fig, cells = _panels(plt, len(spec.edges))
+    for k, (e, (ax,)) in enumerate(zip(spec.edges, cells)):
         series = [
             (arrays["e"][:, k], {"color": "C0", "lw": 1.3, "label": f"$e_{{{e.tail}{e.head}}}$"}),
             (e.c_con * arrays["rho_e"][:, k], {**upper, "label": r"$C_{con}\,\rho_e$ (connectivity)"}),
@@ -89,14 +91,14 @@ def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) 
         ax.set_title(f"edge {e.tail}-{e.head}: distance error", fontsize=9)
         ax.set_xlabel("t [s]")
         ax.set_ylabel("e [m²]")
-        ax.legend(fontsize=7, loc="lower left")
+        ax.legend(fontsize=7, loc="upper right")
         ax.grid(alpha=0.3)
         _zoom_inset(ax, t, [(y, {k2: v for k2, v in s.items() if k2 != "label"}) for y, s in series])
     paths.append(_save(fig, out_dir / "errors.png"))
     plt.close(fig)
 
-    fig, axes = _panels(plt, len(spec.edges))
-    for k, (e, ax) in enumerate(zip(spec.edges, axes)):
+    fig, cells = _panels(plt, len(spec.edges))
+    for k, (e, (ax,)) in enumerate(zip(spec.edges, cells)):
         series = [
             (arrays["psi"][:, k], {"color": "C0", "lw": 1.3, "label": rf"$\psi_{{{e.tail}{e.head}}}$"}),
             (arrays["rho_psi"][:, k], {**upper, "label": r"$\rho_\psi$"}),
@@ -107,22 +109,23 @@ def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) 
         ax.set_xlabel("t [s]")
         ax.set_ylabel(r"$\psi$")
         ax.set_ylim(-0.05, 2.05)
-        ax.legend(fontsize=7, loc="lower left")
+        ax.legend(fontsize=7, loc="upper right")
         ax.grid(alpha=0.3)
         _zoom_inset(ax, t, [(y, {k2: v for k2, v in s.items() if k2 != "label"}) for y, s in series])
     paths.append(_save(fig, out_dir / "orientation_errors.png"))
     plt.close(fig)
 
     u = arrays["u"]
-    fig, axes = _panels(plt, len(spec.agents))
-    for i, (a, ax) in enumerate(zip(spec.agents, axes)):
-        for c, axis in enumerate("xyz"):
-            ax.plot(t, u[:, i, c], color=COMPONENT_COLOURS[c], lw=1.0, label=f"$f_{axis}$ [N]")
-            ax.plot(t, u[:, i, 3 + c], color=COMPONENT_COLOURS[c], lw=1.0, ls="--", label=rf"$\tau_{axis}$ [N·m]")
-        ax.set_title(f"agent {a.id}: body wrench $u_{{{a.id}}}$", fontsize=9)
-        ax.set_xlabel("t [s]")
-        ax.legend(fontsize=6, ncol=2, loc="upper right")
-        ax.grid(alpha=0.3)
+    fig, cells = _panels(plt, len(spec.agents), stacked=2, max_cols=5, width=3.6, height=2.4)
+    for i, (a, (ax_f, ax_t)) in enumerate(zip(spec.agents, cells)):
+        for ax, lo, symbol, what, unit in ((ax_f, 0, "f", "force", "N"), (ax_t, 3, r"\tau", "torque", "N·m")):
+            for c, axis in enumerate("xyz"):
+                ax.plot(t, u[:, i, lo + c], color=COMPONENT_COLOURS[c], lw=1.0, label=f"${symbol}_{axis}$")
+            ax.set_title(f"agent {a.id}: body {what}", fontsize=9)
+            ax.set_ylabel(f"{what} [{unit}]")
+            ax.legend(fontsize=7, ncol=3, loc="upper right")
+            ax.grid(alpha=0.3)
+        ax_t.set_xlabel("t [s]")
     paths.append(_save(fig, out_dir / "inputs.png"))
     plt.close(fig)
 

@@ -20,14 +20,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
-
-import numpy as np
-import yaml
+from typing import TYPE_CHECKING, Any
 
 from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.spec import formation_from_dict
-from formation_sim.rates import mass_matrix, rate_need
+
+if TYPE_CHECKING:  # numpy, yaml and the cores are imported where used: not for --help
+    import numpy as np
 
 PRESETS = ("default", "realtime")
 #: realtime preset: control rate / the largest rate need (the 5-agent realtime preset has 2.5)
@@ -37,6 +35,8 @@ REALTIME_GAMMA_MAX = 4.0
 
 
 def _random_rotation(rng: np.random.Generator, max_angle: float) -> list[list[float]]:
+    import numpy as np
+
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     from scipy.spatial.transform import Rotation  # ~0.4 s to import: not for --help
@@ -56,6 +56,10 @@ def generate(
     preset: str = "default",
 ) -> dict[str, Any]:
     """A formation document (ready for yaml.safe_dump) with ``n_agents`` agents."""
+    import numpy as np
+
+    from formation_msgs_py.spec import formation_from_dict
+
     if preset not in PRESETS:
         raise ValueError(f"preset: {preset!r} is not {' or '.join(PRESETS)}")
     if n_agents < 2:
@@ -139,6 +143,10 @@ def generate(
 
 def _tune_realtime(doc: dict[str, Any], control_rate: float) -> None:
     """Retune ``doc`` (in place) to hold in realtime mode at ``control_rate`` [Hz]."""
+    import numpy as np
+
+    from formation_sim.rates import mass_matrix, rate_need
+
     sim = doc["simulation"]
     period = 1.0 / control_rate
     sim.update(mode="realtime", physics_rate=control_rate, record_rate=control_rate)
@@ -195,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import yaml
+
     args = build_parser().parse_args(argv)
     try:
         doc = generate(

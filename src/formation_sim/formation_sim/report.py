@@ -5,7 +5,7 @@ outputs every run leaves (docs/outputs.md).
 velocity-funnel margins); :class:`Judge` is the same check fed in time order, one sample or a
 stack of samples at a time. :class:`RunRecorder` is the streaming adapter the headless runner,
 the simulator node, the synthesiser and the bag analysis fill sample by sample: it keeps the
-decimated trajectory, counts faults per agent and kind (:class:`FaultLog`) and builds the
+decimated trajectory, counts faults per agent and kind (:class:`formation_msgs_py.faults.FaultLog`) and builds the
 summary, whose verdict comes from :func:`formation_msgs_py.outcome.decide`.
 
 Margins are the fraction of a funnel left between an error and its nearest bound (1 at zero
@@ -16,11 +16,11 @@ only the funnels decide FAIL, and missing data makes a run INCOMPLETE, never FAI
 
 from __future__ import annotations
 
-import json
-import math
+import io
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from formation_msgs_py import funnels
+from formation_msgs_py.faults import FaultLog, fault_lines, strict_json, write_atomic, write_json
 from formation_msgs_py.outcome import ExitCode, Incomplete, Outcome, Verdict, decide
 from formation_msgs_py.spec import FormationSpec
 
@@ -278,61 +279,6 @@ def judge(
 
 
 @dataclass
-class FaultCount:
-    """How often one kind of fault happened to one agent: count, first and last time [s]."""
-
-    count: int
-    first_t: float
-    last_t: float
-    first_detail: str
-    last_detail: str
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "count": self.count,
-            "first_t": self.first_t,
-            "last_t": self.last_t,
-            "first": self.first_detail,
-            "last": self.last_detail,
-        }
-
-
-@dataclass
-class FaultLog:
-    """Every fault counted per agent and kind (stale command, zero wrench, missing measurement, …)."""
-
-    counts: dict[tuple[str, str], FaultCount] = field(default_factory=dict)
-
-    def add(self, t: float, agent: str, kind: str, detail: str = "", n: int = 1) -> bool:
-        """Count ``n`` faults at t [s]; True if it is this agent's first of this kind."""
-        c = self.counts.get((agent, kind))
-        if c is None:
-            self.counts[(agent, kind)] = FaultCount(n, t, t, detail, detail)
-            return True
-        c.count += n
-        c.last_t = t
-        c.last_detail = detail
-        return False
-
-    def as_dict(self) -> dict[str, dict[str, Any]]:
-        out: dict[str, dict[str, Any]] = {}
-        for (agent, kind), c in sorted(self.counts.items()):
-            out.setdefault(agent, {})[kind] = c.as_dict()
-        return out
-
-
-def fault_lines(faults: dict[str, dict[str, Any]]) -> list[str]:
-    """One console line per agent and kind: count, first and last occurrence."""
-    lines = []
-    for agent, kinds in faults.items():
-        for kind, c in kinds.items():
-            first = f"first t={c['first_t']:.4f} s" + (f" ({c['first']})" if c.get("first") else "")
-            last = "" if c["count"] == 1 else f", last t={c['last_t']:.4f} s"
-            lines.append(f"  fault: agent {agent}: {kind} x{c['count']}: {first}{last}")
-    return lines
-
-
-@dataclass
 class RunRecorder:
     """The streaming judge of one run: checks every sample, counts faults, keeps the trajectory."""
 
@@ -538,63 +484,21 @@ class RunRecorder:
         return strict_json(out)
 
 
-def strict_json(x: Any) -> Any:
-    """A copy of ``x`` that ``json.dumps(allow_nan=False)`` accepts: numpy scalars to Python,
-    NaN and ±inf to None (the summary's reasons say why a value is unknown)."""
-    if isinstance(x, dict):
-        return {str(k): strict_json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [strict_json(v) for v in x]
-    if isinstance(x, (np.integer, np.bool_)):
-        return x.item()
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return x if math.isfinite(x) else None
-    if isinstance(x, np.ndarray):
-        return strict_json(x.tolist())
-    return x
-
-
-# -- atomic outputs ---------------------------------------------------------------------------
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``path`` under a temporary name in its directory, then rename it (raises OSError)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def write_json(path: Path, obj: Any) -> None:
-    """Strict JSON (no NaN/Infinity), written atomically."""
-    write_atomic(path, (json.dumps(strict_json(obj), indent=2, allow_nan=False) + "\n").encode("utf-8"))
-
-
-def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> None:
+def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> float:
     """trajectory.npz, the figures (:mod:`formation_sim.figures`, unless ``plots`` is false), then summary.json; each
     written under a temporary name and renamed. summary.json comes last and names what is there.
+    Returns the wall seconds the figures took.
 
     Raises OSError (disk full, …) after writing a summary marked INCOMPLETE if it still can.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     try:
-        fd, tmp = tempfile.mkstemp(dir=out_dir, prefix=".trajectory.", suffix=".npz")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **recorder.arrays())
-            os.replace(tmp, out_dir / "trajectory.npz")
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        npz = io.BytesIO()
+        np.savez(npz, **recorder.arrays())
+        write_atomic(out_dir / "trajectory.npz", npz.getvalue())
         written.append("trajectory.npz")
+        figures_from = time.monotonic()
         if plots:
             from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
 
@@ -620,6 +524,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
             pass
         raise
     write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
+    return time.monotonic() - figures_from
 
 
 def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:

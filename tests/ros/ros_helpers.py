@@ -58,18 +58,11 @@ class Procs:
         self.started.append(proc)
         return proc
 
-    def agent(self, formation: Path, agent_id: str) -> subprocess.Popen:
-        return self.start(
-            f"agent_{agent_id}",
-            [
-                str(BIN / "formation-agent"),
-                "--ros-args",
-                "-p",
-                f"formation_file:={formation}",
-                "-p",
-                f"agent_id:='{agent_id}'",
-            ],
-        )
+    def agent(self, formation: Path, agent_id: str, *params: str) -> subprocess.Popen:
+        """An agent process; ``params`` are more ``NAME:=VALUE`` parameters."""
+        cmd = [str(BIN / "formation-agent"), "--ros-args", "-p", f"formation_file:={formation}"]
+        cmd += ["-p", f"agent_id:='{agent_id}'", *(x for p in params for x in ("-p", p))]
+        return self.start(f"agent_{agent_id}", cmd)
 
     def sim(self, formation: Path, out: Path, *extra: str) -> subprocess.Popen:
         return self.start("sim", [str(BIN / "formation-sim"), str(formation), "--out", str(out), "--no-plots", *extra])

@@ -43,6 +43,10 @@ def test_missing_neighbour_answers_zero_after_pose_wait() -> None:
     sync.try_compute(sync.deadline(), final=True)
     assert sent == [(0, (0.0,) * 6)]
     assert sync.last_output.level == ERROR and "no relative pose" in sync.last_output.message
+    missing = ", ".join(n for n in sync.neighbours if n != j)
+    assert sync.faults.as_dict() == {
+        "1": {"missing_pose": {"count": 1, "first_t": 0.0, "last_t": 0.0, "first": missing, "last": missing}}
+    }
 
 
 def test_repeated_stamp_gets_the_same_wrench_and_earlier_stamp_resets() -> None:
@@ -57,6 +61,14 @@ def test_repeated_stamp_gets_the_same_wrench_and_earlier_stamp_resets() -> None:
     assert sync.controller.rho_v0 is not None and sync.resets == 0
     sync.on_velocity(0, v, now=0.0)
     assert sync.resets == 1
+    for j, (p, R) in poses.items():  # answered again, then back once more: every reset is counted
+        sync.on_pose(j, 100_000, p, R, now=0.0)
+    sync.on_velocity(100_000, v, now=0.0)
+    sync.on_velocity(0, v, now=0.0)
+    assert sync.resets == 2
+    reset = sync.faults.as_dict()["1"]["reset"]
+    assert (reset["count"], reset["first_t"], reset["last_t"]) == (2, 0.0, 0.0)
+    assert reset["first"] == "measurements stamped 0.000000 s after 0.000100 s"
 
 
 def test_non_finite_and_too_old_measurements_give_zero_and_error() -> None:
@@ -71,3 +83,6 @@ def test_non_finite_and_too_old_measurements_give_zero_and_error() -> None:
         sync.on_pose(j, ns, p, R, now=0.0)
     sync.on_velocity(ns, v, now=0.0, clock_ns=ns + 2 * sync.measurement_timeout_ns)
     assert sent[-1] == (ns, (0.0,) * 6) and "too old" in sync.last_output.message
+    faults = sync.faults.as_dict()["1"]
+    assert faults["non_finite_measurement"]["count"] == 1 and faults["non_finite_measurement"]["first_t"] == 0.0
+    assert faults["stale_measurement"]["count"] == 1 and faults["stale_measurement"]["first_t"] == 1e-4

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -23,6 +25,14 @@ from formation_msgs_py.spec import load_formation, simulator_view
 from formation_sim.simulation import Simulation
 
 NS = 1_000_000_000
+#: what the first test sends agent 5 that it must refuse, by fault kind (the future step is a pose and a velocity)
+REFUSED_COUNTS = {
+    "refused_bad_quaternion": 2,
+    "refused_non_finite": 2,
+    "refused_out_of_range": 1,
+    "refused_malformed": 1,
+    "refused_future_stamp": 2,
+}
 IDENTITY_Q = (0.0, 0.0, 0.0, 1.0)
 
 
@@ -39,13 +49,15 @@ def injector_node(ros_env: dict[str, str]) -> Iterator[tuple[Node, SingleThreade
             node.destroy_node()
 
 
-def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict[str, str]) -> None:
+def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict[str, str], tmp_path: Path) -> None:
     """Agent 5 (neighbour 3) gets a zero quaternion, (0,0,0,2), a NaN pose, a 1e6 m pose, a NaN velocity
     and a pose from the future: zero wrench for the refused steps, nothing for the future stamp, a normal
-    wrench for the next good step, and the process stays alive."""
+    wrench for the next good step, and the process stays alive. Every refusal is counted by kind in
+    the fault counts it writes when it stops (merged into summary.json by formation-launch)."""
     spec = load_formation(PAPER)
     meas = Simulation(simulator_view(spec)).sense()
-    agent = procs.agent(PAPER, "5")
+    faults_file = tmp_path / "agent_5_faults.json"
+    agent = procs.agent(PAPER, "5", f"faults_file:={faults_file}")
     p, R = meas.relative_poses["5"]["3"]
     good = conversions.relative_pose_values(p, R)
     v = meas.velocities[spec.agent_ids.index("5")].tolist()
@@ -94,10 +106,17 @@ def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict
         u = step(base + 10_000_000, good, v)
         assert u is not None and any(u) and all(math.isfinite(x) for x in u)
         assert agent.poll() is None, read_log(agent)
+    os.killpg(agent.pid, signal.SIGINT)
+    agent.wait(timeout=30)
     log = read_log(agent)
     for kind in ("bad_quaternion", "non_finite", "out_of_range", "future_stamp", "malformed"):
         assert f"refused ({kind}, " in log, log
     assert "Traceback" not in log
+    faults = json.loads(faults_file.read_text())["5"]
+    counts = {kind: c["count"] for kind, c in faults.items()}
+    assert counts == REFUSED_COUNTS, (faults, log)
+    quaternion = faults["refused_bad_quaternion"]
+    assert (quaternion["first_t"], quaternion["last_t"]) == (10.001, 10.002), quaternion
 
 
 def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_env, tmp_path: Path) -> None:

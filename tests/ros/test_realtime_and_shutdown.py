@@ -28,6 +28,7 @@ from ros_helpers import (
     wait_for_line,
 )
 
+from formation_bag.reader import Bag
 from formation_msgs_py.spec import agent_view, load_formation
 
 
@@ -52,9 +53,12 @@ def test_realtime_zeroes_a_killed_agent_and_carries_on(procs, tmp_path: Path) ->
     assert code == summary["exit_status"] == (1 if summary["first_violation"] else 0), log
     assert "agent 2: " in log and "zero wrench" in log and "Traceback" not in log, log
     assert summary["duration"] == 3.0
+    # counted, not sampled: once zeroed, every tick up to the last one (t = 2.99 s) is counted
     zeroed = summary["faults"]["2"]["zero_wrench"]
-    assert zeroed["count"] == summary["stale_commands"]["2"] > 50
-    assert zeroed["last_t"] > zeroed["first_t"]
+    assert zeroed["last_t"] == pytest.approx(2.99, abs=1e-9), zeroed
+    assert zeroed["count"] == round((zeroed["last_t"] - zeroed["first_t"]) * 100) + 1 > 50, zeroed
+    # held while younger than command_timeout, before it was zeroed
+    assert summary["faults"]["2"]["stale_command"]["last_t"] < zeroed["first_t"], summary["faults"]["2"]
     u = np.load(out / "trajectory.npz")["u"]
     index = spec.agent_ids.index("2")
     assert np.all(u[-50:, index] == 0.0)
@@ -216,14 +220,48 @@ def test_killed_launcher_leaves_children_stopped_and_a_summary(launched) -> None
 
 
 def test_realtime_slower_than_its_lag_budget(launched) -> None:
-    """A realtime run further behind the wall clock than --lag-budget stops: exit 4, the lag named."""
-    run = launched("--mode", "realtime", "--lag-budget", "0", "--no-record", "--duration", "2", formation=REALTIME)
+    """A realtime run further behind the wall clock than --lag-budget stops: exit 4, the lag named;
+    every late tick until then is counted (10 kHz with five agent processes cannot keep up here)."""
+    args = ("--mode", "realtime", "--control-rate", "10000", "--physics-rate", "10000", "--lag-budget", "0.2")
+    args += ("--no-record", "--duration", "2")
+    run = launched(*args, formation=REALTIME)
     code, summary = run.finish()
     text = run.text()
     assert code == 4 == summary["exit_status"] and summary["verdict"] == "INCOMPLETE", text
     assert summary["incomplete_reason"].startswith("realtime lag budget exceeded: "), summary
+    late = summary["faults"]["simulator"]["late_tick"]
+    assert late["count"] >= 2 and late["last_t"] > late["first_t"], late
     assert "Traceback" not in text + run.logs()
     assert processes_mentioning(str(run.formation)) == []
+
+
+def test_realtime_recorder_that_falls_behind_drops_with_an_exact_count(launched) -> None:
+    """Realtime: a recorder stopped (SIGSTOP) for 2 s while the run goes on cannot keep everything; the
+    run does not wait for it, and summary.json's recorder counts say exactly what is not in the bag."""
+    # physics at the control rate keeps the simulator on the wall clock on a loaded machine
+    args = ("--mode", "realtime", "--duration", "4", "--physics-rate", "100", "--lag-budget", "30")
+    run = launched(*args, formation=REALTIME)
+    run.wait_stepping()
+    recorder = run.pid_of("recorder")
+    os.kill(recorder, signal.SIGSTOP)
+    try:
+        time.sleep(2.0)
+    finally:
+        os.kill(recorder, signal.SIGCONT)
+    code, summary = run.finish()
+    assert code == summary["exit_status"] == 0, run.text()  # the recorder is no part of the control loop
+    counts = summary["recorder"]
+    assert counts["not_recorded"] > 0, counts
+    assert f"the recorder fell behind: {counts['not_recorded']} published messages are not in the bag" in run.text()
+    with Bag(run.out / "bag") as bag:
+        in_bag = {name: info.count for name, info in bag.topics.items()}
+    assert counts["written"] == sum(in_bag.values())
+    # one velocity per step (k = 0 … steps) was published: what is in the bag plus what the summary
+    # says is missing is exactly that
+    for a in load_formation(REALTIME).agent_ids:
+        topic = f"/agent_{a}/velocity"
+        assert in_bag[topic] + counts["not_recorded_by_topic"].get(topic, 0) == summary["steps"] + 1, (topic, counts)
+    assert any(t.endswith("/velocity") for t in counts["not_recorded_by_topic"]), counts
 
 
 def test_full_disk_mid_run(launched, tmp_path: Path) -> None:

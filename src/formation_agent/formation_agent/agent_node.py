@@ -24,10 +24,12 @@ import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController, ControlOutput
 from formation_agent.inputs import DROPPED_KINDS, InputCheck, Refusal
+from formation_msgs_py.faults import FaultLog, fault_lines, write_json
 from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.spec import AgentView
 
@@ -91,7 +93,8 @@ class StepSynchroniser:
     last_wrench: tuple[float, ...] = (0.0,) * 6
     last_output: ControlOutput | None = None
     window: Window = None  # type: ignore[assignment]
-    resets: int = 0
+    #: every fault of this agent by kind (formation_msgs_py.faults): resets, refusals, zero answers
+    faults: FaultLog = field(default_factory=FaultLog)
     last_measurement_wall: float | None = None
     #: reasons of refused measurements (formation_agent.inputs) by stamp: that step answers zero
     refused: dict[int, str] = field(default_factory=dict)
@@ -101,13 +104,21 @@ class StepSynchroniser:
         self.poses = {j: {} for j in self.neighbours}
         self.window = Window.empty(len(self.neighbours))
 
-    def reset(self) -> None:
-        """Forget everything that depends on time (backward clock jump)."""
+    def reset(self, t: float, why: str) -> None:
+        """Forget everything that depends on time (backward clock jump at sim time t [s]): a ``reset`` fault."""
         self.controller.reset()
         self.poses = {j: {} for j in self.neighbours}
         self.pending = None
         self.last_ns = None
-        self.resets += 1
+        self.fault(t, "reset", why)
+
+    def fault(self, t: float, kind: str, detail: str) -> None:
+        self.faults.add(t, self.controller.view.agent_id, kind, detail)
+
+    @property
+    def resets(self) -> int:
+        c = self.faults.counts.get((self.controller.view.agent_id, "reset"))
+        return 0 if c is None else c.count
 
     def set_gains(self, **gains: float) -> None:
         """Controller gains (``agents[].controller`` names) from the next step on; ρ_v0 and t0 are kept."""
@@ -134,7 +145,7 @@ class StepSynchroniser:
                 self.publish(ns, self.last_wrench)
                 return
             if ns < self.last_ns:
-                self.reset()
+                self.reset(ns / _NS, f"measurements stamped {ns / _NS:.6f} s after {self.last_ns / _NS:.6f} s")
         self._clock_ns = clock_ns
         self.pending = (ns, v, now + self.pose_wait)
         self.try_compute(now, final=False)
@@ -174,12 +185,15 @@ class StepSynchroniser:
         if refused is not None:
             out = ctrl.fault_output(t, f"refused at t={t:.6f}: {refused}")
         elif len(rel) < len(self.neighbours):
-            missing = [j for j in self.neighbours if j not in rel]
-            out = ctrl.fault_output(t, f"no relative pose of neighbour(s) {', '.join(missing)} at t={t:.6f}")
+            missing = ", ".join(j for j in self.neighbours if j not in rel)
+            self.fault(t, "missing_pose", missing)
+            out = ctrl.fault_output(t, f"no relative pose of neighbour(s) {missing} at t={t:.6f}")
         elif not _finite(v) or not all(_finite(p) and _finite(R[0] + R[1] + R[2]) for p, R in rel.values()):
+            self.fault(t, "non_finite_measurement", "")
             out = ctrl.fault_output(t, f"non-finite measurement at t={t:.6f}")
         elif self._clock_ns and self._clock_ns - ns > self.measurement_timeout_ns:
             age = (self._clock_ns - ns) / _NS
+            self.fault(t, "stale_measurement", f"{age:.3f} s behind /clock")
             out = ctrl.fault_output(t, f"measurement too old: {age:.3f} s behind /clock")
         else:
             out = ctrl.compute(t, rel, v)
@@ -242,6 +256,10 @@ POSE_WAIT_DOC = (
 )
 EXECUTOR_DOC = f"how the node spins: {', '.join(EXECUTORS)} (formation_msgs_py.hotloop)"
 DIAG_DOC = "wall seconds between /diagnostics messages (>= 0.1); live"
+FAULTS_DOC = (
+    "file to write this agent's fault counts to when it stops (per kind: count, first and last sim time; "
+    "formation-launch merges them into summary.json faults); empty: none"
+)
 QOS_DOC = "QoS of the measurements: reliable or best-effort, as the simulator's --measurement-qos"
 POLICY_DOC = (
     f"publishers other than the expected ones on this agent's topics: {' or '.join(POLICIES)} "
@@ -273,6 +291,7 @@ class AgentNode(Node):
         self.executor_kind = declare(self, "executor", "events", EXECUTOR_DOC, read_only=True)
         check_kind(self.executor_kind)
         policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
+        self.faults_file = declare(self, "faults_file", "", FAULTS_DOC, read_only=True)
         gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
         self.sync = StepSynchroniser(
             AgentController(view),
@@ -369,6 +388,8 @@ class AgentNode(Node):
     def _refuse(self, ns: int, refusal: Refusal, neighbour: str | None = None) -> None:
         """A refused measurement (formation_agent.inputs): ERROR, counted; a bad value answers zero."""
         n = self.inputs.counts[refusal.kind]
+        t = (ns or self._clock.now().nanoseconds) / _NS
+        self.sync.fault(t, f"refused_{refusal.kind}", refusal.reason)
         if n & (n - 1) == 0:  # the 1st, 2nd, 4th, 8th, … of each kind: every kind shows, the log stays small
             self.get_logger().error(f"refused ({refusal.kind}, {n} so far): {refusal.reason}")
         if refusal.kind in DROPPED_KINDS:  # names no step to answer: dropped
@@ -377,6 +398,17 @@ class AgentNode(Node):
             return
         self.sync.refuse(ns, refusal.reason, time.monotonic(), neighbour)
 
+    def report_faults(self) -> None:
+        """Print every fault kind (count, first and last) and write ``faults_file`` (at the stop)."""
+        faults = self.sync.faults.as_dict()
+        for line in fault_lines(faults):
+            print(f"formation-agent {self.agent_id}:{line}", flush=True)
+        if self.faults_file:
+            try:
+                write_json(Path(self.faults_file), faults)
+            except OSError as exc:
+                print(f"formation-agent {self.agent_id}: could not write {self.faults_file}: {exc}", flush=True)
+
     def _publish_wrench(self, ns: int, u: Sequence[float]) -> None:
         self._pub.publish(self._wrench_codec.encode(ns, u))
 
@@ -384,7 +416,8 @@ class AgentNode(Node):
         changed = info.clock_change in (ClockChange.ROS_TIME_ACTIVATED, ClockChange.ROS_TIME_DEACTIVATED)
         if info.delta.nanoseconds < 0 or (changed and self.sync.last_ns is not None):
             self.get_logger().warning("clock jumped back: controller and watchdogs reset")
-            self.sync.reset()
+            jump = f"/clock jumped by {info.delta.nanoseconds / _NS:.6f} s"
+            self.sync.reset(self._clock.now().nanoseconds / _NS, jump)
 
     # the loop: spin, then deadlines (pose wait, diagnostics) on the wall clock
     def spin(self) -> None:
@@ -493,6 +526,7 @@ def main(args: list[str] | None = None) -> int:
         # a publish cut short by SIGINT/SIGTERM (rclpy's handler shut the context down): a stop
     finally:
         if node is not None:
+            node.report_faults()
             node.destroy_node()
         try:
             rclpy.try_shutdown()

@@ -30,6 +30,7 @@ parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
   use_sim_time         default true (the simulator publishes /clock)
   pose_wait            wall s to wait for the neighbours' poses after the velocity (default 0.005);
                        a neighbour still missing then is out of range: zero wrench + ERROR     live
+  faults_file          where to write the agent's fault counts when it stops (default: none)   read-only
   diagnostics_period   wall s between /diagnostics messages (default 0.1, minimum 0.1)         live
   delta, gamma         the controller's gains (default: the formation file's); checked like the
                        file (> 0); applied from the next step                                  live

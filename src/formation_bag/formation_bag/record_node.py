@@ -50,10 +50,10 @@ from formation_bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics, wire
 from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import load_formation
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
-from formation_sim.report import write_json
 
 #: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time)
 STAMPED_TYPES = frozenset(

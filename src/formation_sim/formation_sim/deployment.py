@@ -23,13 +23,11 @@ class Timing:
     answered: list[int] = field(default_factory=list)
     expected: int = 0
     lags: list[float] = field(default_factory=list)
-    stale: list[int] = field(default_factory=list)
     resends: int = 0
 
     def __post_init__(self) -> None:
         self.on_time = [0] * self.n_agents
         self.answered = [0] * self.n_agents
-        self.stale = [0] * self.n_agents
 
     def summary(self, ids: tuple[str, ...], period: float) -> dict[str, Any]:
         out: dict[str, Any] = {"resends": self.resends}
@@ -53,8 +51,6 @@ class Timing:
                 "final": float(lags[-1]),
                 "late_ticks_fraction": float(np.mean(lags > 0.5 * period)),
             }
-        if any(self.stale):
-            out["stale_commands"] = {a: self.stale[i] for i, a in enumerate(ids) if self.stale[i]}
         return out
 
 

@@ -7,10 +7,12 @@ bag recorder through :class:`formation_sim.supervisor.Supervisor`, in the DDS en
 completion, Ctrl-C, SIGTERM, SIGHUP or the death of a process (in realtime an agent's death is
 reported and the run goes on: the simulator zeroes that agent's wrench); the death is named. In
 lockstep the recorder takes part in every step (``formation-sim --wait-recorder``), so the bag
-holds every message. After the last step, agents and recorder are stopped together (the
-recorder takes what it holds and closes the bag), then OUT/summary.json is completed with the
-verdict of the whole run: the simulator's, made INCOMPLETE when a process died, the run was
-interrupted, or the bag misses messages in lockstep. ``OUT/logs/processes.json`` lists every
+holds every message. After the last step, agents and recorder are stopped together while the
+simulator writes OUT (the recorder takes what it holds and closes the bag), then OUT/summary.json
+is completed with the verdict of the whole run: the simulator's, made INCOMPLETE when a process
+died, the run was interrupted, the bag misses messages in lockstep or was not closed cleanly, and
+with every agent's own fault counts
+(``faults_file``: resets, refused measurements, missing poses). ``OUT/logs/processes.json`` lists every
 process with its exit status, CPU time and peak memory.
 """
 
@@ -22,11 +24,13 @@ import shutil
 import signal
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
+from formation_msgs_py.faults import FaultLog
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
 from formation_sim import dds_env
@@ -87,6 +91,27 @@ def check_space(out: Path, spec: FormationSpec, record: bool) -> str | None:
     return None
 
 
+def agent_faults_file(logs: Path, agent_id: str) -> Path:
+    """Where agent ``agent_id`` writes its fault counts when it stops (its ``faults_file`` parameter)."""
+    return logs / f"agent_{agent_id}_faults.json"
+
+
+def merge_agent_faults(summary: dict[str, Any], logs: Path, agent_ids: Sequence[str]) -> None:
+    """Every agent's own fault counts (resets, refused measurements, missing poses) into ``summary["faults"]``;
+    ``summary["agent_faults_unknown"]`` names the agents that wrote none (killed, or never started)."""
+    faults = FaultLog()
+    faults.merge(summary.get("faults") or {})
+    unknown = []
+    for a in agent_ids:
+        try:
+            faults.merge(json.loads(agent_faults_file(logs, a).read_text(encoding="utf-8")))
+        except (OSError, ValueError):
+            unknown.append(a)
+    summary["faults"] = faults.as_dict()
+    if unknown:
+        summary["agent_faults_unknown"] = unknown
+
+
 def build_parser() -> OptionParser:
     return options.build_parser(
         options.LAUNCH,
@@ -122,6 +147,8 @@ class Launcher:
         self._tty = sys.stdout.isatty()
         self._follow: LogFollower | None = None
         self.timing: dict[str, float] = {}
+        #: children sent SIGINT after the last step (their exit is no death)
+        self.interrupted: set[str] = set()
 
     def on_signal(self, signum: int, _frame: Any) -> None:
         if self.signalled is None:
@@ -169,6 +196,8 @@ class Launcher:
                 f"executor:={args.executor}",
                 "-p",
                 f"intruder_policy:={args.intruder_policy}",
+                "-p",
+                f"faults_file:={agent_faults_file(self.out / 'logs', a.id)}",
             ]
             self.sup.start(f"agent_{a.id}", "agent", cmd)
         return sim
@@ -194,12 +223,28 @@ class Launcher:
                 if self._tty:
                     print()
                 print(line, flush=True)
+                self.stop_others()
+            elif line.startswith("formation-sim: ") and " written in " in line and "(figures " in line:
+                self.timing["figures_s"] = float(line.rsplit("(figures ", 1)[1].split(" s)")[0])
+                print(line, flush=True)
             elif line.startswith(("formation ", "PASS", "FAIL", "INCOMPLETE", "  ")):
                 continue  # the summary: printed at the end from summary.json
             elif line:
                 if self._tty:
                     print()
                 print(line, flush=True)
+
+    def stop_others(self) -> None:
+        """After the last step: SIGINT to the agents and the recorder (which takes what it holds and
+        closes the bag) while the simulator writes OUT."""
+        if self.interrupted:
+            return
+        others = [c for c in self.sup.alive() if c.role != "sim"]
+        for c in others:
+            c.signal(signal.SIGINT)
+        self.interrupted = {c.name for c in others}
+        if not self.args.quiet:
+            print("formation-launch: stepping done; stopping agents and recorder, closing the bag", flush=True)
 
     def note(self, text: str) -> None:
         print(f"formation-launch: {text}", file=sys.stderr, flush=True)
@@ -217,6 +262,8 @@ class Launcher:
                 self.relay()
                 return
             for c in self.sup.newly_dead():
+                if c.name in self.interrupted:
+                    continue  # stopped after the last step: checked once every process has exited
                 msg = f"{c.describe_exit()} (log: {c.log})"
                 if c.role == "agent" and self.mode == "realtime":
                     self.note(msg + "; realtime run continues, its wrench is zeroed by the simulator")
@@ -241,13 +288,14 @@ class Launcher:
             if sim.returncode not in tuple(ExitCode) and self.stop is None:
                 self.stop = Incomplete(ExitCode.PROCESS_DIED, sim.describe_exit() + _last_error(sim.log))
                 self.note(f"{sim.describe_exit()} (log: {sim.log})")
-            if not self.args.quiet:
-                if self._tty:
-                    print()
-                print("formation-launch: simulator done; stopping agents and recorder, closing the bag", flush=True)
-            self.sup.stop(self.sup.alive(), 1.5, self.note)
+            self.stop_others()
+            self.sup.stop(self.sup.alive(), 1.5, self.note, interrupted=self.interrupted)
         self.relay()
         self.timing["stopped"] = time.monotonic()
+        recorder = next((c for c in self.sup.children if c.role == "recorder"), None)
+        if recorder is not None and recorder.returncode != 0 and self.stop is None:
+            # a bag that was not closed cleanly (I/O error, killed after the grace period) holds less than it says
+            self.stop = Incomplete(ExitCode.INCOMPLETE, recorder.describe_exit() + _last_error(recorder.log))
 
     def summary(self) -> dict[str, Any]:
         """The simulator's summary, completed with what only the launcher knows."""
@@ -268,16 +316,19 @@ class Launcher:
             if self.stop is None:
                 sim = next(c for c in self.sup.children if c.role == "sim")
                 self.stop = Incomplete(ExitCode.PROCESS_DIED, f"{sim.describe_exit()}: no summary written")
+        merge_agent_faults(summary, self.out / "logs", self.spec.agent_ids)
         incomplete = self.stop
         if incomplete is None and self.agent_died:
             incomplete = Incomplete(ExitCode.PROCESS_DIED, "; ".join(self.agent_died))
         recorder = self._recorder_counts()
         if recorder is not None:
             summary["recorder"] = recorder
-            if incomplete is None and recorder["not_recorded"] and self.mode == "lockstep":
+            if recorder["not_recorded"] and self.mode == "lockstep" and incomplete is None:
                 incomplete = Incomplete(
                     ExitCode.INCOMPLETE, f"the bag misses {recorder['not_recorded']} published messages"
                 )
+            elif recorder["not_recorded"]:  # realtime: the recorder may fall behind, by dropping with a count
+                self.note(f"the recorder fell behind: {recorder['not_recorded']} published messages are not in the bag")
         if incomplete is not None:
             result = decide(summary.get("first_violation") is not None, incomplete)
             summary.update(
@@ -298,6 +349,7 @@ class Launcher:
             # after the last step: the simulator writes OUT, then agents and recorder stop
             "wall_stop_s": t["stopped"] - done,
             "wall_sim_outputs_s": t["stop_from"] - done if "stepping_done" in t else None,
+            "wall_figures_s": t.get("figures_s"),  # part of wall_stop_s
         }
         return summary
 

@@ -5,7 +5,7 @@ outputs every run leaves (docs/outputs.md).
 velocity-funnel margins); :class:`Judge` is the same check fed in time order, one sample or a
 stack of samples at a time. :class:`RunRecorder` is the streaming adapter the headless runner,
 the simulator node, the synthesiser and the bag analysis fill sample by sample: it keeps the
-decimated trajectory, counts faults per agent and kind (:class:`FaultLog`) and builds the
+decimated trajectory, counts faults per agent and kind (:class:`formation_msgs_py.faults.FaultLog`) and builds the
 summary, whose verdict comes from :func:`formation_msgs_py.outcome.decide`.
 
 Margins are the fraction of a funnel left between an error and its nearest bound (1 at zero
@@ -16,18 +16,19 @@ only the funnels decide FAIL, and missing data makes a run INCOMPLETE, never FAI
 
 from __future__ import annotations
 
-import json
-import math
+import io
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from formation_msgs_py import funnels
+from formation_msgs_py.faults import FaultLog, fault_lines, strict_json, write_atomic, write_json
 from formation_msgs_py.outcome import ExitCode, Incomplete, Outcome, Verdict, decide
 from formation_msgs_py.spec import FormationSpec
 
@@ -77,6 +78,20 @@ class EdgeErrors:
         c_max = np.maximum(self.c_col, self.c_con)
         inf = np.array([e.rho_e_inf for e in self.spec.edges]) / c_max
         return -self.c_col * inf, self.c_con * inf, np.array([e.rho_psi_inf for e in self.spec.edges])
+
+
+class CheckedSteps(NamedTuple):
+    """The check of every sample so far, made by the run core itself (formation_sim.loop, compiled,
+    with :class:`Judge`'s rules): running minimum margins per edge (K,) and agent (N,), settle
+    times (K,) (NaN: none), peak force and torque per agent (N,)."""
+
+    min_margin_e: np.ndarray
+    min_margin_psi: np.ndarray
+    min_margin_v: np.ndarray
+    settle_e: np.ndarray
+    settle_psi: np.ndarray
+    peak_force: np.ndarray
+    peak_torque: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -169,6 +184,30 @@ class Judge:
             return EdgeSample(e[0], psi[0], rho_e[0], rho_psi[0])
         return EdgeSample(e[:n], psi[:n], rho_e[:n], rho_psi[:n])
 
+    def violation_at(self, t: float, p: np.ndarray, R: np.ndarray, margin_v: np.ndarray) -> Violation | None:
+        """The violation one sample shows (the rules of :meth:`update`), without taking the sample."""
+        e, psi = self.edges.errors(p[None], R[None])
+        rho_e, rho_psi = self.edges.rho(np.array([t]))
+        xi_e = e / rho_e
+        m_e = funnels.margin_e(xi_e, self.edges.c_col, self.edges.c_con)
+        margin_v = margin_v[None]
+        return _first_violation(
+            self, np.array([t]), xi_e, m_e, funnels.margin_psi(psi / rho_psi), margin_v, margin_v.min(axis=2)
+        )[0]
+
+    def take_checked(self, t: np.ndarray, checked: CheckedSteps, violation: Violation | None) -> None:
+        """Samples at t (T,) that a run core checked itself: its running minima and settle times
+        replace the judge's, ``violation`` is their first (see :class:`CheckedSteps`)."""
+        self.min_margin_e[:] = checked.min_margin_e
+        self.min_margin_psi[:] = checked.min_margin_psi
+        self.min_margin_v[:] = checked.min_margin_v
+        self.settle_e = [None if np.isnan(s) else float(s) for s in checked.settle_e]
+        self.settle_psi = [None if np.isnan(s) else float(s) for s in checked.settle_psi]
+        self.first_violation = self.first_violation or violation
+        self.samples += len(t)
+        self.t_first = float(t[0]) if self.t_first is None else self.t_first
+        self.t_last = float(t[-1])
+
     def update_velocity(self, t: float, margin_v: np.ndarray) -> None:
         """Velocity-funnel margins (N,6) at a control step without a ground-truth sample (inf: unknown)."""
         margin_v = np.asarray(margin_v, dtype=np.float64)
@@ -237,61 +276,6 @@ def judge(
     j = Judge(spec)
     j.update(t, p, R, margin_v)
     return j
-
-
-@dataclass
-class FaultCount:
-    """How often one kind of fault happened to one agent: count, first and last time [s]."""
-
-    count: int
-    first_t: float
-    last_t: float
-    first_detail: str
-    last_detail: str
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "count": self.count,
-            "first_t": self.first_t,
-            "last_t": self.last_t,
-            "first": self.first_detail,
-            "last": self.last_detail,
-        }
-
-
-@dataclass
-class FaultLog:
-    """Every fault counted per agent and kind (stale command, zero wrench, missing measurement, …)."""
-
-    counts: dict[tuple[str, str], FaultCount] = field(default_factory=dict)
-
-    def add(self, t: float, agent: str, kind: str, detail: str = "", n: int = 1) -> bool:
-        """Count ``n`` faults at t [s]; True if it is this agent's first of this kind."""
-        c = self.counts.get((agent, kind))
-        if c is None:
-            self.counts[(agent, kind)] = FaultCount(n, t, t, detail, detail)
-            return True
-        c.count += n
-        c.last_t = t
-        c.last_detail = detail
-        return False
-
-    def as_dict(self) -> dict[str, dict[str, Any]]:
-        out: dict[str, dict[str, Any]] = {}
-        for (agent, kind), c in sorted(self.counts.items()):
-            out.setdefault(agent, {})[kind] = c.as_dict()
-        return out
-
-
-def fault_lines(faults: dict[str, dict[str, Any]]) -> list[str]:
-    """One console line per agent and kind: count, first and last occurrence."""
-    lines = []
-    for agent, kinds in faults.items():
-        for kind, c in kinds.items():
-            first = f"first t={c['first_t']:.4f} s" + (f" ({c['first']})" if c.get("first") else "")
-            last = "" if c["count"] == 1 else f", last t={c['last_t']:.4f} s"
-            lines.append(f"  fault: agent {agent}: {kind} x{c['count']}: {first}{last}")
-    return lines
 
 
 @dataclass
@@ -368,12 +352,36 @@ class RunRecorder:
         start = self.judge.samples - n
         np.maximum(self.peak_force, np.linalg.norm(u[:n, :, :3], axis=2).max(axis=0), out=self.peak_force)
         np.maximum(self.peak_torque, np.linalg.norm(u[:n, :, 3:], axis=2).max(axis=0), out=self.peak_torque)
+        self._keep(start, t, p, R, v, u, sample)
+        return n
+
+    def add_checked(
+        self,
+        t: np.ndarray,
+        p: np.ndarray,
+        R: np.ndarray,
+        v: np.ndarray,
+        u: np.ndarray,
+        edges: EdgeSample,
+        checked: CheckedSteps,
+        violation: Violation | None,
+    ) -> None:
+        """:meth:`add_many` for T samples the run core checked itself (``checked``, ``violation``:
+        :meth:`Judge.take_checked`); ``edges`` holds their e, ψ, ρ_e, ρ_ψ (T,K)."""
+        start = self.judge.samples
+        self.judge.take_checked(t, checked, violation)
+        self.peak_force[:] = checked.peak_force
+        self.peak_torque[:] = checked.peak_torque
+        self._keep(start, t, p, R, v, u, edges)
+
+    def _keep(self, start: int, t, p, R, v, u, edges: EdgeSample) -> None:
+        """The decimated trajectory: every ``record_every``-th sample, counted from the run's first."""
+        n = len(edges.e)
         rows = np.flatnonzero((start + np.arange(n)) % self.record_every == 0)
         for key, arr in (("t", t), ("p", p), ("R", R), ("v", v), ("u", u)):
             self._rows[key].extend(np.array(arr[rows], dtype=np.float64))
-        for key, arr in (("e", sample.e), ("psi", sample.psi), ("rho_e", sample.rho_e), ("rho_psi", sample.rho_psi)):
+        for key, arr in (("e", edges.e), ("psi", edges.psi), ("rho_e", edges.rho_e), ("rho_psi", edges.rho_psi)):
             self._rows[key].extend(arr[rows])
-        return n
 
     def set_inputs(self, u: np.ndarray) -> None:
         """Wrenches (N,6) applied from the sample added last (which was added with ``u=None``).
@@ -476,63 +484,21 @@ class RunRecorder:
         return strict_json(out)
 
 
-def strict_json(x: Any) -> Any:
-    """A copy of ``x`` that ``json.dumps(allow_nan=False)`` accepts: numpy scalars to Python,
-    NaN and ±inf to None (the summary's reasons say why a value is unknown)."""
-    if isinstance(x, dict):
-        return {str(k): strict_json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [strict_json(v) for v in x]
-    if isinstance(x, (np.integer, np.bool_)):
-        return x.item()
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return x if math.isfinite(x) else None
-    if isinstance(x, np.ndarray):
-        return strict_json(x.tolist())
-    return x
-
-
-# -- atomic outputs ---------------------------------------------------------------------------
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``path`` under a temporary name in its directory, then rename it (raises OSError)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def write_json(path: Path, obj: Any) -> None:
-    """Strict JSON (no NaN/Infinity), written atomically."""
-    write_atomic(path, (json.dumps(strict_json(obj), indent=2, allow_nan=False) + "\n").encode("utf-8"))
-
-
-def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> None:
+def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> float:
     """trajectory.npz, the figures (:mod:`formation_sim.figures`, unless ``plots`` is false), then summary.json; each
     written under a temporary name and renamed. summary.json comes last and names what is there.
+    Returns the wall seconds the figures took.
 
     Raises OSError (disk full, …) after writing a summary marked INCOMPLETE if it still can.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     try:
-        fd, tmp = tempfile.mkstemp(dir=out_dir, prefix=".trajectory.", suffix=".npz")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **recorder.arrays())
-            os.replace(tmp, out_dir / "trajectory.npz")
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        npz = io.BytesIO()
+        np.savez(npz, **recorder.arrays())
+        write_atomic(out_dir / "trajectory.npz", npz.getvalue())
         written.append("trajectory.npz")
+        figures_from = time.monotonic()
         if plots:
             from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
 
@@ -558,6 +524,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
             pass
         raise
     write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
+    return time.monotonic() - figures_from
 
 
 def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:

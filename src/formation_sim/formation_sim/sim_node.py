@@ -15,7 +15,8 @@ ROS-free policy of :mod:`formation_sim.stepping`; this module is the thin node a
 - **realtime**: ticks at the control rate on the wall clock; each tick integrates the previous
   period with the latest wrench of each agent held (zero-order hold), then publishes the new
   measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by
-  zero; every zeroed tick and every late tick is a counted fault (summary ``faults``). A run
+  zero; every tick without an agent's answer (stale or zeroed wrench) and every late tick is a
+  counted fault (summary ``faults``, formation_msgs_py.faults). A run
   lagging more than ``--lag-budget`` wall seconds behind the wall clock stops INCOMPLETE (exit 4).
 
 Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
@@ -42,6 +43,7 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics, wire
+from formation_msgs_py.faults import FaultLog
 from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.hotloop import Spinner
 from formation_msgs_py.options import RunOptions
@@ -56,7 +58,15 @@ from formation_sim.display import DisplayPublisher, declare_simulator_parameters
 from formation_sim.preflight import Prepared
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.simulation import Measurements, Simulation
-from formation_sim.stepping import NS, CommandHold, LagBudget, LockstepWait, ParticipantMissingError, WrenchBook
+from formation_sim.stepping import (
+    NS,
+    ZERO_WRENCH,
+    CommandHold,
+    LagBudget,
+    LockstepWait,
+    ParticipantMissingError,
+    WrenchBook,
+)
 from formation_sim.team import AgentTeam
 
 #: default /clock rate in realtime [Hz]: the agents' measurement-age checks need no more
@@ -112,7 +122,7 @@ class SimNode(Node):
             spec.simulation.control_rate,
             lockstep=spec.simulation.mode == "lockstep",
         )
-        self._refusals_printed: set[tuple[str, str]] = set()
+        self.faults = FaultLog()  # refused wrenches; the Runner's RunRecorder shares it
         self.current_ns = -1  # the lockstep step being answered (the wrench check's reference)
         self.received = 0
         self.pub_wall: dict[int, float] = {}
@@ -146,9 +156,8 @@ class SimNode(Node):
         except struct.error:
             refused = self.wrench_check.malformed(i, self.current_ns)
         if refused is not None:
-            if (self.ids[i], refused) not in self._refusals_printed:
-                self._refusals_printed.add((self.ids[i], refused))
-                reason = self.wrench_check.log[(self.ids[i], refused)].reason
+            reason = self.wrench_check.log[(self.ids[i], refused)].reason
+            if self.faults.add(self.current_ns / NS, self.ids[i], f"refused_wrench_{refused}", reason):
                 print(f"formation-sim: agent {self.ids[i]}: wrench refused ({refused}): {reason}", flush=True)
             if refused in inputs.DROPPED_KINDS or ns == self.wrenches.stamp[i]:
                 return  # answers no step, or the step has its answer already: nothing changes
@@ -219,6 +228,7 @@ class Runner:
         self.recorder = RunRecorder(
             spec, record_every=record_every, mode=f"ros2-{args.mode}", control_rate=s.control_rate
         )
+        node.faults = self.recorder.faults  # one count of every fault: the summary's
         gt_rate = args.ground_truth_rate or min(s.record_rate, s.control_rate)
         clock_rate = args.clock_rate or min(s.record_rate, s.control_rate)
         if args.mode == "realtime" and not args.clock_rate:
@@ -375,13 +385,13 @@ class Runner:
             if prev is not None:
                 pmeas, pstate, pmargin, pouts = prev
                 pns = self.stamp_ns(k - 1)
+                u, faults = hold.applied(node.wrenches, pns)
+                late = {i for i, _, _ in faults}
                 for i in range(len(node.ids)):
-                    if node.wrenches.stamp[i] == pns:
-                        timing.on_time[i] += 1
-                u, zeroed = hold.applied(node.wrenches, pns)
-                for i, why in zeroed:
-                    timing.stale[i] += 1
-                    if rec.fault(pmeas.t, "zero_wrench", node.ids[i], f"{why} (> command_timeout)"):
+                    timing.on_time[i] += i not in late
+                for i, kind, why in faults:
+                    first = rec.fault(pmeas.t, kind, node.ids[i], why)
+                    if first and kind == ZERO_WRENCH:
                         print(f"formation-sim: agent {node.ids[i]}: t={pmeas.t:.4f}: {why}: zero wrench", flush=True)
                 timing.expected += 1
                 rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
@@ -509,16 +519,17 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         return ExitCode.INCOMPLETE if incomplete is None else incomplete.code
     summary = runner.summary(wall, incomplete, extra)
     plots = not args.no_plots and incomplete is None
-    print(
-        f"formation-sim: stepping done: {runner.step} steps in {wall:.2f} s; writing {out}/"
-        f"{'' if plots or args.no_plots else ' (stopped early: summary and trajectory, no figures)'}",
-        flush=True,
-    )
+    what = "summary, trajectory" + (", figures" if plots else "")
+    early = "" if plots or args.no_plots else "; stopped early: no figures"
+    done = f"formation-sim: stepping done: {runner.step} steps in {wall:.2f} s"
+    print(f"{done}; writing {out}/ ({what}{early})", flush=True)
+    t_out = time.monotonic()
     try:
-        write_outputs(out, runner.recorder, summary, plots=plots)
+        figures = write_outputs(out, runner.recorder, summary, plots=plots)
     except OSError as exc:
         print(f"formation-sim: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr, flush=True)
         return ExitCode.INCOMPLETE
+    print(f"formation-sim: {out}/ written in {time.monotonic() - t_out:.2f} s (figures {figures:.2f} s)", flush=True)
     print(format_summary(summary), flush=True)
     return summary["exit_status"]
 

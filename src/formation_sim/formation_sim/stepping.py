@@ -6,7 +6,8 @@
   to the agents that have not answered after ``resend`` wall seconds; gives up after
   ``step_timeout`` and names who stopped answering.
 - :class:`CommandHold`: realtime zero-order hold of each agent's latest wrench, replaced by zero
-  once older than ``command_timeout`` (sim time); every zeroed tick is a counted fault.
+  once older than ``command_timeout`` (sim time); every tick without the agent's answer to the
+  previous step is a counted fault (a held, stale command or a zeroed wrench).
 - :class:`LagBudget`: realtime lag behind the wall clock; a run further behind than its budget
   stops INCOMPLETE.
 - :class:`WrenchBook`: the latest wrench of each agent, kept by stamp (what the node's
@@ -122,24 +123,37 @@ class LockstepWait:
         return min(self.sent + self.step_timeout, self.next_resend)
 
 
+#: realtime fault kinds (formation_msgs_py.faults): an older wrench held, or zero applied instead
+STALE_COMMAND, ZERO_WRENCH = "stale_command", "zero_wrench"
+
+
 @dataclass
 class CommandHold:
     """Realtime zero-order hold: agent i's latest wrench until it is older than ``timeout_ns``."""
 
     timeout_ns: int
 
-    def applied(self, wrenches: WrenchBook, ns: int) -> tuple[np.ndarray, list[tuple[int, str]]]:
-        """(u (N,6), [(agent index, reason)] of the agents whose wrench is zeroed at stamp ns)."""
+    def applied(self, wrenches: WrenchBook, ns: int) -> tuple[np.ndarray, list[tuple[int, str, str]]]:
+        """(u (N,6), [(agent index, fault kind, detail)]) for the tick after step ``ns``.
+
+        Every agent whose answer to step ``ns`` is not in is a fault: ``stale_command`` while its
+        latest wrench (or none, in a run younger than the timeout) is held, ``zero_wrench`` once
+        that wrench is older than the timeout and zero is applied instead.
+        """
         u = np.zeros((wrenches.n, 6))
-        zeroed = []
+        faults = []
         for i, (s, val) in enumerate(zip(wrenches.stamp, wrenches.value)):
-            if s >= 0 and ns - s <= self.timeout_ns:
+            if s >= ns:
                 u[i] = val
+            elif s >= 0 and ns - s <= self.timeout_ns:
+                u[i] = val
+                faults.append((i, STALE_COMMAND, f"held the wrench of t={s / NS:.4f} s"))
             elif s < 0 and ns <= self.timeout_ns:
-                pass  # no wrench yet, but the run is younger than the command timeout
+                faults.append((i, STALE_COMMAND, "no wrench yet"))
             else:
-                zeroed.append((i, "no wrench yet" if s < 0 else f"last wrench {(ns - s) / NS:.3f} s old"))
-        return u, zeroed
+                why = "no wrench yet" if s < 0 else f"last wrench {(ns - s) / NS:.3f} s old"
+                faults.append((i, ZERO_WRENCH, why))
+        return u, faults
 
 
 @dataclass(frozen=True)

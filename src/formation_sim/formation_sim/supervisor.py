@@ -138,8 +138,11 @@ class Supervisor:
             time.sleep(0.02)
         return True
 
-    def stop(self, children: list[Child], grace: float, note: Callable[[str], None]) -> None:
-        """SIGINT to every child at once; SIGTERM after ``grace`` s; SIGKILL 1 s later."""
+    def stop(
+        self, children: list[Child], grace: float, note: Callable[[str], None], interrupted: Iterable[str] = ()
+    ) -> None:
+        """SIGINT to every child at once (but those named in ``interrupted``: they had theirs); SIGTERM
+        after ``grace`` s; SIGKILL 1 s later."""
         for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 1.0), (signal.SIGKILL, 1.0)):
             left = self.alive(children)
             if not left:
@@ -147,7 +150,8 @@ class Supervisor:
             if sig != signal.SIGINT:
                 note(f"{', '.join(c.name for c in left)} still running: {signal.Signals(sig).name}")
             for c in left:
-                c.signal(sig)
+                if sig != signal.SIGINT or c.name not in interrupted:
+                    c.signal(sig)
             self.wait(left, wait)
 
     def process_table(self, root: Path) -> list[dict[str, object]]:

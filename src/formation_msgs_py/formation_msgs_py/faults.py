@@ -1,0 +1,136 @@
+"""Faults counted, not sampled: every fault of a run per agent and kind, with its first and last
+occurrence (summary.json ``faults``; docs/outputs.md), and the strict, atomic JSON every output uses.
+
+Who counts what (kinds):
+
+- the simulator (formation_sim.sim_node): ``resent_step`` (lockstep: a step published again to an
+  agent that had not answered), ``stale_command`` (realtime: a tick applied an agent's older wrench,
+  its answer to the last step was not in), ``zero_wrench`` (realtime: that wrench was older than
+  ``command_timeout`` and replaced by zero), ``late_tick`` (realtime, agent ``simulator``: a tick
+  more than half a period late), ``refused_wrench_<kind>`` (formation_sim.inputs), and from its
+  shadow of the controllers ``measurement`` (a neighbour out of sensing range) and ``controller``
+  (saturated: outside a funnel);
+- each agent (formation_agent.agent_node, written to its ``faults_file`` when it stops and merged by
+  formation-launch): ``reset`` (clock jumped back: controller and watchdogs reset),
+  ``refused_<kind>`` (formation_agent.inputs), ``missing_pose`` (answered without a neighbour's
+  relative pose after ``pose_wait``: out of range or lost), ``stale_measurement`` and
+  ``non_finite_measurement`` (answered with a zero wrench);
+- the recorder: messages published but not in the bag, per topic (summary.json ``recorder``).
+
+Times are simulation seconds. None of these is a funnel violation.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+@dataclass
+class FaultCount:
+    """How often one kind of fault happened to one agent: count, first and last time [s]."""
+
+    count: int
+    first_t: float
+    last_t: float
+    first_detail: str
+    last_detail: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "count": self.count,
+            "first_t": self.first_t,
+            "last_t": self.last_t,
+            "first": self.first_detail,
+            "last": self.last_detail,
+        }
+
+
+@dataclass
+class FaultLog:
+    """Every fault counted per agent and kind (stale command, zero wrench, missing measurement, …)."""
+
+    counts: dict[tuple[str, str], FaultCount] = field(default_factory=dict)
+
+    def add(self, t: float, agent: str, kind: str, detail: str = "", n: int = 1) -> bool:
+        """Count ``n`` faults at t [s]; True if it is this agent's first of this kind."""
+        return self._combine(agent, kind, FaultCount(n, t, t, detail, detail))
+
+    def merge(self, faults: dict[str, dict[str, Any]]) -> None:
+        """Add the counts of another log's :meth:`as_dict` (another process's faults)."""
+        for agent, kinds in faults.items():
+            for kind, c in kinds.items():
+                count = FaultCount(c["count"], c["first_t"], c["last_t"], c.get("first", ""), c.get("last", ""))
+                self._combine(agent, kind, count)
+
+    def _combine(self, agent: str, kind: str, new: FaultCount) -> bool:
+        c = self.counts.get((agent, kind))
+        if c is None:
+            self.counts[(agent, kind)] = new
+            return True
+        c.count += new.count
+        if new.first_t < c.first_t:
+            c.first_t, c.first_detail = new.first_t, new.first_detail
+        if new.last_t >= c.last_t:
+            c.last_t, c.last_detail = new.last_t, new.last_detail
+        return False
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        out: dict[str, dict[str, Any]] = {}
+        for (agent, kind), c in sorted(self.counts.items()):
+            out.setdefault(agent, {})[kind] = c.as_dict()
+        return out
+
+
+def fault_lines(faults: dict[str, dict[str, Any]]) -> list[str]:
+    """One console line per agent and kind: count, first and last occurrence."""
+    lines = []
+    for agent, kinds in faults.items():
+        for kind, c in kinds.items():
+            first = f"first t={c['first_t']:.4f} s" + (f" ({c['first']})" if c.get("first") else "")
+            last = ""
+            if c["count"] > 1:
+                last = f", last t={c['last_t']:.4f} s" + (f" ({c['last']})" if c.get("last") else "")
+            lines.append(f"  fault: agent {agent}: {kind} x{c['count']}: {first}{last}")
+    return lines
+
+
+# -- strict JSON, written atomically --------------------------------------------------------------
+
+
+def strict_json(x: Any) -> Any:
+    """A copy of ``x`` that ``json.dumps(allow_nan=False)`` accepts: numpy scalars to Python,
+    NaN and ±inf to None (the summary's reasons say why a value is unknown)."""
+    if isinstance(x, dict):
+        return {str(k): strict_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [strict_json(v) for v in x]
+    if hasattr(x, "tolist"):  # numpy arrays and scalars, without importing numpy here
+        return strict_json(x.tolist())
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    return x
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write ``path`` under a temporary name in its directory, then rename it (raises OSError)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Strict JSON (no NaN/Infinity), written atomically."""
+    write_atomic(path, (json.dumps(strict_json(obj), indent=2, allow_nan=False) + "\n").encode("utf-8"))

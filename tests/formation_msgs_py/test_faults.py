@@ -1,0 +1,61 @@
+"""Faults counted per agent and kind, merged across processes, printed with first and last."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formation_msgs_py.faults import FaultLog, fault_lines, write_json
+
+
+def test_every_fault_is_counted_with_its_first_and_last() -> None:
+    log = FaultLog()
+    assert log.add(0.5, "2", "stale_command", "held the wrench of t=0.4900 s")
+    for k in range(1, 100):
+        assert not log.add(0.5 + k * 0.01, "2", "stale_command", f"tick {k}")
+    log.add(0.2, "3", "reset", "clock back")
+    got = log.as_dict()
+    assert got["2"]["stale_command"] == {
+        "count": 100,
+        "first_t": 0.5,
+        "last_t": pytest.approx(1.49, abs=1e-12),
+        "first": "held the wrench of t=0.4900 s",
+        "last": "tick 99",
+    }
+    assert got["3"]["reset"]["count"] == 1
+
+
+def test_merge_adds_counts_and_keeps_the_earliest_first_and_latest_last() -> None:
+    """An agent's own log merged into the simulator's: counts add, the extremes win, kinds stay apart."""
+    sim, agent = FaultLog(), FaultLog()
+    sim.add(1.0, "1", "stale_command", "a")
+    sim.add(2.0, "1", "stale_command", "b")
+    agent.add(0.5, "1", "stale_command", "early")
+    agent.add(1.5, "1", "stale_command", "middle")
+    agent.add(0.7, "1", "refused_non_finite", "NaN")
+    sim.merge(agent.as_dict())
+    got = sim.as_dict()["1"]
+    assert got["stale_command"] == {"count": 4, "first_t": 0.5, "last_t": 2.0, "first": "early", "last": "b"}
+    assert got["refused_non_finite"] == {"count": 1, "first_t": 0.7, "last_t": 0.7, "first": "NaN", "last": "NaN"}
+
+
+def test_fault_lines_print_count_first_and_last() -> None:
+    log = FaultLog()
+    log.add(0.25, "4", "missing_pose", "3")
+    log.add(0.75, "4", "missing_pose", "3, 5")
+    log.add(0.1, "simulator", "late_tick", "6.0 ms late")
+    assert fault_lines(log.as_dict()) == [
+        "  fault: agent 4: missing_pose x2: first t=0.2500 s (3), last t=0.7500 s (3, 5)",
+        "  fault: agent simulator: late_tick x1: first t=0.1000 s (6.0 ms late)",
+    ]
+
+
+def test_write_json_is_strict_and_atomic(tmp_path: Path) -> None:
+    path = tmp_path / "x.json"
+    write_json(path, {"nan": math.nan, "inf": np.float64(np.inf), "n": np.int64(3), "a": np.arange(2)})
+    assert json.loads(path.read_text()) == {"nan": None, "inf": None, "n": 3, "a": [0, 1]}
+    assert [p.name for p in tmp_path.iterdir()] == ["x.json"]  # no temporary file left

@@ -140,7 +140,7 @@ OPTIONS: tuple[Option, ...] = (
     Option("--stop-on-violation", "stop at the first funnel violation", frozenset({HEADLESS})),
     Option("--progress-period", "wall s between progress lines", frozenset({SIM}), positive, 1.0),
     Option("--no-plots", "skip the figures", RUNNERS, forward=True),
-    Option("--animate", "also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for 5 s)",
+    Option("--animate", "also write OUT/animation.gif: the formation in 3D and its funnel margins (~15 s for 5 s)",
            frozenset({HEADLESS, LAUNCH})),
     Option("--force", "write into an existing non-empty output directory", RUNNERS),
     Option("--quiet", "no progress lines", RUNNERS | {CHECK}),

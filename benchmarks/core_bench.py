@@ -1,21 +1,24 @@
-"""Benchmarks of the ROS-free core, before and after compiling it. Figures for BENCHMARKS.md, not asserted.
+"""Benchmarks of the ROS-free core, before and after. Figures for BENCHMARKS.md, not asserted.
 
-    .venv/bin/python benchmarks/core_bench.py [--before COMMIT] [--quick] [--json FILE]
+    .venv/bin/python benchmarks/core_bench.py [--before COMMIT] [--part after|before|both]
+                                              [--work DIR] [--quick] [--json FILE]
 
-Everything is measured in this one run, side by side: the current tree ("after") and, with
-``--before COMMIT``, the core of that commit (``git archive`` into a temporary directory, run
-with the same interpreter). CPU times are of the measured process (the machines are shared;
-CPU time is far less sensitive to load than wall time), wall times are reported too.
+The current tree ("after") and, with ``--before COMMIT``, the core of that commit (``git archive``
+into the work directory, run with the same interpreter), each side measuring (wall times: take
+them on a quiet machine, /work/wt/bin/quiet):
 
-1. controller evaluation: the compiled kernel (agent_step in a compiled loop), and
-   ``AgentController.compute`` from Python, compiled and interpreted, and before;
-2. agent process: import + first compute, compute per call, peak RSS: interpreted (what the
-   agent node runs), compiled (cache warm), and before;
-3. headless paper scenario (5 s, sampled 10 kHz): CPU and real-time factor, after and before;
-   continuous mode after;
-4. the whole ``formation-headless paper --no-plots`` process: wall time, after (cache warm),
-   after with an empty numba cache (first-ever run, compiling), and before;
+1. the compiled kernels of one control step, each timed in a compiled loop (controller of every
+   agent, RKMK4 of every body, measurements, recording and funnel check);
+2. the controller called from Python (the compiled kernel on arrays built once, and
+   ``AgentController.compute``); an agent process's start, compute and peak RSS, interpreted
+   and compiled;
+3. the headless paper scenario (5 s, sampled 10 kHz, and continuous): wall and CPU time;
+4. the whole ``formation-headless paper --no-plots`` process: with an empty numba cache (the
+   first-ever run, compiling), then three times with the cache warm;
 5. a 100-agent random tree (formation-generate, seed 11) at 1 kHz, 2 s.
+
+``--part`` measures one side (each fits in one short quiet command); ``--work`` keeps the
+archive and its numba cache between the two.
 """
 
 from __future__ import annotations
@@ -72,28 +75,157 @@ print({"cpu_s": round(cpu, 2), "wall_s": round(wall, 2), "rtf_cpu": round(d / cp
 """
 
 KERNEL_PROBE = r"""
-import time, numba, numpy as np
+import sys, time, numba, numpy as np
+from formation_msgs_py.spec import load_formation, simulator_view
+from formation_sim.simulation import Simulation
+from formation_sim.loop import closed_loop, new_buffers, new_watch, record_step, check_step, sense_and_control
+from formation_sim.measurement import relative_poses
+from formation_sim.plant import measured_velocity_into, new_workspace, rkmk4_step
+from formation_sim.report import Judge
+from formation_sim.team import team_step
+from formation_agent.controller import U, agent_step
+spec = load_formation(sys.argv[1])
+sim = Simulation(simulator_view(spec), warm_up=False)
+loop = closed_loop(spec, sim)
+loop = loop._replace(noise=sim.sensors.draw_noise(20001), cursor=np.zeros(1, dtype=np.int64))
+p, R, v = sim.state.p.copy(), sim.state.R.copy(), sim.state.v.copy()
+N = len(p)
+sense_and_control(loop, 0.0, p, R, v)
+work, watch = new_workspace(N), new_watch(spec, Judge(spec))
+buf = new_buffers(2000, N, len(loop.ends), len(spec.edges))
+J = numba.njit(_nrt=False)
+
+@J
+def team(n, l):
+    for k in range(n):
+        team_step(0.1, l.p_rel, l.R_rel, l.in_range, l.v_measured, l.first_end, l.agents, l.ends, l.start, l.out,
+                  l.edge_out)
+
+@J
+def agent(n, l, i):
+    lo, hi = l.first_end[i], l.first_end[i + 1]
+    for k in range(n):
+        agent_step(0.1, i, lo, hi, l.p_rel, l.R_rel, l.v_measured[i], l.agents, l.ends, l.start, l.out, l.edge_out)
+
+@J
+def rk(n, l, p, R, v, work):
+    for k in range(n):
+        rkmk4_step(0.1, p, R, v, l.out[:, U : U + 6], 1e-9, l.plant, work)
+
+@J
+def meas(n, l, p, R, v):
+    for k in range(n):
+        relative_poses(p, R, l.sensing, l.noise[k], l.p_rel, l.R_rel, l.in_range)
+        measured_velocity_into(0.1, p, R, v, l.plant.noise, l.v_measured)
+
+@J
+def rec(n, l, w, p, R, v, buf):
+    for k in range(n):
+        record_step(buf, k % 2000, 0.1, p, R, v, l.out, l.in_range)
+        check_step(w, buf, k % 2000, 0.1, p, R, l.out)
+
+def best_us(f, *a, n=20000):
+    f(10, *a)
+    times = []
+    for _ in range(5):
+        c0 = time.perf_counter()
+        f(n, *a)
+        times.append(time.perf_counter() - c0)
+    return round(min(times) / n * 1e6, 3)
+
+out = {"team_step, 5 agents": best_us(team, loop)}
+for i in range(N):
+    edges = loop.first_end[i + 1] - loop.first_end[i]
+    out[f"agent_step, agent {spec.agents[i].id} ({edges} edges)"] = best_us(agent, loop, i)
+out["rkmk4_step, 5 bodies"] = best_us(rk, loop, p, R, v, work)
+out["measurements (relative poses + noisy twists)"] = best_us(meas, loop, p, R, v)
+out["recording buffers + funnel check"] = best_us(rec, loop, watch, p, R, v, buf)
+print(out)
+"""
+
+BEFORE_KERNEL_PROBE = r"""
+import sys, time, numba, numpy as np
 from formation_msgs_py.spec import load_formation, simulator_view
 from formation_sim.simulation import Simulation
 from formation_sim.loop import closed_loop, sense_and_control
+from formation_sim.measurement import relative_poses
+from formation_sim.plant import measured_velocity_into, new_workspace, rkmk4_step
+from formation_sim.team import team_step
 from formation_agent.controller import agent_step
-import sys
 spec = load_formation(sys.argv[1])
 sim = Simulation(simulator_view(spec))
 loop = closed_loop(spec, sim)
-sense_and_control(loop, 0.0, sim.state.p, sim.state.R, sim.state.v)
+loop = loop._replace(noise=sim.sensors.draw_noise(20001), cursor=np.zeros(1, dtype=np.int64))
+p, R, v = sim.state.p.copy(), sim.state.R.copy(), sim.state.v.copy()
+N = len(p)
+sense_and_control(loop, 0.0, p, R, v)
+work = new_workspace(N)
 
 @numba.njit
-def many(n, i, loop):
+def team(n, l):
     for k in range(n):
-        agent_step(0.1, i, loop.p_rel, loop.R_rel, loop.v_measured[i], loop.agents, loop.ends, loop.start, loop.out)
+        team_step(0.1, l.p_rel, l.R_rel, l.in_range, l.v_measured, l.agents, l.ends, l.start, l.out)
 
-out = {}
-for i, name in ((1, "leaf (agent 2, 1 edge)"), (0, "agent 1 (2 edges)"), (2, "agent 3 (3 edges)")):
-    many(10, i, loop)
-    best = min((lambda c0: (many(20000, i, loop), time.process_time() - c0)[1])(time.process_time()) for _ in range(5))
-    out[name] = round(best / 20000 * 1e6, 3)
+@numba.njit
+def agent(n, l, i):
+    for k in range(n):
+        agent_step(0.1, i, l.p_rel, l.R_rel, l.v_measured[i], l.agents, l.ends, l.start, l.out)
+
+@numba.njit
+def rk(n, l, p, R, v, work):
+    for k in range(n):
+        rkmk4_step(0.1, p, R, v, l.out.u, 1e-9, l.plant, work)
+
+@numba.njit
+def meas(n, l, p, R, v):
+    for k in range(n):
+        relative_poses(p, R, l.sensing, l.noise[k], l.p_rel, l.R_rel, l.in_range)
+        measured_velocity_into(0.1, p, R, v, l.plant.noise, l.v_measured)
+
+def best_us(f, *a, n=20000):
+    f(10, *a)
+    times = []
+    for _ in range(5):
+        c0 = time.perf_counter()
+        f(n, *a)
+        times.append(time.perf_counter() - c0)
+    return round(min(times) / n * 1e6, 3)
+
+out = {"team_step, 5 agents": best_us(team, loop)}
+for i in range(N):
+    out[f"agent_step, agent {spec.agents[i].id}"] = best_us(agent, loop, i)
+out["rkmk4_step, 5 bodies"] = best_us(rk, loop, p, R, v, work)
+out["measurements (relative poses + noisy twists)"] = best_us(meas, loop, p, R, v)
 print(out)
+"""
+
+CALL_PROBE = r"""
+import sys, time, numpy as np
+from formation_agent.controller import AgentController, agent_step
+from formation_msgs_py.spec import agent_view, load_formation
+spec = load_formation(sys.argv[1])
+ctrl = AgentController(agent_view(spec, "3"))
+p = np.array([a.position for a in spec.agents]); R = np.array([a.R_world_body for a in spec.agents])
+idx = {a.id: a.index for a in spec.agents}
+rel = {j: ((R[2].T @ (p[idx[j]] - p[2])).tolist(), (R[2].T @ R[idx[j]]).tolist()) for j in ctrl.view.neighbours}
+ctrl.compute(0.0, rel, [0.0] * 6)
+n = len(ctrl.neighbours)
+args = (ctrl._p, ctrl._R, np.zeros(6), ctrl._agents, ctrl._ends, ctrl._start, ctrl._out, ctrl._edge_out)
+
+def per_call(f, n=20000):
+    times = []
+    for _ in range(5):
+        c0 = time.perf_counter()
+        for k in range(n):
+            f(k)
+        times.append(time.perf_counter() - c0)
+    return round(min(times) / n * 1e6, 2)
+
+print({
+    "agent_step from Python (arrays built once), 3 edges": per_call(lambda k: agent_step(1e-4 * k, 0, 0, n, *args)),
+    "AgentController.compute (dict of poses -> ControlOutput), 3 edges": per_call(
+        lambda k: ctrl.compute(1e-4 * k, rel, [0.0] * 6)),
+})
 """
 
 
@@ -122,9 +254,39 @@ def probe(code: str, *args: str, src: Path | None = None, **extra: str) -> dict:
     return eval(out)  # the probes print a dict literal
 
 
+def side(name: str, src: Path | None, tmp: Path, duration: float, show) -> None:
+    """Every figure of one side: the current tree (``src`` None) or an archived ``before`` tree."""
+    kernels = KERNEL_PROBE if src is None else BEFORE_KERNEL_PROBE
+    show(f"{name}: kernels in a compiled loop [us per call]", probe(kernels, PAPER, src=src))
+    show(f"{name}: agent process, interpreted", probe(AGENT_PROBE, PAPER, src=src, NUMBA_DISABLE_JIT="1"))
+    show(f"{name}: agent process, compiled (cache warm)", probe(AGENT_PROBE, PAPER, src=src, NUMBA_DISABLE_JIT="0"))
+    if src is None:
+        show(f"{name}: controller called from Python [us]", probe(CALL_PROBE, PAPER))
+    show(f"{name}: paper {duration:g} s sampled 10 kHz", probe(HEADLESS_PROBE, PAPER, duration, "sampled", src=src))
+    show(f"{name}: paper {duration:g} s continuous", probe(HEADLESS_PROBE, PAPER, duration, "continuous", src=src))
+    code = "import sys; from formation_sim.headless import main; sys.exit(main(sys.argv[1:]))"
+    cli = [PY, "-c", code, str(PAPER), "--no-plots", "--force", "--quiet", "--duration", str(duration)]
+    cold = tmp / f"numba_cache_{name}"
+    _, wall = run([*cli, "--out", str(tmp / f"cli_cold_{name}")], env_for(src, NUMBA_CACHE_DIR=str(cold)))
+    show(f"{name}: formation-headless --no-plots, wall s, empty numba cache (first run, compiling)", round(wall, 2))
+    walls = []
+    for _ in range(3):
+        _, wall = run([*cli, "--out", str(tmp / f"cli_{name}")], env_for(src, NUMBA_CACHE_DIR=str(cold)))
+        walls.append(round(wall, 2))
+    show(f"{name}: formation-headless --no-plots, wall s, cache warm (3 runs)", walls)
+    tree = tmp / "random_100.yaml"
+    if not tree.exists():
+        gen = [str(REPO / ".venv" / "bin" / "formation-generate"), "100", "--topology", "random", "--seed", "11"]
+        gen += ["--control-rate", "1000", "--duration", "2"]
+        subprocess.run([*gen, "--out", str(tree)], check=True, capture_output=True)
+    show(f"{name}: random 100-agent tree, 2 s sampled 1 kHz", probe(HEADLESS_PROBE, tree, 2.0, "sampled", src=src))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before", help="commit to compare with (its src/ is archived to a temporary directory)")
+    parser.add_argument("--before", help="commit to compare with (its src/ is archived to the work directory)")
+    parser.add_argument("--part", choices=("after", "before", "both"), default="both", help="which side to measure")
+    parser.add_argument("--work", type=Path, help="work directory (default: a new temporary one)")
     parser.add_argument("--quick", action="store_true", help="1 s horizons instead of 5 s")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
@@ -134,45 +296,24 @@ def main() -> None:
         "load_average_1min_start": round(os.getloadavg()[0], 2),
         "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
     }
-    tmp = Path(tempfile.mkdtemp(prefix="core_bench_"))
-    before = None
-    if args.before:
-        subprocess.run(f"git archive {args.before} src | tar -x -C {tmp}", shell=True, check=True, cwd=REPO)
-        before = tmp / "src"
-        results["before_commit"] = args.before
+    tmp = args.work or Path(tempfile.mkdtemp(prefix="core_bench_"))
+    tmp.mkdir(parents=True, exist_ok=True)
 
     def show(key: str, value) -> None:
         results[key] = value
         print(f"{key}: {value}", flush=True)
 
-    show("controller_kernel_us (compiled, in a compiled loop)", probe(KERNEL_PROBE, PAPER))
-    show("agent_process interpreted (agent node)", probe(AGENT_PROBE, PAPER, NUMBA_DISABLE_JIT="1"))
-    show("agent_process compiled (cache warm)", probe(AGENT_PROBE, PAPER, NUMBA_DISABLE_JIT="0"))
-    if before:
-        show("agent_process before", probe(AGENT_PROBE, PAPER, src=before))
-    show(f"paper {duration:g} s sampled 10 kHz, after", probe(HEADLESS_PROBE, PAPER, duration, "sampled"))
-    if before:
-        before_run = probe(HEADLESS_PROBE, PAPER, duration, "sampled", src=before)
-        show(f"paper {duration:g} s sampled 10 kHz, before", before_run)
-    show(f"paper {duration:g} s continuous, after", probe(HEADLESS_PROBE, PAPER, duration, "continuous"))
-
-    cli = [str(REPO / ".venv" / "bin" / "formation-headless"), str(PAPER), "--no-plots", "--force", "--quiet"]
-    cli += ["--duration", str(duration)]
-    _, wall = run([*cli, "--out", str(tmp / "cli")])
-    show("formation-headless --no-plots wall s, after (cache warm)", round(wall, 2))
-    cold = tmp / "numba_cache"
-    _, wall = run([*cli, "--out", str(tmp / "cli_cold")], env_for(None, NUMBA_CACHE_DIR=str(cold)))
-    show("formation-headless --no-plots wall s, after, empty numba cache (first run, compiling)", round(wall, 2))
-    if before:
-        code = "import sys; from formation_sim.headless import main; sys.exit(main(sys.argv[1:]))"
-        _, wall = run([PY, "-c", code, *cli[1:], "--out", str(tmp / "cli_before")], env_for(before))
-        show("formation-headless --no-plots wall s, before", round(wall, 2))
-
-    tree = tmp / "random_100.yaml"
-    gen = [str(REPO / ".venv" / "bin" / "formation-generate"), "100", "--topology", "random", "--seed", "11"]
-    gen += ["--control-rate", "1000", "--duration", "2"]
-    subprocess.run([*gen, "--out", str(tree)], check=True, capture_output=True)
-    show("random 100-agent tree, 2 s sampled 1 kHz, after", probe(HEADLESS_PROBE, tree, 2.0, "sampled"))
+    if args.part in ("after", "both"):
+        side("after", None, tmp, duration, show)
+    if args.before and args.part in ("before", "both"):
+        before = tmp / "before" / "src"
+        if not before.exists():
+            before.parent.mkdir(parents=True)
+            subprocess.run(
+                f"git archive {args.before} src | tar -x -C {before.parent}", shell=True, check=True, cwd=REPO
+            )
+        results["before_commit"] = args.before
+        side("before", before, tmp, duration, show)
     results["load_average_1min_end"] = round(os.getloadavg()[0], 2)
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")

@@ -28,11 +28,13 @@ def test_small_products_and_vee() -> None:
         np.testing.assert_allclose(so3.cross3(w[k], x[k]), np.cross(w[k], x[k]), atol=1e-14)
         np.testing.assert_allclose(so3.matvec3(A[k], x[k]), A[k] @ x[k], atol=1e-14)
         np.testing.assert_allclose(so3.matTvec3(A[k], x[k]), A[k].T @ x[k], atol=1e-14)
+        np.testing.assert_allclose(so3.matmul3(A[k], B[k]), A[k] @ B[k], atol=1e-14)
+        np.testing.assert_allclose(so3.matmul3(A[k].T, B[k]), A[k].T @ B[k], atol=1e-14)
+        rows = tuple(map(tuple, B[k]))  # B as row tuples, as exp_rows gives it
+        np.testing.assert_allclose(so3.matmul3(A[k], rows), A[k] @ B[k], atol=1e-14)
         out = np.empty((3, 3))
-        so3.matmul3_into(A[k], B[k], out)
-        np.testing.assert_allclose(out, A[k] @ B[k], atol=1e-14)
-        so3.matTmul3_into(A[k], B[k], out)
-        np.testing.assert_allclose(out, A[k].T @ B[k], atol=1e-14)
+        so3.set3x3(out, rows)
+        np.testing.assert_array_equal(out, B[k])
         S = np.cross(np.eye(3), -w[k]).T  # S(w): column j is w × e_j
         np.testing.assert_allclose(S @ x[k], np.cross(w[k], x[k]), atol=1e-14)
         np.testing.assert_allclose(rotations.vee(S), w[k], atol=0)

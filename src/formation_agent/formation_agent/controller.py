@@ -29,24 +29,23 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
 from formation_msgs_py import funnels
 from formation_msgs_py.compiled import kernel
 from formation_msgs_py.errors import FormationError
-from formation_msgs_py.so3 import add3, matTvec3, matvec3, scale3
+from formation_msgs_py.so3 import add3, matmul3, matTvec3, matvec3, scale3
 from formation_msgs_py.spec import AgentView
 
 OK, WARN, ERROR = 0, 1, 2
 LEVEL_NAMES = ("OK", "WARN", "ERROR")
 #: Below this margin (fraction of a funnel left) the level is WARN.
 WARN_MARGIN = 0.05
-#: Why a step is at ERROR (``Outputs.reason``), and the message the agent reports.
+#: Why a step is at ERROR (column REASON of ``out``), and the message the agent reports.
 REASON_NONE, REASON_SATURATED, REASON_NON_FINITE, REASON_MISSING = 0, 1, 2, 3
 REASON_MESSAGES = ("", "outside a funnel: saturated", "non-finite wrench replaced by zero", "missing measurement")
-#: Columns of ``Outputs.edge`` (per edge end).
+#: Columns of ``edge_out`` (n_ends, 6): what a step leaves per edge end.
 E, PSI, XI_E, XI_PSI, MARGIN_E, MARGIN_PSI = range(6)
 
 
@@ -58,88 +57,46 @@ class MissingMeasurementError(FormationError):
         super().__init__(f"agent {agent_id}: no relative pose of neighbour(s) {', '.join(neighbours)}")
 
 
-class EdgeGains(NamedTuple):
-    """Per edge end (agent i's view of edge k): role and funnel constants, arrays of length n_ends."""
-
-    is_tail: np.ndarray  # bool
-    d2: np.ndarray  # d_k,des² [m²]
-    c_col: np.ndarray
-    c_con: np.ndarray
-    rho_e_floor: np.ndarray  # ρ_e∞ / max(C_col, C_con)
-    decay_e: np.ndarray  # l_e [1/s]
-    R_des: np.ndarray  # (n_ends, 3, 3)
-    rho_psi_0: np.ndarray
-    rho_psi_inf: np.ndarray
-    decay_psi: np.ndarray  # l_ψ [1/s]
-
-
-class AgentGains(NamedTuple):
-    """Per agent: gains, velocity funnel and actuator limits, arrays of length N (or (N, 6))."""
-
-    first_end: np.ndarray  # (N+1,) int: agent i owns ends first_end[i]:first_end[i+1]
-    delta: np.ndarray
-    gamma: np.ndarray
-    saturation_margin: np.ndarray
-    rho_v0: np.ndarray  # (N, 6): the file's ρ_v0, or NaN for ``auto``
-    auto_scale: np.ndarray
-    auto_offset: np.ndarray
-    rho_v_inf: np.ndarray  # (N, 6)
-    decay_v: np.ndarray  # (N, 6) [1/s]
-    max_force: np.ndarray  # [N], inf: no limit
-    max_torque: np.ndarray  # [N·m], inf: no limit
+# Columns of the kernels' arrays: one float array per kind of row, so that a compiled call
+# unboxes a handful of arrays (a few µs from Python), and a row is one agent's or one end's data.
+#: ``ends`` (n_ends, END_COLUMNS): agent i's view of edge k (R_des row-major in 9 columns).
+TAIL, D2, C_COL, C_CON, RHO_E_FLOOR, DECAY_E, RHO_PSI_0, RHO_PSI_INF, DECAY_PSI, R_DES = range(10)
+END_COLUMNS = R_DES + 9
+#: ``agents`` (N, AGENT_COLUMNS): gains, actuator limits and the velocity funnel (6 channels
+#: each; RHO_V0 NaN for ``auto``). TAIL is 1.0 for the tail, 0.0 for the head; d2 = d_k,des² [m²];
+#: RHO_E_FLOOR = ρ_e∞ / max(C_col, C_con); decays in 1/s; max force/torque inf for no limit.
+DELTA, GAMMA, SATURATION_MARGIN, AUTO_SCALE, AUTO_OFFSET, MAX_FORCE, MAX_TORQUE, RHO_V0 = range(8)
+RHO_V_INF, DECAY_V = RHO_V0 + 6, RHO_V0 + 12
+AGENT_COLUMNS = DECAY_V + 6
+#: ``start`` (N, 7): the velocity funnel's start, set at an agent's first step: t0 [s] (NaN
+#: before) and ρ_v0 per channel.
+T0, START_RHO_V0 = 0, 1
+#: ``out`` (N, OUT_COLUMNS): what a step of agent i leaves: the wrench (body frame), v_des, ξ_v and
+#: the velocity margins (6 each), the level (OK, WARN, ERROR) and the reason (REASON_*).
+U, V_DES, XI_V, MARGIN_V, LEVEL, REASON = 0, 6, 12, 18, 24, 25
+OUT_COLUMNS = 26
 
 
-class Outputs(NamedTuple):
-    """What a step of every agent leaves: filled by :func:`agent_step`."""
-
-    u: np.ndarray  # (N, 6) wrench, body frame
-    v_des: np.ndarray  # (N, 6)
-    xi_v: np.ndarray  # (N, 6)
-    margin_v: np.ndarray  # (N, 6)
-    level: np.ndarray  # (N,) OK, WARN, ERROR
-    reason: np.ndarray  # (N,) REASON_*
-    edge: np.ndarray  # (n_ends, 6): e, ψ, ξ_e, ξ_ψ, margin_e, margin_ψ
+def new_outputs(n_agents: int, n_ends: int) -> tuple[np.ndarray, np.ndarray]:
+    """Zeroed ``out`` (N, OUT_COLUMNS) and ``edge_out`` (n_ends, 6: E, PSI, XI_E, XI_PSI, MARGIN_E, MARGIN_PSI)."""
+    return np.zeros((n_agents, OUT_COLUMNS)), np.zeros((n_ends, 6))
 
 
-class FunnelStart(NamedTuple):
-    """Agent i's velocity funnel start, set at its first step: ρ_v0 (N, 6) and t0 (N,), NaN before."""
-
-    rho_v0: np.ndarray
-    t0: np.ndarray
-
-
-def new_outputs(n_agents: int, n_ends: int) -> Outputs:
-    return Outputs(
-        np.zeros((n_agents, 6)),
-        np.zeros((n_agents, 6)),
-        np.zeros((n_agents, 6)),
-        np.zeros((n_agents, 6)),
-        np.zeros(n_agents, dtype=np.int64),
-        np.zeros(n_agents, dtype=np.int64),
-        np.zeros((n_ends, 6)),
-    )
-
-
-def new_funnel_start(n_agents: int) -> FunnelStart:
-    return FunnelStart(np.full((n_agents, 6), np.nan), np.full(n_agents, np.nan))
+def new_funnel_start(n_agents: int) -> np.ndarray:
+    """``start`` (N, 7) before any step: NaN."""
+    return np.full((n_agents, 7), np.nan)
 
 
 # --- the paper's steps -------------------------------------------------------------------------
 
 
 @kernel
-def relative_entry(R_i_j, is_tail, a, b):
-    """Entry (a, b) of Q = R_k1ᵀR_k2 from agent i's R_i_j: R_i_j for the tail, its transpose for the head."""
-    return R_i_j[a, b] if is_tail else R_i_j[b, a]
-
-
-@kernel
-def offset_entry(R_i_j, is_tail, R_des, a, b):
-    """Entry (a, b) of A = Q R_des, the relative orientation's offset from the desired one."""
+def rows3(row, at):
+    """The 3×3 matrix stored row-major in ``row[at:at + 9]``, as three row tuples."""
     return (
-        relative_entry(R_i_j, is_tail, a, 0) * R_des[0, b]
-        + relative_entry(R_i_j, is_tail, a, 1) * R_des[1, b]
-        + relative_entry(R_i_j, is_tail, a, 2) * R_des[2, b]
+        (row[at], row[at + 1], row[at + 2]),
+        (row[at + 3], row[at + 4], row[at + 5]),
+        (row[at + 6], row[at + 7], row[at + 8]),
     )
 
 
@@ -153,18 +110,13 @@ def edge_errors(p_i_j_in_i, R_i_j, is_tail, d2, R_des):
     """
     if is_tail:
         q = (p_i_j_in_i[0], p_i_j_in_i[1], p_i_j_in_i[2])
+        A = matmul3(R_i_j, R_des)
     else:
         q = scale3(-1.0, matTvec3(R_i_j, p_i_j_in_i))
+        A = matmul3(R_i_j.T, R_des)
     e = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] - d2
-    a00 = offset_entry(R_i_j, is_tail, R_des, 0, 0)
-    a11 = offset_entry(R_i_j, is_tail, R_des, 1, 1)
-    a22 = offset_entry(R_i_j, is_tail, R_des, 2, 2)
-    psi = 0.5 * (3.0 - a00 - a11 - a22)
-    e_R = (
-        offset_entry(R_i_j, is_tail, R_des, 2, 1) - offset_entry(R_i_j, is_tail, R_des, 1, 2),
-        offset_entry(R_i_j, is_tail, R_des, 0, 2) - offset_entry(R_i_j, is_tail, R_des, 2, 0),
-        offset_entry(R_i_j, is_tail, R_des, 1, 0) - offset_entry(R_i_j, is_tail, R_des, 0, 1),
-    )
+    psi = 0.5 * (3.0 - A[0][0] - A[1][1] - A[2][2])
+    e_R = (A[2][1] - A[1][2], A[0][2] - A[2][0], A[1][0] - A[0][1])
     return e, psi, e_R
 
 
@@ -219,17 +171,17 @@ def desired_velocity(t, p_rel, R_rel, ends, lo, hi, delta, saturation_margin, ed
     v_ang = (0.0, 0.0, 0.0)
     saturated = False
     for k in range(lo, hi):
-        e, psi, e_R = edge_errors(p_rel[k], R_rel[k], ends.is_tail[k], ends.d2[k], ends.R_des[k])
-        xi_e, m_e, w_e, sat_e = distance_term(
-            e, t, ends.c_col[k], ends.c_con[k], ends.rho_e_floor[k], ends.decay_e[k], saturation_margin
-        )
+        g = ends[k]
+        is_tail = g[TAIL] > 0.5
+        e, psi, e_R = edge_errors(p_rel[k], R_rel[k], is_tail, g[D2], rows3(g, R_DES))
+        xi_e, m_e, w_e, sat_e = distance_term(e, t, g[C_COL], g[C_CON], g[RHO_E_FLOOR], g[DECAY_E], saturation_margin)
         xi_psi, m_psi, w_psi, sat_psi = orientation_term(
-            psi, t, ends.rho_psi_0[k], ends.rho_psi_inf[k], ends.decay_psi[k], saturation_margin
+            psi, t, g[RHO_PSI_0], g[RHO_PSI_INF], g[DECAY_PSI], saturation_margin
         )
         saturated = saturated or sat_e or sat_psi
         alpha_q = scale3(-1.0, p_rel[k])
         v_lin = add3(v_lin, scale3(w_e, alpha_q))
-        v_ang = add3(v_ang, scale3(w_psi, alpha(R_rel[k], ends.is_tail[k], e_R)))
+        v_ang = add3(v_ang, scale3(w_psi, alpha(R_rel[k], is_tail, e_R)))
         edge_out[k, E] = e
         edge_out[k, PSI] = psi
         edge_out[k, XI_E] = xi_e
@@ -242,72 +194,83 @@ def desired_velocity(t, p_rel, R_rel, ends, lo, hi, delta, saturation_margin, ed
 
 
 @kernel
-def velocity_funnel_start(e_v0, rho_v0_file, auto_scale, auto_offset, rho_v0):
-    """ρ_v0 per channel into ``rho_v0``: the file's value, or auto_scale·|e_v(0)| + auto_offset (Step II-a)."""
+def velocity_funnel_start(e_v0, gains, start):
+    """ρ_v0 per channel into ``start``: the file's value, or auto_scale·|e_v(0)| + auto_offset (Step II-a)."""
     for c in range(6):
-        rho_v0[c] = auto_scale * abs(e_v0[c]) + auto_offset if np.isnan(rho_v0_file[0]) else rho_v0_file[c]
+        if np.isnan(gains[RHO_V0]):
+            start[START_RHO_V0 + c] = gains[AUTO_SCALE] * abs(e_v0[c]) + gains[AUTO_OFFSET]
+        else:
+            start[START_RHO_V0 + c] = gains[RHO_V0 + c]
 
 
 @kernel
-def wrench(t_since_start, e_v, rho_v0, rho_v_inf, decay_v, gamma, saturation_margin, u, xi_out, margin_out):
-    """u_i = −γ_i ρ_v⁻¹ r_v(ξ_v) T_v(ξ_v) per channel (eq. u_i) into ``u``; fills ξ_v and margins; saturated?"""
+def wrench(t_since_start, e_v, gains, start, out):
+    """u_i = −γ_i ρ_v⁻¹ r_v(ξ_v) T_v(ξ_v) per channel (eq. u_i) into ``out``; fills ξ_v and margins; saturated?"""
     saturated = False
-    keep = 1.0 - saturation_margin
+    margin_sat = gains[SATURATION_MARGIN]
+    keep = 1.0 - margin_sat
     for c in range(6):
-        rho_v = funnels.rho(t_since_start, rho_v0[c], rho_v_inf[c], decay_v[c])
+        rho_v = funnels.rho(t_since_start, start[START_RHO_V0 + c], gains[RHO_V_INF + c], gains[DECAY_V + c])
         xi = e_v[c] / rho_v
         margin = funnels.margin_v(xi)
-        xi_out[c] = xi
-        margin_out[c] = margin
-        if margin < saturation_margin:
+        out[XI_V + c] = xi
+        out[MARGIN_V + c] = margin
+        if margin < margin_sat:
             saturated = True
             xi = keep if xi > 0 else -keep
-        u[c] = -gamma / rho_v * funnels.r_v(xi) * funnels.t_v(xi)
+        out[U + c] = -gains[GAMMA] / rho_v * funnels.r_v(xi) * funnels.t_v(xi)
     return saturated
 
 
 @kernel
-def limit_wrench(u, max_force, max_torque):
-    """Scale the force and the torque down to their norms' limits, keeping directions (in place)."""
-    for lo, limit in ((0, max_force), (3, max_torque)):
-        norm = np.sqrt(u[lo] ** 2 + u[lo + 1] ** 2 + u[lo + 2] ** 2)
+def limit_wrench(out, max_force, max_torque):
+    """Scale the force and the torque in ``out`` down to their norms' limits, keeping directions."""
+    for lo, limit in ((U, max_force), (U + 3, max_torque)):
+        norm = np.sqrt(out[lo] ** 2 + out[lo + 1] ** 2 + out[lo + 2] ** 2)
         if norm > limit:
             for c in range(lo, lo + 3):
-                u[c] = u[c] * limit / norm
+                out[c] = out[c] * limit / norm
 
 
 @kernel
-def all_finite(x):
-    for c in range(x.shape[0]):
-        if not np.isfinite(x[c]):
-            return False
-    return True
-
-
-@kernel
-def fault_wrench(i, lo, hi, reason, out):
+def fault_wrench(i, lo, hi, reason, out, edge_out):
     """The fault policy: zero wrench, level ERROR, margins −1 (unknown, treated as outside)."""
-    out.u[i, :] = 0.0
-    out.v_des[i, :] = 0.0
-    out.xi_v[i, :] = 0.0
-    out.margin_v[i, :] = -1.0
-    out.edge[lo:hi, :] = 0.0
-    out.edge[lo:hi, MARGIN_E] = -1.0
-    out.edge[lo:hi, MARGIN_PSI] = -1.0
-    out.level[i] = ERROR
-    out.reason[i] = reason
+    for c in range(6):
+        out[i, U + c] = 0.0
+        out[i, V_DES + c] = 0.0
+        out[i, XI_V + c] = 0.0
+        out[i, MARGIN_V + c] = -1.0
+    for k in range(lo, hi):
+        for c in range(6):
+            edge_out[k, c] = -1.0 if c == MARGIN_E or c == MARGIN_PSI else 0.0
+    out[i, LEVEL] = ERROR
+    out[i, REASON] = reason
 
 
 @kernel
-def agent_step(t, i, p_rel, R_rel, v_measured, agents, ends, start, out):
-    """Agent i's whole step at time t [s]: fills row i of ``out``; returns its level.
+def level_of(saturated, finite, out, edge_out, lo, hi):
+    """(level, reason) of a step: ERROR when saturated or not finite, WARN near a bound, else OK."""
+    if not finite:
+        return ERROR, REASON_NON_FINITE
+    if saturated:
+        return ERROR, REASON_SATURATED
+    worst = np.inf
+    for c in range(6):
+        worst = min(worst, out[MARGIN_V + c])
+    for k in range(lo, hi):
+        worst = min(worst, edge_out[k, MARGIN_E], edge_out[k, MARGIN_PSI])
+    return (WARN if worst < WARN_MARGIN else OK), REASON_NONE
 
-    ``p_rel``/``R_rel`` are indexed by edge end (agent i reads ends first_end[i]:first_end[i+1]).
-    The velocity funnel starts at the agent's first step (``start`` is updated then).
+
+@kernel
+def agent_step(t, i, lo, hi, p_rel, R_rel, v_measured, agents, ends, start, out, edge_out):
+    """Agent i's whole step at time t [s] on its ends lo:hi: fills row i of ``out``; returns its level.
+
+    ``p_rel``/``R_rel`` are indexed by edge end, ``v_measured`` is ṽ_i (6,). The velocity funnel
+    starts at the agent's first step (row i of ``start`` is set then).
     """
-    lo, hi = agents.first_end[i], agents.first_end[i + 1]
-    margin = agents.saturation_margin[i]
-    v_des, saturated = desired_velocity(t, p_rel, R_rel, ends, lo, hi, agents.delta[i], margin, out.edge)
+    gains, row = agents[i], out[i]
+    v_des, saturated = desired_velocity(t, p_rel, R_rel, ends, lo, hi, gains[DELTA], gains[SATURATION_MARGIN], edge_out)
     e_v = (
         v_measured[0] - v_des[0],
         v_measured[1] - v_des[1],
@@ -316,80 +279,54 @@ def agent_step(t, i, p_rel, R_rel, v_measured, agents, ends, start, out):
         v_measured[4] - v_des[4],
         v_measured[5] - v_des[5],
     )
-    if np.isnan(start.t0[i]):
-        start.t0[i] = t
-        velocity_funnel_start(e_v, agents.rho_v0[i], agents.auto_scale[i], agents.auto_offset[i], start.rho_v0[i])
-    u = out.u[i]
-    sat_v = wrench(
-        t - start.t0[i],
-        e_v,
-        start.rho_v0[i],
-        agents.rho_v_inf[i],
-        agents.decay_v[i],
-        agents.gamma[i],
-        margin,
-        u,
-        out.xi_v[i],
-        out.margin_v[i],
-    )
-    limit_wrench(u, agents.max_force[i], agents.max_torque[i])
+    if np.isnan(start[i, T0]):
+        start[i, T0] = t
+        velocity_funnel_start(e_v, gains, start[i])
+    saturated_v = wrench(t - start[i, T0], e_v, gains, start[i], row)
+    limit_wrench(row, gains[MAX_FORCE], gains[MAX_TORQUE])
+    finite = True
     for c in range(6):
-        out.v_des[i, c] = v_des[c]
-    out.reason[i] = REASON_NONE
-    if not all_finite(u):
-        u[:] = 0.0
-        out.level[i] = ERROR
-        out.reason[i] = REASON_NON_FINITE
-    elif saturated or sat_v:
-        out.level[i] = ERROR
-        out.reason[i] = REASON_SATURATED
-    elif min(out.margin_v[i].min(), out.edge[lo:hi, MARGIN_E].min(), out.edge[lo:hi, MARGIN_PSI].min()) < WARN_MARGIN:
-        out.level[i] = WARN
-    else:
-        out.level[i] = OK
-    return out.level[i]
+        row[V_DES + c] = v_des[c]
+        finite = finite and np.isfinite(row[U + c])
+    if not finite:
+        for c in range(6):
+            row[U + c] = 0.0
+    level, reason = level_of(saturated or saturated_v, finite, row, edge_out, lo, hi)
+    row[LEVEL] = level
+    row[REASON] = reason
+    return level
 
 
 # --- gains from a formation file -----------------------------------------------------------------
 
 
-def gains(views: Sequence[AgentView]) -> tuple[AgentGains, EdgeGains]:
-    """The kernels' arrays for ``views`` (agents in this order, each with its incident edges)."""
-    ends = [ie for v in views for ie in v.edges]
-    first_end = np.cumsum([0] + [len(v.edges) for v in views])
-
-    def per_end(f) -> np.ndarray:
-        return np.array([f(ie) for ie in ends], dtype=np.float64)
-
-    edge_gains = EdgeGains(
-        np.array([ie.role == "tail" for ie in ends], dtype=np.bool_),
-        per_end(lambda ie: ie.edge.d_des**2),
-        per_end(lambda ie: ie.edge.c_col),
-        per_end(lambda ie: ie.edge.c_con),
-        per_end(lambda ie: funnels.rho_e_floor(ie.edge.c_col, ie.edge.c_con, ie.edge.rho_e_inf)),
-        per_end(lambda ie: ie.edge.decay_e),
-        np.array([ie.edge.R_des for ie in ends], dtype=np.float64).reshape(len(ends), 3, 3),
-        per_end(lambda ie: ie.edge.rho_psi_0),
-        per_end(lambda ie: ie.edge.rho_psi_inf),
-        per_end(lambda ie: ie.edge.decay_psi),
-    )
-    ctl = [v.controller for v in views]
-    vf = [c.velocity_funnel for c in ctl]
-    inf = np.inf
-    agent_gains = AgentGains(
-        first_end.astype(np.int64),
-        np.array([c.delta for c in ctl], dtype=np.float64),
-        np.array([c.gamma for c in ctl], dtype=np.float64),
-        np.array([c.saturation_margin for c in ctl], dtype=np.float64),
-        np.array([np.full(6, np.nan) if f.rho_0 is None else f.rho_0 for f in vf], dtype=np.float64).reshape(-1, 6),
-        np.array([f.auto_scale for f in vf], dtype=np.float64),
-        np.array([f.auto_offset for f in vf], dtype=np.float64),
-        np.array([f.rho_inf for f in vf], dtype=np.float64).reshape(-1, 6),
-        np.array([f.decay for f in vf], dtype=np.float64).reshape(-1, 6),
-        np.array([inf if c.max_force is None else c.max_force for c in ctl], dtype=np.float64),
-        np.array([inf if c.max_torque is None else c.max_torque for c in ctl], dtype=np.float64),
-    )
-    return agent_gains, edge_gains
+def gains(views: Sequence[AgentView]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kernels' arrays for ``views`` (agents in this order, each with its incident edges):
+    ``first_end`` (N+1,) (agent i owns ends first_end[i]:first_end[i+1]), ``agents``, ``ends``."""
+    incident = [ie for v in views for ie in v.edges]
+    first_end = np.cumsum([0] + [len(v.edges) for v in views]).astype(np.int64)
+    ends = np.zeros((len(incident), END_COLUMNS))
+    for row, ie in zip(ends, incident):
+        edge = ie.edge
+        row[TAIL] = ie.role == "tail"
+        row[D2] = edge.d_des**2
+        row[C_COL], row[C_CON] = edge.c_col, edge.c_con
+        row[RHO_E_FLOOR] = funnels.rho_e_floor(edge.c_col, edge.c_con, edge.rho_e_inf)
+        row[DECAY_E] = edge.decay_e
+        row[RHO_PSI_0], row[RHO_PSI_INF], row[DECAY_PSI] = edge.rho_psi_0, edge.rho_psi_inf, edge.decay_psi
+        row[R_DES : R_DES + 9] = np.asarray(edge.R_des, dtype=np.float64).ravel()
+    agents = np.zeros((len(views), AGENT_COLUMNS))
+    for row, view in zip(agents, views):
+        c = view.controller
+        f = c.velocity_funnel
+        row[DELTA], row[GAMMA], row[SATURATION_MARGIN] = c.delta, c.gamma, c.saturation_margin
+        row[AUTO_SCALE], row[AUTO_OFFSET] = f.auto_scale, f.auto_offset
+        row[MAX_FORCE] = np.inf if c.max_force is None else c.max_force
+        row[MAX_TORQUE] = np.inf if c.max_torque is None else c.max_torque
+        row[RHO_V0 : RHO_V0 + 6] = np.nan if f.rho_0 is None else f.rho_0
+        row[RHO_V_INF : RHO_V_INF + 6] = f.rho_inf
+        row[DECAY_V : DECAY_V + 6] = f.decay
+    return first_end, agents, ends
 
 
 # --- one agent, as its process runs it -----------------------------------------------------------
@@ -423,41 +360,52 @@ class ControlOutput:
         return min(self.margin_v + self.margin_e + self.margin_psi)
 
 
-def control_output(t: float, i: int, lo: int, hi: int, out: Outputs, message: str | None = None) -> ControlOutput:
-    """Agent i's row of ``out`` as a :class:`ControlOutput` (``message`` overrides the reason's)."""
-    edge = out.edge[lo:hi].T.tolist()
-    level = int(out.level[i])
-    if message is None:
-        message = REASON_MESSAGES[out.reason[i]] if level == ERROR else ("near a funnel bound" if level == WARN else "")
+def control_output(
+    t: float, i: int, lo: int, hi: int, out: np.ndarray, edge_out: np.ndarray, message: str | None = None
+) -> ControlOutput:
+    """Agent i's row of ``out`` and its ends lo:hi of ``edge_out`` as a :class:`ControlOutput`
+    (``message`` overrides the reason's)."""
+    row = out[i].tolist()
+    edge = edge_out[lo:hi].T.tolist()
+    level = int(row[LEVEL])
+    if message is None and level == ERROR:
+        message = REASON_MESSAGES[int(row[REASON])]
+    elif message is None:
+        message = "near a funnel bound" if level == WARN else ""
     return ControlOutput(
         t,
-        tuple(out.u[i].tolist()),
-        tuple(out.v_des[i].tolist()),
+        tuple(row[U : U + 6]),
+        tuple(row[V_DES : V_DES + 6]),
         tuple(edge[E]),
         tuple(edge[PSI]),
         tuple(edge[XI_E]),
         tuple(edge[XI_PSI]),
         tuple(edge[MARGIN_E]),
         tuple(edge[MARGIN_PSI]),
-        tuple(out.xi_v[i].tolist()),
-        tuple(out.margin_v[i].tolist()),
+        tuple(row[XI_V : XI_V + 6]),
+        tuple(row[MARGIN_V : MARGIN_V + 6]),
         level,
         message,
     )
 
 
 class AgentController:
-    """The controller of one agent (its process, a re-run, a rate analysis). Call :meth:`compute` per step."""
+    """The controller of one agent (its process, a re-run, a rate analysis). Call :meth:`compute` per step.
+
+    :meth:`compute` calls the compiled :func:`agent_step` on arrays built once (the gains, the
+    funnel start, the outputs): its cost from Python is the dict of poses and the tuples of the
+    :class:`ControlOutput`, not numba's dispatch.
+    """
 
     def __init__(self, view: AgentView) -> None:
         self.view = view
         self.neighbours = tuple(ie.neighbour for ie in view.edges)
-        self._agents, self._ends = gains([view])
+        _, self._agents, self._ends = gains([view])
         n = len(self.neighbours)
-        self._out = new_outputs(1, n)
+        self._out, self._edge_out = new_outputs(1, n)
         self._p = np.zeros((n, 3))
         self._R = np.zeros((n, 3, 3))
-        self.reset()
+        self._start = new_funnel_start(1)
 
     @property
     def agent_id(self) -> str:
@@ -466,24 +414,25 @@ class AgentController:
     @property
     def rho_v0(self) -> tuple[float, ...] | None:
         """ρ_v0 per channel, set at the first step after a reset (None before)."""
-        return None if np.isnan(self._start.t0[0]) else tuple(self._start.rho_v0[0].tolist())
+        return None if self.t0 is None else tuple(self._start[0, START_RHO_V0:].tolist())
 
     @rho_v0.setter
     def rho_v0(self, value: Sequence[float] | None) -> None:
-        self._start.rho_v0[0] = np.nan if value is None else value
+        self._start[0, START_RHO_V0:] = np.nan if value is None else value
 
     @property
     def t0(self) -> float | None:
         """Time [s] of the first step after a reset (None before): the velocity funnel's start."""
-        return None if np.isnan(self._start.t0[0]) else float(self._start.t0[0])
+        t0 = float(self._start[0, T0])
+        return None if np.isnan(t0) else t0
 
     @t0.setter
     def t0(self, value: float | None) -> None:
-        self._start.t0[0] = np.nan if value is None else value
+        self._start[0, T0] = np.nan if value is None else value
 
     def reset(self) -> None:
         """Forget the velocity funnel's start (ρ_v0 and t0 are set again at the next step)."""
-        self._start = new_funnel_start(1)
+        self._start[:] = np.nan
 
     def compute(
         self,
@@ -500,10 +449,14 @@ class AgentController:
             self._p[k] = p
             self._R[k] = R
         v = np.asarray(v_measured, dtype=np.float64)
-        agent_step(float(t), 0, self._p, self._R, v, self._agents, self._ends, self._start, self._out)
-        return control_output(float(t), 0, 0, len(self.neighbours), self._out)
+        n = len(self.neighbours)
+        agent_step(
+            float(t), 0, 0, n, self._p, self._R, v, self._agents, self._ends, self._start, self._out, self._edge_out
+        )
+        return control_output(float(t), 0, 0, n, self._out, self._edge_out)
 
     def fault_output(self, t: float, message: str) -> ControlOutput:
         """Zero wrench with level ERROR (missing, stale or non-finite measurements)."""
-        fault_wrench(0, 0, len(self.neighbours), REASON_MISSING, self._out)
-        return control_output(float(t), 0, 0, len(self.neighbours), self._out, message)
+        n = len(self.neighbours)
+        fault_wrench(0, 0, n, REASON_MISSING, self._out, self._edge_out)
+        return control_output(float(t), 0, 0, n, self._out, self._edge_out, message)

@@ -1,46 +1,51 @@
-"""SO(3) kernels of the controller, the plant and the measurement model.
+"""SO(3) formulas of the controller, the plant and the measurement model.
 
-``exp_so3``, ``dexpinv_so3`` and the 3-vector / 3×3 products are compiled kernels
-(:func:`formation_msgs_py.compiled.kernel`) on one 3-vector or 3×3 matrix; rotation vectors are
-axis * angle in radians. Importing this module imports numba (unless ``NUMBA_DISABLE_JIT``):
-rotations as data (checks, projection, quaternion / rpy / axis-angle conversions) live in
-:mod:`formation_msgs_py.rotations`, which loading a file or decoding a message uses.
+The 3-vector / 3×3 products, ``exp_rows`` (Rodrigues) and ``dexpinv`` (the RKMK chart) are
+formulas compiled into the kernels that call them (:func:`formation_msgs_py.compiled.formula`),
+on one 3-vector or 3×3 matrix given as an array or as tuples; from Python they are plain numpy
+and importing this module does not import numba. Rotation vectors are axis * angle in radians.
+Rotations as data (checks, projection, quaternion / rpy / axis-angle conversions) live in
+:mod:`formation_msgs_py.rotations`.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
-from formation_msgs_py.compiled import kernel
+from formation_msgs_py.compiled import formula
 
-# --- compiled 3-vector / 3×3 kernels: vectors as tuples (x, y, z), no heap allocation -------
+FloatArray = NDArray[np.float64]
 
 
-@kernel
+# --- compiled 3-vector / 3×3 formulas: vectors as tuples (x, y, z), no heap allocation ------
+
+
+@formula
 def add3(a, b):
     """a + b."""
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
 
-@kernel
+@formula
 def sub3(a, b):
     """a − b."""
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-@kernel
+@formula
 def scale3(s, a):
     """s·a."""
     return (s * a[0], s * a[1], s * a[2])
 
 
-@kernel
+@formula
 def cross3(a, b):
     """a × b."""
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-@kernel
+@formula
 def matvec3(A, x):
     """A x for a 3×3 array A."""
     return (
@@ -50,7 +55,7 @@ def matvec3(A, x):
     )
 
 
-@kernel
+@formula
 def matTvec3(A, x):
     """Aᵀ x for a 3×3 array A."""
     return (
@@ -60,23 +65,31 @@ def matTvec3(A, x):
     )
 
 
-@kernel
-def matmul3_into(A, B, out):
-    """out = A B for 3×3 A and B (arrays, or B as rows of tuples); out must not alias A or B."""
+@formula
+def matmul3_entry(A, B, i, j):
+    """(A B)[i, j] for 3×3 A and B given as arrays or as rows of tuples."""
+    return A[i][0] * B[0][j] + A[i][1] * B[1][j] + A[i][2] * B[2][j]
+
+
+@formula
+def matmul3(A, B):
+    """A B for 3×3 A and B (arrays or rows of tuples), as three row tuples."""
+    return (
+        (matmul3_entry(A, B, 0, 0), matmul3_entry(A, B, 0, 1), matmul3_entry(A, B, 0, 2)),
+        (matmul3_entry(A, B, 1, 0), matmul3_entry(A, B, 1, 1), matmul3_entry(A, B, 1, 2)),
+        (matmul3_entry(A, B, 2, 0), matmul3_entry(A, B, 2, 1), matmul3_entry(A, B, 2, 2)),
+    )
+
+
+@formula
+def set3x3(out, rows):
+    """out[:, :] = rows (a 3×3 array from three row tuples), element by element."""
     for i in range(3):
         for j in range(3):
-            out[i, j] = A[i, 0] * B[0][j] + A[i, 1] * B[1][j] + A[i, 2] * B[2][j]
+            out[i, j] = rows[i][j]
 
 
-@kernel
-def matTmul3_into(A, B, out):
-    """out = Aᵀ B for 3×3 arrays; out must not alias A or B."""
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
-
-
-@kernel
+@formula
 def exp_rows(theta):
     """exp(S(θ)) of a rotation vector θ [rad] as three row tuples, by Rodrigues' formula.
 
@@ -100,18 +113,12 @@ def exp_rows(theta):
     )
 
 
-@kernel
-def exp_so3(theta):
+def exp_so3(theta: ArrayLike) -> FloatArray:
     """exp(S(θ)) (3,3) of a rotation vector θ (3,) [rad]."""
-    out = np.empty((3, 3))
-    rows = exp_rows(theta)
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = rows[i][j]
-    return out
+    return np.array(exp_rows(np.asarray(theta, dtype=np.float64)))
 
 
-@kernel
+@formula
 def dexpinv(theta, omega):
     """Θ̇ such that R0·exp(S(Θ)) moves with body rate ω: Θ̇ = dexp⁻¹_{−Θ}(ω) (RKMK chart).
 
@@ -127,8 +134,6 @@ def dexpinv(theta, omega):
     return add3(add3(omega, scale3(0.5, txw)), scale3(c, cross3(theta, txw)))
 
 
-@kernel
-def dexpinv_so3(theta, omega):
+def dexpinv_so3(theta: ArrayLike, omega: ArrayLike) -> FloatArray:
     """:func:`dexpinv` as a (3,) array."""
-    x = dexpinv(theta, omega)
-    return np.array([x[0], x[1], x[2]])
+    return np.array(dexpinv(np.asarray(theta, dtype=np.float64), np.asarray(omega, dtype=np.float64)))

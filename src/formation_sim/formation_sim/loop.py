@@ -3,13 +3,14 @@
 Per control step k (t_k = k / control_rate) :func:`run_steps` does what the ROS 2 lockstep run
 does, step for step: the measurements of step k (relative poses with their noise, noisy
 twists), every agent's controller (:func:`formation_sim.team.team_step`, with the fault policy),
-the step's ground truth, wrenches and velocity-funnel margins into the recording buffers, then
-``substeps`` physics steps: with the wrenches held (``sampled``, zero-order hold) or with the
-controller evaluated on every integrator stage (``continuous``, the paper's law, sub-stepped to
-within RK4's stability limit: :func:`continuous_substeps`). It returns to
-Python after a buffer's worth of steps, at the first step with a fault while none is recorded
-yet (so the recorder sees faults and funnel checks in the order the streaming runs record them),
-or when a state is no longer finite (naming the agents).
+the step's ground truth, wrenches and velocity-funnel margins into the recording buffers, every
+funnel checked on ground truth (:func:`check_step`, the :class:`Watch`), then ``substeps``
+physics steps: with the wrenches held (``sampled``, zero-order hold) or with the controller
+evaluated on every integrator stage (``continuous``, the paper's law, sub-stepped to within
+RK4's stability limit: :func:`continuous_substeps`). It returns to Python after a buffer's worth
+of steps, at the first violation when the run stops there, or when a state is no longer finite
+(naming the agents). Python then hands the buffers to the recorder (the decimated trajectory,
+the faults) and names the first violation (:meth:`formation_sim.report.Judge.violation_at`).
 
 :func:`run_closed_loop` drives it for a formation and a :class:`RunRecorder`.
 """
@@ -25,21 +26,25 @@ import numpy as np
 
 from formation_agent.controller import (
     ERROR,
+    LEVEL,
+    MARGIN_V,
+    REASON,
     REASON_MESSAGES,
-    AgentGains,
-    EdgeGains,
-    FunnelStart,
-    Outputs,
+    U,
     gains,
     new_funnel_start,
     new_outputs,
+    rows3,
 )
+from formation_msgs_py import funnels
 from formation_msgs_py.compiled import kernel
+from formation_msgs_py.so3 import matmul3
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_sim.inputs import non_finite_agents
 from formation_sim.measurement import Sensing, relative_poses
 from formation_sim.plant import (
     PlantParams,
+    body_chart_rates,
     body_rates,
     chart_rates,
     measured_velocity_into,
@@ -50,7 +55,7 @@ from formation_sim.plant import (
     saturate_into,
 )
 from formation_sim.rates import rate_needs
-from formation_sim.report import RunRecorder
+from formation_sim.report import CheckedSteps, EdgeSample, Judge, RunRecorder
 from formation_sim.simulation import Simulation
 from formation_sim.team import note_errors, note_missing, team_step
 
@@ -65,10 +70,12 @@ class ClosedLoop(NamedTuple):
 
     plant: PlantParams
     sensing: Sensing
-    agents: AgentGains
-    ends: EdgeGains
-    start: FunnelStart
-    out: Outputs
+    first_end: np.ndarray  # (N+1,) agent i owns ends first_end[i]:first_end[i+1]
+    agents: np.ndarray  # (N, AGENT_COLUMNS) formation_agent.controller's gains
+    ends: np.ndarray  # (n_ends, END_COLUMNS)
+    start: np.ndarray  # (N, 7) the velocity funnels' start
+    out: np.ndarray  # (N, OUT_COLUMNS) the step's wrenches, margins, levels
+    edge_out: np.ndarray  # (n_ends, 6)
     p_rel: np.ndarray  # (n_ends, 3) scratch: the step's measurements
     R_rel: np.ndarray  # (n_ends, 3, 3)
     in_range: np.ndarray  # (n_ends,) bool
@@ -89,9 +96,13 @@ class Buffers(NamedTuple):
     level: np.ndarray  # (C, N)
     reason: np.ndarray  # (C, N)
     in_range: np.ndarray  # (C, n_ends) bool: the end's neighbour was measured
+    e: np.ndarray  # (C, K) the edges' errors on ground truth, and their funnels
+    psi: np.ndarray  # (C, K)
+    rho_e: np.ndarray  # (C, K)
+    rho_psi: np.ndarray  # (C, K)
 
 
-def new_buffers(rows: int, n_agents: int, n_ends: int) -> Buffers:
+def new_buffers(rows: int, n_agents: int, n_ends: int, n_edges: int) -> Buffers:
     return Buffers(
         np.zeros(rows),
         np.zeros((rows, n_agents, 3)),
@@ -102,7 +113,87 @@ def new_buffers(rows: int, n_agents: int, n_ends: int) -> Buffers:
         np.zeros((rows, n_agents), dtype=np.int64),
         np.zeros((rows, n_agents), dtype=np.int64),
         np.zeros((rows, n_ends), dtype=np.bool_),
+        *(np.zeros((rows, n_edges)) for _ in range(4)),
     )
+
+
+#: Columns of ``Watch.edges``: d_k², R_des (9, row-major), the funnels' constants, the steady bands.
+W_D2, W_R_DES = 0, 1
+W_C_COL, W_C_CON, W_FLOOR_E, W_DECAY_E, W_RHO_PSI_0, W_RHO_PSI_INF, W_DECAY_PSI = range(10, 17)
+W_BAND_LO, W_BAND_HI, W_BAND_PSI = 17, 18, 19
+
+
+class Watch(NamedTuple):
+    """Every funnel checked on ground truth at every control step, compiled, with the rules of
+    :class:`formation_sim.report.Judge` (which names the first violation): running minimum
+    margins, settle times (NaN: none) and peak wrenches, as :class:`formation_sim.report.CheckedSteps`."""
+
+    pairs: np.ndarray  # (K, 2) tail, head
+    edges: np.ndarray  # (K, 20)
+    checked: CheckedSteps
+
+
+def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
+    edges = np.zeros((len(spec.edges), 20))
+    band_lo, band_hi, band_psi = judge.edges.steady_band()
+    for k, (row, e) in enumerate(zip(edges, spec.edges)):
+        row[W_D2] = e.d_des**2
+        row[W_R_DES : W_R_DES + 9] = np.asarray(e.R_des, dtype=np.float64).ravel()
+        row[W_C_COL], row[W_C_CON] = e.c_col, e.c_con
+        row[W_FLOOR_E], row[W_DECAY_E] = funnels.rho_e_floor(e.c_col, e.c_con, e.rho_e_inf), e.decay_e
+        row[W_RHO_PSI_0], row[W_RHO_PSI_INF], row[W_DECAY_PSI] = e.rho_psi_0, e.rho_psi_inf, e.decay_psi
+        row[W_BAND_LO], row[W_BAND_HI], row[W_BAND_PSI] = band_lo[k], band_hi[k], band_psi[k]
+    K, N = len(spec.edges), len(spec.agents)
+    checked = CheckedSteps(
+        *(np.full(n, np.inf) for n in (K, K, N)), *(np.full(K, np.nan) for _ in range(2)), np.zeros(N), np.zeros(N)
+    )
+    return Watch(np.stack([judge.edges.tail, judge.edges.head], axis=1).astype(np.int64), edges, checked)
+
+
+@kernel
+def settle(s, t, inside):
+    """The settle time after a sample at t: NaN (none) while outside the band, else the first t inside."""
+    if not inside:
+        return np.nan
+    return t if np.isnan(s) else s
+
+
+@kernel
+def check_step(watch, buf, n, t, p, R, out):
+    """The funnels at step n of the chunk on ground truth (e, ψ, ρ into ``buf``); True if one is left."""
+    c = watch.checked
+    outside = False
+    for k in range(watch.pairs.shape[0]):
+        g, i, j = watch.edges[k], watch.pairs[k, 0], watch.pairs[k, 1]
+        d = (p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2])
+        e = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - g[W_D2]
+        A = matmul3(R[j], rows3(g, W_R_DES))  # ψ = ½(3 − Σ (R_k2 R_des)∘R_k1)
+        trace = 0.0
+        for a in range(3):
+            for b in range(3):
+                trace += A[a][b] * R[i, a, b]
+        psi = 0.5 * (3.0 - trace)
+        rho_e = funnels.rho(t, 1.0, g[W_FLOOR_E], g[W_DECAY_E])
+        rho_psi = funnels.rho(t, g[W_RHO_PSI_0], g[W_RHO_PSI_INF], g[W_DECAY_PSI])
+        m_e = funnels.margin_e(e / rho_e, g[W_C_COL], g[W_C_CON])
+        m_psi = funnels.margin_psi(psi / rho_psi)
+        buf.e[n, k], buf.psi[n, k], buf.rho_e[n, k], buf.rho_psi[n, k] = e, psi, rho_e, rho_psi
+        c.min_margin_e[k] = min(c.min_margin_e[k], m_e)
+        c.min_margin_psi[k] = min(c.min_margin_psi[k], m_psi)
+        c.settle_e[k] = settle(c.settle_e[k], t, g[W_BAND_LO] <= e <= g[W_BAND_HI])
+        c.settle_psi[k] = settle(c.settle_psi[k], t, psi <= g[W_BAND_PSI])
+        outside = outside or m_e <= 0 or m_psi <= 0
+    for i in range(out.shape[0]):
+        m_v = out[i, MARGIN_V]
+        for ch in range(1, 6):
+            m_v = min(m_v, out[i, MARGIN_V + ch])
+        c.min_margin_v[i] = min(c.min_margin_v[i], m_v)
+        outside = outside or m_v <= 0
+        force = np.sqrt(out[i, U] ** 2 + out[i, U + 1] ** 2 + out[i, U + 2] ** 2)
+        torque = np.sqrt(out[i, U + 3] ** 2 + out[i, U + 4] ** 2 + out[i, U + 5] ** 2)
+        c.peak_force[i] = max(c.peak_force[i], force)
+        c.peak_torque[i] = max(c.peak_torque[i], torque)
+    return outside
 
 
 @kernel
@@ -115,21 +206,24 @@ def sense_and_control(loop, t, p, R, v):
         loop.cursor[0] += 1
     relative_poses(p, R, loop.sensing, draws, loop.p_rel, loop.R_rel, loop.in_range)
     measured_velocity_into(t, p, R, v, loop.plant.noise, loop.v_measured)
-    team_step(t, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured, loop.agents, loop.ends, loop.start, loop.out)
+    team_step(
+        t, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured,
+        loop.first_end, loop.agents, loop.ends, loop.start, loop.out, loop.edge_out,
+    )  # fmt: skip
 
 
 @kernel
 def continuous_step(loop, t, p, R, v, h, work):
     """One RKMK4 step (as :func:`formation_sim.plant.rkmk4_step`) with the controller at every stage."""
     sense_and_control(loop, t, p, R, v)
-    saturate_into(loop.out.u, loop.plant, work.u)
+    saturate_into(loop.out[:, U : U + 6], loop.plant, work.u)
     body_rates(t, p, R, v, work.u, loop.plant, work.p_dot[0], work.v_dot[0])
-    work.theta_dot[0] = v[:, 3:]
+    body_chart_rates(v, work)
     for k in range(3):
         c = h if k == 2 else 0.5 * h
         rkmk4_stage(c, p, R, v, k, work)
         sense_and_control(loop, t + c, work.p, work.R, work.v)
-        saturate_into(loop.out.u, loop.plant, work.u)
+        saturate_into(loop.out[:, U : U + 6], loop.plant, work.u)
         body_rates(t + c, work.p, work.R, work.v, work.u, loop.plant, work.p_dot[k + 1], work.v_dot[k + 1])
         chart_rates(k + 1, work)
     rkmk4_combine(h, p, R, v, work)
@@ -148,49 +242,64 @@ def all_finite_state(p, R, v):
 
 
 @kernel
-def run_steps(loop, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, buf):
+def record_step(buf, n, t, p, R, v, out, in_range):
+    """Row n of the buffers: the step's ground truth, wrenches, velocity margins, levels and ranges."""
+    buf.t[n] = t
+    for i in range(p.shape[0]):
+        for x in range(3):
+            buf.p[n, i, x] = p[i, x]
+            for y in range(3):
+                buf.R[n, i, x, y] = R[i, x, y]
+        for c in range(6):
+            buf.v[n, i, c] = v[i, c]
+            buf.u[n, i, c] = out[i, U + c]
+            buf.margin_v[n, i, c] = out[i, MARGIN_V + c]
+        buf.level[n, i] = out[i, LEVEL]
+        buf.reason[n, i] = out[i, REASON]
+    for k in range(in_range.shape[0]):
+        buf.in_range[n, k] = in_range[k]
+
+
+@kernel
+def run_steps(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, stop, buf):
     """Control steps k0 … k_stop − 1 (no physics after step k_last), (p, R, v) in place.
 
-    Returns (steps done, event): ``EVENT_NON_FINITE`` when the state is no longer finite.
+    Returns (steps done, event, the chunk's first step outside a funnel or −1): ``EVENT_NON_FINITE``
+    when the state is no longer finite; with ``stop`` the chunk ends at its first violation.
     """
     n = 0
+    first_outside = -1
     for k in range(k0, k_stop):
         t = k / control_rate
         sense_and_control(loop, t, p, R, v)
-        out = loop.out
-        buf.t[n] = t
-        buf.p[n] = p
-        buf.R[n] = R
-        buf.v[n] = v
-        buf.u[n] = out.u
-        buf.margin_v[n] = out.margin_v
-        buf.level[n] = out.level
-        buf.reason[n] = out.reason
-        buf.in_range[n] = loop.in_range
+        record_step(buf, n, t, p, R, v, loop.out, loop.in_range)
+        if check_step(watch, buf, n, t, p, R, loop.out) and first_outside < 0:
+            first_outside = n
         n += 1
-        if k == k_last:
+        if k == k_last or (stop and first_outside >= 0):
             break
         for s in range(substeps):
             if continuous:
                 continuous_step(loop, t + s * h, p, R, v, h, work)
             else:
-                rkmk4_step(t + s * h, p, R, v, out.u, h, loop.plant, work)
+                rkmk4_step(t + s * h, p, R, v, loop.out[:, U : U + 6], h, loop.plant, work)
         if not all_finite_state(p, R, v):
-            return n, EVENT_NON_FINITE
-    return n, EVENT_NONE
+            return n, EVENT_NON_FINITE, first_outside
+    return n, EVENT_NONE, first_outside
 
 
 def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
     """The compiled loop's inputs for ``spec``, with the plant and measurement model of ``sim``."""
-    agents, ends = gains([agent_view(spec, a) for a in spec.agent_ids])
-    n, n_ends = len(spec.agents), len(ends.d2)
+    first_end, agents, ends = gains([agent_view(spec, a) for a in spec.agent_ids])
+    n, n_ends = len(agents), len(ends)
     return ClosedLoop(
         sim.plant.params,
         sim.sensors.sensing,
+        first_end,
         agents,
         ends,
         new_funnel_start(n),
-        new_outputs(n, n_ends),
+        *new_outputs(n, n_ends),
         np.zeros((n_ends, 3)),
         np.zeros((n_ends, 3, 3)),
         np.zeros(n_ends, dtype=np.bool_),
@@ -198,6 +307,22 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
         sim.sensors.draw_noise(1),
         np.zeros(1, dtype=np.int64),
     )
+
+
+def first_step(spec: FormationSpec) -> np.ndarray:
+    """``start`` (N, 7) after every agent's first step on the initial measurements: the run core's
+    step 0, without physics (the velocity funnels as the agents set them)."""
+    sim = Simulation(simulator_view(spec), warm_up=False)
+    loop = closed_loop(spec, sim)
+    n, n_ends = loop.agents.shape[0], loop.ends.shape[0]
+    buf = new_buffers(1, n, n_ends, len(spec.edges))
+    s = sim.state
+    rate = float(spec.simulation.control_rate)
+    run_steps(
+        loop, new_watch(spec, Judge(spec)), s.p, s.R, s.v, new_workspace(n), 0, 1, 0, rate, 1, 1.0 / rate, False,
+        False, buf,
+    )  # fmt: skip
+    return loop.start
 
 
 #: Fraction of RK4's stability limit used: the linearisation at ξ_v = 0 underestimates the gain
@@ -245,14 +370,15 @@ def run_closed_loop(
     """
     started = time.perf_counter()
     sim_spec = spec.simulation
-    sim = Simulation(simulator_view(spec))
+    sim = Simulation(simulator_view(spec), warm_up=False)
     loop = closed_loop(spec, sim)
     ids = spec.agent_ids
     n_steps = round(sim_spec.duration * sim_spec.control_rate)
     # about 8 MB of buffers per chunk, and progress at least every 2000 steps
     chunk = chunk or int(np.clip(8e6 / (len(ids) * 8 * 36), 100, 2000))
     neighbours = [ie.neighbour for a in ids for ie in agent_view(spec, a).edges]
-    buf = new_buffers(chunk, len(ids), len(neighbours))
+    buf = new_buffers(chunk, len(ids), len(neighbours), len(spec.edges))
+    watch = new_watch(spec, recorder.judge)
     if substeps is None:  # physics steps per control period
         substeps = continuous_substeps(spec, sim.substeps) if continuous else sim.substeps
     h = 1.0 / (sim_spec.control_rate * substeps)
@@ -264,12 +390,19 @@ def run_closed_loop(
     last_report = started
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
-        done, event = run_steps(
-            loop, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
-            substeps, h, continuous, buf,
+        done, event, j = run_steps(
+            loop, watch, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
+            substeps, h, continuous, stop_on_violation, buf,
         )  # fmt: skip
-        done = recorder.add_many(*_samples(buf, slice(0, done)), stop_at_violation=stop_on_violation)
-        first = loop.agents.first_end
+        violation = None
+        if j >= 0 and recorder.first_violation is None:
+            violation = recorder.judge.violation_at(float(buf.t[j]), buf.p[j], buf.R[j], buf.margin_v[j])
+        rows = slice(0, done)
+        edges = EdgeSample(buf.e[rows], buf.psi[rows], buf.rho_e[rows], buf.rho_psi[rows])
+        recorder.add_checked(
+            buf.t[rows], buf.p[rows], buf.R[rows], buf.v[rows], buf.u[rows], edges, watch.checked, violation
+        )
+        first = loop.first_end
         for j in np.flatnonzero(buf.level[:done].max(axis=1) == ERROR):  # the fault policy's record
             t = float(buf.t[j])
             missing = {
@@ -292,7 +425,3 @@ def run_closed_loop(
             progress(k / sim_spec.control_rate, k / sim_spec.control_rate / (now - started), recorder.worst_margin())
             last_report = now
     return time.perf_counter() - started, incomplete
-
-
-def _samples(buf: Buffers, rows: slice) -> tuple[np.ndarray, ...]:
-    return buf.t[rows], buf.p[rows], buf.R[rows], buf.v[rows], buf.u[rows], buf.margin_v[rows]

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from formation_msgs_py.compiled import kernel
-from formation_msgs_py.so3 import exp_rows, matmul3_into, matTmul3_into, matTvec3
+from formation_msgs_py.so3 import exp_rows, matmul3, matTvec3, set3x3
 from formation_msgs_py.spec import SimulatorView
 
 #: {agent_id: {neighbour_id: (p_i_j_in_i (3,), R_i_j (3,3))}}
@@ -75,13 +75,13 @@ def relative_poses(p, R, sens, noise, p_rel, R_rel, in_range):
         p_i_j_in_i = matTvec3(R[i], d_world)
         for x in range(3):
             p_rel[k, x] = p_i_j_in_i[x]
-        matTmul3_into(R[i], R[j], R_rel[k])
+        R_i_j = matmul3(R[i].T, R[j])
         if noisy:
-            lk = sens.link[k]
+            lk, s = sens.link[k], sens.rotation_std[k]
             for x in range(3):
                 p_rel[k, x] += noise[0, lk, x] * sens.position_std[k]
-            R_clean = R_rel[k].copy()
-            matmul3_into(R_clean, exp_rows(noise[1, lk] * sens.rotation_std[k]), R_rel[k])
+            R_i_j = matmul3(R_i_j, exp_rows((noise[1, lk, 0] * s, noise[1, lk, 1] * s, noise[1, lk, 2] * s)))
+        set3x3(R_rel[k], R_i_j)
 
 
 class MeasurementModel:

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from formation_msgs_py.compiled import kernel
-from formation_msgs_py.so3 import cross3, dexpinv, exp_rows, matmul3_into, matTvec3, matvec3, sub3
+from formation_msgs_py.so3 import cross3, dexpinv, exp_rows, matmul3, matTvec3, matvec3, set3x3, sub3
 from formation_msgs_py.spec import SimulatorView
 from formation_sim.signals import NONE, SignalParams, l1_norm, signal_params, signal_value, signals_at, signals_into
 
@@ -87,8 +87,9 @@ def saturate_into(u, plant, out):
 
     Directions are kept; a wrench within the limits is copied unchanged (bit for bit).
     """
-    out[:] = u
     for i in range(u.shape[0]):
+        for c in range(6):
+            out[i, c] = u[i, c]
         for lo, limit in ((0, plant.max_force[i]), (3, plant.max_torque[i])):
             norm2 = u[i, lo] ** 2 + u[i, lo + 1] ** 2 + u[i, lo + 2] ** 2
             if norm2 > limit * limit:
@@ -133,7 +134,7 @@ def rkmk4_stage(c, p0, R0, v0, k, work):
         for x in range(3):
             work.theta[i, x] = c * work.theta_dot[k, i, x]
             work.p[i, x] = p0[i, x] + c * work.p_dot[k, i, x]
-        matmul3_into(R0[i], exp_rows(work.theta[i]), work.R[i])
+        set3x3(work.R[i], matmul3(R0[i], exp_rows(work.theta[i])))
         for x in range(6):
             work.v[i, x] = v0[i, x] + c * work.v_dot[k, i, x]
 
@@ -148,6 +149,14 @@ def chart_rates(k, work):
 
 
 @kernel
+def body_chart_rates(v, work):
+    """Θ̇_0 = ω: the chart's rate at Θ = 0, the first stage."""
+    for i in range(v.shape[0]):
+        for x in range(3):
+            work.theta_dot[0, i, x] = v[i, 3 + x]
+
+
+@kernel
 def rkmk4_combine(h, p, R, v, work):
     """Advance (p, R, v) in place from the four stages' rates (classical weights 1, 2, 2, 1)."""
     w6 = h / 6.0
@@ -158,8 +167,7 @@ def rkmk4_combine(h, p, R, v, work):
             work.theta[i, x] = w6 * (td[0, i, x] + 2 * td[1, i, x] + 2 * td[2, i, x] + td[3, i, x])
         for x in range(6):
             v[i, x] = v[i, x] + w6 * (vd[0, i, x] + 2 * vd[1, i, x] + 2 * vd[2, i, x] + vd[3, i, x])
-        matmul3_into(R[i], exp_rows(work.theta[i]), work.R[i])
-        R[i] = work.R[i]
+        set3x3(R[i], matmul3(R[i], exp_rows(work.theta[i])))
 
 
 @kernel
@@ -168,7 +176,7 @@ def rkmk4_step(t, p, R, v, u, h, plant, work):
     half = 0.5 * h
     saturate_into(u, plant, work.u)
     body_rates(t, p, R, v, work.u, plant, work.p_dot[0], work.v_dot[0])
-    work.theta_dot[0] = v[:, 3:]
+    body_chart_rates(v, work)
     for k in range(3):
         c = h if k == 2 else half
         rkmk4_stage(c, p, R, v, k, work)
@@ -180,7 +188,9 @@ def rkmk4_step(t, p, R, v, u, h, plant, work):
 @kernel
 def measured_velocity_into(t, p, R, v, noise, out):
     """out (N,6) = ṽ = v + n(x, t): the noisy body twists the agents receive."""
-    out[:] = v
+    for i in range(v.shape[0]):
+        for c in range(6):
+            out[i, c] = v[i, c]
     signals_into(noise, t, p, R, v, out)
 
 

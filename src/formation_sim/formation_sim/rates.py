@@ -14,10 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from formation_agent.controller import START_RHO_V0
 from formation_msgs_py import funnels
-from formation_msgs_py.spec import FormationSpec, simulator_view
-from formation_sim.simulation import Simulation
-from formation_sim.team import AgentTeam
+from formation_msgs_py.spec import FormationSpec
 
 #: Fixed-step RK4 is stable on ẋ = −λx for λ·h < 2.785 (the real stability interval of RK4).
 RK4_STABILITY = 2.785
@@ -66,10 +65,9 @@ def initial_rho_v0(spec: FormationSpec) -> np.ndarray:
     An agent that misses a neighbour at t = 0 answers the fault wrench and sets no funnel then;
     its ``auto`` funnel is taken as the offset alone (e_v(0) = 0).
     """
-    sim = Simulation(simulator_view(spec))
-    team = AgentTeam(spec)
-    team.evaluate(sim.sense(), None)
-    rho_v0 = team.start.rho_v0.copy()
+    from formation_sim.loop import first_step  # the run core imports this module
+
+    rho_v0 = first_step(spec)[:, START_RHO_V0:].copy()
     for i, a in enumerate(spec.agents):
         if np.isnan(rho_v0[i, 0]):
             vf = a.controller.velocity_funnel

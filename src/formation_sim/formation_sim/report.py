@@ -23,7 +23,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -78,6 +78,20 @@ class EdgeErrors:
         c_max = np.maximum(self.c_col, self.c_con)
         inf = np.array([e.rho_e_inf for e in self.spec.edges]) / c_max
         return -self.c_col * inf, self.c_con * inf, np.array([e.rho_psi_inf for e in self.spec.edges])
+
+
+class CheckedSteps(NamedTuple):
+    """The check of every sample so far, made by the run core itself (formation_sim.loop, compiled,
+    with :class:`Judge`'s rules): running minimum margins per edge (K,) and agent (N,), settle
+    times (K,) (NaN: none), peak force and torque per agent (N,)."""
+
+    min_margin_e: np.ndarray
+    min_margin_psi: np.ndarray
+    min_margin_v: np.ndarray
+    settle_e: np.ndarray
+    settle_psi: np.ndarray
+    peak_force: np.ndarray
+    peak_torque: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -169,6 +183,30 @@ class Judge:
         if single:
             return EdgeSample(e[0], psi[0], rho_e[0], rho_psi[0])
         return EdgeSample(e[:n], psi[:n], rho_e[:n], rho_psi[:n])
+
+    def violation_at(self, t: float, p: np.ndarray, R: np.ndarray, margin_v: np.ndarray) -> Violation | None:
+        """The violation one sample shows (the rules of :meth:`update`), without taking the sample."""
+        e, psi = self.edges.errors(p[None], R[None])
+        rho_e, rho_psi = self.edges.rho(np.array([t]))
+        xi_e = e / rho_e
+        m_e = funnels.margin_e(xi_e, self.edges.c_col, self.edges.c_con)
+        margin_v = margin_v[None]
+        return _first_violation(
+            self, np.array([t]), xi_e, m_e, funnels.margin_psi(psi / rho_psi), margin_v, margin_v.min(axis=2)
+        )[0]
+
+    def take_checked(self, t: np.ndarray, checked: CheckedSteps, violation: Violation | None) -> None:
+        """Samples at t (T,) that a run core checked itself: its running minima and settle times
+        replace the judge's, ``violation`` is their first (see :class:`CheckedSteps`)."""
+        self.min_margin_e[:] = checked.min_margin_e
+        self.min_margin_psi[:] = checked.min_margin_psi
+        self.min_margin_v[:] = checked.min_margin_v
+        self.settle_e = [None if np.isnan(s) else float(s) for s in checked.settle_e]
+        self.settle_psi = [None if np.isnan(s) else float(s) for s in checked.settle_psi]
+        self.first_violation = self.first_violation or violation
+        self.samples += len(t)
+        self.t_first = float(t[0]) if self.t_first is None else self.t_first
+        self.t_last = float(t[-1])
 
     def update_velocity(self, t: float, margin_v: np.ndarray) -> None:
         """Velocity-funnel margins (N,6) at a control step without a ground-truth sample (inf: unknown)."""
@@ -314,12 +352,36 @@ class RunRecorder:
         start = self.judge.samples - n
         np.maximum(self.peak_force, np.linalg.norm(u[:n, :, :3], axis=2).max(axis=0), out=self.peak_force)
         np.maximum(self.peak_torque, np.linalg.norm(u[:n, :, 3:], axis=2).max(axis=0), out=self.peak_torque)
+        self._keep(start, t, p, R, v, u, sample)
+        return n
+
+    def add_checked(
+        self,
+        t: np.ndarray,
+        p: np.ndarray,
+        R: np.ndarray,
+        v: np.ndarray,
+        u: np.ndarray,
+        edges: EdgeSample,
+        checked: CheckedSteps,
+        violation: Violation | None,
+    ) -> None:
+        """:meth:`add_many` for T samples the run core checked itself (``checked``, ``violation``:
+        :meth:`Judge.take_checked`); ``edges`` holds their e, ψ, ρ_e, ρ_ψ (T,K)."""
+        start = self.judge.samples
+        self.judge.take_checked(t, checked, violation)
+        self.peak_force[:] = checked.peak_force
+        self.peak_torque[:] = checked.peak_torque
+        self._keep(start, t, p, R, v, u, edges)
+
+    def _keep(self, start: int, t, p, R, v, u, edges: EdgeSample) -> None:
+        """The decimated trajectory: every ``record_every``-th sample, counted from the run's first."""
+        n = len(edges.e)
         rows = np.flatnonzero((start + np.arange(n)) % self.record_every == 0)
         for key, arr in (("t", t), ("p", p), ("R", R), ("v", v), ("u", u)):
             self._rows[key].extend(np.array(arr[rows], dtype=np.float64))
-        for key, arr in (("e", sample.e), ("psi", sample.psi), ("rho_e", sample.rho_e), ("rho_psi", sample.rho_psi)):
+        for key, arr in (("e", edges.e), ("psi", edges.psi), ("rho_e", edges.rho_e), ("rho_psi", edges.rho_psi)):
             self._rows[key].extend(arr[rows])
-        return n
 
     def set_inputs(self, u: np.ndarray) -> None:
         """Wrenches (N,6) applied from the sample added last (which was added with ``u=None``).
@@ -377,7 +439,7 @@ class RunRecorder:
         incomplete: Incomplete | None = None,
         extra: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
-        """summary.json (DESIGN.md §8); ``requested_duration`` None: whatever was fed is the run."""
+        """summary.json (docs/outputs.md); ``requested_duration`` None: whatever was fed is the run."""
         j = self.judge
         result = self.outcome(requested_duration, incomplete)
         duration = self.t_last

@@ -120,8 +120,7 @@ def signals_into(sig, t, p, R, v, out):
                 out[i, c] += w[c]
 
 
-@kernel
-def signals_at(sig, t, p, R, v):
+def signals_at(sig: SignalParams, t: float, p: np.ndarray, R: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Every agent's signal (N, 6) at t."""
     out = np.zeros((p.shape[0], 6))
     signals_into(sig, t, p, R, v, out)

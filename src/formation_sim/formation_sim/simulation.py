@@ -32,8 +32,15 @@ class Simulation:
     """Plant + measurement model + clock, advanced one control period at a time."""
 
     def __init__(
-        self, view: SimulatorView, *, physics_rate: float | None = None, control_rate: float | None = None
+        self,
+        view: SimulatorView,
+        *,
+        physics_rate: float | None = None,
+        control_rate: float | None = None,
+        warm_up: bool = True,
     ) -> None:
+        """``warm_up``: load (or compile) the kernels of :meth:`sense` and :meth:`advance` now (the
+        run core, which calls neither, says False)."""
         sim = view.simulation
         self.view = view
         self.control_rate = float(control_rate or sim.control_rate)
@@ -54,7 +61,8 @@ class Simulation:
         self.state: PlantState = self.plant.initial_state(view)
         self.step_index = 0
         self.agent_ids = tuple(a.id for a in view.agents)
-        self._warm_up()
+        if warm_up:
+            self._warm_up()
 
     def _warm_up(self) -> None:
         """Load (or compile) the kernels now, not at the first step a realtime clock is running for.

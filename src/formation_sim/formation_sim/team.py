@@ -18,8 +18,10 @@ import numpy as np
 
 from formation_agent.controller import (
     ERROR,
+    MARGIN_V,
     REASON_MISSING,
     ControlOutput,
+    U,
     agent_step,
     control_output,
     fault_wrench,
@@ -34,14 +36,17 @@ from formation_sim.simulation import Measurements
 
 
 @kernel
-def team_step(t, p_rel, R_rel, in_range, v_measured, agents, ends, start, out):
+def team_step(t, p_rel, R_rel, in_range, v_measured, first_end, agents, ends, start, out, edge_out):
     """Every agent's step at t [s] on end-indexed measurements; an agent missing a pose gets the fault wrench."""
     for i in range(v_measured.shape[0]):
-        lo, hi = agents.first_end[i], agents.first_end[i + 1]
-        if np.all(in_range[lo:hi]):
-            agent_step(t, i, p_rel, R_rel, v_measured[i], agents, ends, start, out)
+        lo, hi = first_end[i], first_end[i + 1]
+        measured = True
+        for k in range(lo, hi):
+            measured = measured and in_range[k]
+        if measured:
+            agent_step(t, i, lo, hi, p_rel, R_rel, v_measured[i], agents, ends, start, out, edge_out)
         else:
-            fault_wrench(i, lo, hi, REASON_MISSING, out)
+            fault_wrench(i, lo, hi, REASON_MISSING, out, edge_out)
 
 
 def note_missing(
@@ -71,26 +76,26 @@ class AgentTeam:
     def __init__(self, spec: FormationSpec) -> None:
         self.ids = spec.agent_ids
         views = [agent_view(spec, a) for a in self.ids]
-        self.agents, self.ends = gains(views)
+        self.first_end, self.agents, self.ends = gains(views)
         self.end_neighbours = [ie.neighbour for v in views for ie in v.edges]
         self.start = new_funnel_start(len(self.ids))
-        self.out = new_outputs(len(self.ids), len(self.end_neighbours))
         n = len(self.end_neighbours)
+        self.out, self.edge_out = new_outputs(len(self.ids), n)
         self._p = np.zeros((n, 3))
         self._R = np.tile(np.eye(3), (n, 1, 1))
         self._in_range = np.zeros(n, dtype=np.bool_)
         # load (or compile) the kernels now, on scratch outputs: not at a realtime run's first step
         v = np.zeros((len(self.ids), 6))
-        scratch = (new_funnel_start(len(self.ids)), new_outputs(len(self.ids), n))
         everyone = np.ones(n, dtype=np.bool_)  # every agent steps (a missing pose would skip agent_step)
-        team_step(0.0, self._p, self._R, everyone, v, self.agents, self.ends, *scratch)
+        scratch = (new_funnel_start(len(self.ids)), *new_outputs(len(self.ids), n))
+        team_step(0.0, self._p, self._R, everyone, v, self.first_end, self.agents, self.ends, *scratch)
 
     def evaluate(
         self, meas: Measurements, recorder: RunRecorder | None
     ) -> tuple[np.ndarray, np.ndarray, list[ControlOutput]]:
         """(u (N,6), margin_v (N,6), outputs) at ``meas.t``; with a recorder, its ``measurement`` faults."""
         missing: dict[int, list[str]] = {}
-        first = self.agents.first_end
+        first = self.first_end
         for i, aid in enumerate(self.ids):
             poses = meas.relative_poses[aid]
             for k in range(first[i], first[i + 1]):
@@ -101,7 +106,10 @@ class AgentTeam:
                 else:
                     self._p[k], self._R[k] = pose
         v = np.asarray(meas.velocities, dtype=np.float64)
-        team_step(meas.t, self._p, self._R, self._in_range, v, self.agents, self.ends, self.start, self.out)
+        team_step(
+            meas.t, self._p, self._R, self._in_range, v,
+            first, self.agents, self.ends, self.start, self.out, self.edge_out,
+        )  # fmt: skip
         if recorder is not None:
             note_missing(recorder, meas.t, self.ids, missing)
         outputs = []
@@ -109,8 +117,8 @@ class AgentTeam:
             msg = None
             if i in missing:
                 msg = f"agent {aid}: no relative pose of neighbour(s) {', '.join(missing[i])}"
-            outputs.append(control_output(meas.t, i, first[i], first[i + 1], self.out, msg))
-        return self.out.u.copy(), self.out.margin_v.copy(), outputs
+            outputs.append(control_output(meas.t, i, first[i], first[i + 1], self.out, self.edge_out, msg))
+        return self.out[:, U : U + 6].copy(), self.out[:, MARGIN_V : MARGIN_V + 6].copy(), outputs
 
     def note_errors(self, t: float, outputs: list[ControlOutput], recorder: RunRecorder) -> None:
         """Every agent at ERROR (not for a missing pose: :meth:`evaluate` recorded those) is a ``controller`` fault."""

@@ -74,7 +74,21 @@ print({"cpu_s": round(cpu, 2), "wall_s": round(wall, 2), "rtf_cpu": round(d / cp
        "funnels_held": s["funnels_held"], "worst_margin": s["worst_margin"]})
 """
 
-KERNEL_PROBE = r"""
+BEST_US = r"""
+import time
+
+
+def best_us(f, *a, n=20000):
+    f(10, *a)
+    times = []
+    for _ in range(5):
+        c0 = time.perf_counter()
+        f(n, *a)
+        times.append(time.perf_counter() - c0)
+    return round(min(times) / n * 1e6, 3)
+"""
+
+KERNEL_PROBE = BEST_US + r"""
 import sys, time, numba, numpy as np
 from formation_msgs_py.spec import load_formation, simulator_view
 from formation_sim.simulation import Simulation
@@ -124,15 +138,6 @@ def rec(n, l, w, p, R, v, buf):
         record_step(buf, k % 2000, 0.1, p, R, v, l.out, l.in_range)
         check_step(w, buf, k % 2000, 0.1, p, R, l.out)
 
-def best_us(f, *a, n=20000):
-    f(10, *a)
-    times = []
-    for _ in range(5):
-        c0 = time.perf_counter()
-        f(n, *a)
-        times.append(time.perf_counter() - c0)
-    return round(min(times) / n * 1e6, 3)
-
 out = {"team_step, 5 agents": best_us(team, loop)}
 for i in range(N):
     edges = loop.first_end[i + 1] - loop.first_end[i]
@@ -143,7 +148,7 @@ out["recording buffers + funnel check"] = best_us(rec, loop, watch, p, R, v, buf
 print(out)
 """
 
-BEFORE_KERNEL_PROBE = r"""
+BEFORE_KERNEL_PROBE = BEST_US + r"""
 import sys, time, numba, numpy as np
 from formation_msgs_py.spec import load_formation, simulator_view
 from formation_sim.simulation import Simulation
@@ -181,15 +186,6 @@ def meas(n, l, p, R, v):
     for k in range(n):
         relative_poses(p, R, l.sensing, l.noise[k], l.p_rel, l.R_rel, l.in_range)
         measured_velocity_into(0.1, p, R, v, l.plant.noise, l.v_measured)
-
-def best_us(f, *a, n=20000):
-    f(10, *a)
-    times = []
-    for _ in range(5):
-        c0 = time.perf_counter()
-        f(n, *a)
-        times.append(time.perf_counter() - c0)
-    return round(min(times) / n * 1e6, 3)
 
 out = {"team_step, 5 agents": best_us(team, loop)}
 for i in range(N):

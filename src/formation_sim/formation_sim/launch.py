@@ -240,8 +240,8 @@ class Launcher:
     def stop_others(self) -> None:
         """After the last step: SIGINT to the agents and the recorder (which takes what it holds and
         closes the bag) while the simulator writes OUT."""
-        if self.interrupted:
-            return
+        if self.interrupted or self.stop is not None:
+            return  # done already, or stopping every process (interrupted, a process died)
         others = [c for c in self.sup.alive() if c.role != "sim"]
         for c in others:
             c.signal(signal.SIGINT)

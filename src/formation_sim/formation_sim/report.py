@@ -498,8 +498,9 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
         np.savez(npz, **recorder.arrays())
         write_atomic(out_dir / "trajectory.npz", npz.getvalue())
         written.append("trajectory.npz")
-        figures_from = time.monotonic()
+        figures = 0.0
         if plots:
+            t_figures = time.monotonic()
             from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
 
             staging = Path(tempfile.mkdtemp(dir=out_dir, prefix=".figures."))
@@ -509,6 +510,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
                     written.append(path.name)
             finally:
                 shutil.rmtree(staging, ignore_errors=True)
+            figures = time.monotonic() - t_figures
     except OSError as exc:
         failed = dict(summary)
         failed.update(
@@ -524,7 +526,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
             pass
         raise
     write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
-    return time.monotonic() - figures_from
+    return figures
 
 
 def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:

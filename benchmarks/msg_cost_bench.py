@@ -19,7 +19,7 @@ from the cost per round (wake-ups, the answer):
 
 Configurations (each changes one thing from ``baseline``; ``lean`` combines the chosen ones):
 receive loop (rclpy EventsExecutor ``spin_once``, SingleThreadedExecutor ``spin_once``, a plain
-wait-set loop with raw takes: :class:`formation_msgs_py.hotloop.HotLoop`), transport (Fast DDS
+wait-set loop with raw takes, :func:`waitset_spin`), transport (Fast DDS
 shared memory, UDP loopback), publish mode (synchronous, asynchronous), reliability (reliable,
 best effort), and the writer settings of the profile the project ships
 (``formation_msgs_py/fastdds_profile.xml``). Nothing is asserted; results in
@@ -55,6 +55,27 @@ CONFIGS: dict[str, tuple[str, str, str, str, bool]] = {
 }
 
 
+def waitset_spin(context: Any, subscriptions: list[Any]) -> Any:
+    """A plain wait-set loop: wait up to ``timeout`` s, then take every message of every ready
+    subscription as CDR bytes (no executor)."""
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+    ws = _rclpy.WaitSet(len(subscriptions), 0, 0, 0, 0, 0, context.handle)
+
+    def spin(timeout: float) -> None:
+        ws.clear_entities()
+        for sub in subscriptions:
+            ws.add_subscription(sub.handle)
+        ws.wait(int(timeout * 1e9))
+        ready = ws.get_ready_entities("subscription")
+        for sub in subscriptions:
+            if sub.handle.pointer in ready:
+                while (taken := sub.handle.take_message(sub.msg_type, True)) is not None:
+                    sub.callback(taken[0])
+
+    return spin
+
+
 def cpu_s() -> float:
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
@@ -69,7 +90,6 @@ def child(role: str, loop: str, reliability: str, m: int, rounds: int, warmup: i
     from geometry_msgs.msg import TransformStamped, WrenchStamped
 
     from formation_msgs_py import conversions, qos
-    from formation_msgs_py.hotloop import HotLoop
 
     rclpy.init()
     node = rclpy.create_node(f"bench_{role}")
@@ -107,11 +127,11 @@ def child(role: str, loop: str, reliability: str, m: int, rounds: int, warmup: i
             for k in range(m)
         ]
     if loop == "waitset":
-        hot = HotLoop(node.context, [s for s, _ in subs])
+        spin_waitset = waitset_spin(node.context, [s for s, _ in subs])
 
         def spin(timeout: float) -> None:
             state["wakes"] += 1
-            hot.spin_once(timeout)
+            spin_waitset(timeout)
     else:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.experimental import EventsExecutor

@@ -1,6 +1,6 @@
 """Benchmarks of the ROS 2 deployment (issue 3); results in benchmarks/RESULTS_ros.md.
 
-    .venv/bin/python benchmarks/ros_bench.py [--only lockstep,executor,realtime,scale] [--out DIR]
+    .venv/bin/python benchmarks/ros_bench.py [--only lockstep,realtime,scale] [--out DIR]
 
 Every run goes through ``formation-launch`` (what ``ros2_ws/run.sh`` runs): real processes, a
 picked free ROS_DOMAIN_ID, LOCALHOST discovery (a private network namespace above 30 processes).
@@ -17,7 +17,6 @@ the numbers depend on the machine and its load, which is printed with them.
   [ARG ...]``: another checkout's formation-launch gives the "before" of a side-by-side comparison;
   ``profile=off`` in the arguments runs without the shipped Fast DDS profile), ``--repeat`` times,
   interleaved.
-- executor: the same, 0.1 s, with ``--executor events`` and ``--executor single``.
 - realtime: config/realtime_5agents_100hz.yaml as written and with ``--physics-rate 100`` (one
   integrator step per tick), 10 s each.
 - sweep: the realtime preset at 200, 500, 1000 Hz control (physics = control rate), 10 s: the
@@ -113,7 +112,6 @@ def brief(res: dict[str, Any]) -> dict[str, Any]:
         "realtime_lag_s",
         "resends",
         "discovery_s",
-        "executor",
         "physics_rate",
         "control_rate",
     )
@@ -184,7 +182,7 @@ def step_cpu(base: Path, variants: list[str], repeat: int) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--only", default="lockstep,executor,realtime,sweep,scale", help="comma-separated sections")
+    p.add_argument("--only", default="lockstep,realtime,sweep,scale", help="comma-separated sections")
     p.add_argument("--rates", default="200,500,1000", help="control rates [Hz] of the sweep section")
     p.add_argument("--lockstep-duration", type=float, default=0.5, help="simulated seconds of the paper preset")
     p.add_argument("--full", action="store_true", help="the whole 5 s paper scenario in lockstep")
@@ -206,9 +204,6 @@ def main(argv: list[str] | None = None) -> int:
         record("lockstep_paper_10kHz", launch(PAPER, base / "lockstep", "--duration", str(d)))
     if "step_cpu" in sections:
         results["step_cpu"] = step_cpu(base, args.variants, args.repeat)
-    if "executor" in sections:
-        for ex in ("events", "single"):
-            record(f"executor_{ex}", launch(PAPER, base / f"exec_{ex}", "--duration", "0.1", "--executor", ex))
     if "realtime" in sections:
         record("realtime_5agents_100Hz_as_written", launch(REALTIME, base / "rt5_file"))
         record("realtime_5agents_100Hz_physics100", launch(REALTIME, base / "rt5_p100", "--physics-rate", "100"))

@@ -47,7 +47,7 @@ def check_spelling(params: dict[str, tuple[object, str]], command_line: str) -> 
 def test_agent_parameters_spelled_as_the_options(ros_env: dict[str, str]) -> None:
     """Every agent parameter the launcher sets from an option has that option's name, values and default,
     and the agent accepts each of the option's values."""
-    assert LAUNCHED == {"measurement_qos", "executor", "intruder_policy"}, LAUNCHED
+    assert LAUNCHED == {"measurement_qos", "intruder_policy"}, LAUNCHED
     with ros_context(ros_env, ["-p", f"formation_file:={PAPER}"]) as context:
         node = AgentNode("3", context=context)
         params = declared(node)
@@ -64,13 +64,13 @@ def test_agent_parameters_spelled_as_the_options(ros_env: dict[str, str]) -> Non
 
 def test_simulator_parameters_spelled_as_the_options(ros_env: dict[str, str]) -> None:
     """The simulator's parameters are its options' names with their values, as formation-sim declares them."""
-    run = sim_preflight(["formation-sim", str(PAPER), "--executor", "lean", "--marker-rate", "12.5"])
+    run = sim_preflight(["formation-sim", str(PAPER), "--measurement-qos", "reliable", "--marker-rate", "12.5"])
     with ros_context(ros_env) as context:
         node = Node("formation_sim", context=context)
         declare_simulator_parameters(node, run.spec, run.options)
         params = declared(node)
         node.destroy_node()
-    assert params["executor"][0] == "lean" and params["marker_rate"][0] == 12.5
+    assert params["measurement_qos"][0] == "reliable" and params["marker_rate"][0] == 12.5
     assert params["mode"][0] == "lockstep" and params["formation_file"][0] == str(PAPER)
     for name in params:
         assert name == "formation_file" or options.SIM in OPTION[name].commands, f"formation-sim has no --{name}"

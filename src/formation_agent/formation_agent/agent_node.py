@@ -238,12 +238,12 @@ from rclpy.clock import ClockChange, JumpThreshold, TimeJump  # noqa: E402
 from rclpy.duration import Duration  # noqa: E402
 from rclpy.exceptions import ParameterException  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
+from rclpy.experimental import EventsExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from formation_msgs_py import conversions, parameters, qos, topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
 from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
-from formation_msgs_py.hotloop import EXECUTORS, Spinner, check_kind  # noqa: E402
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport  # noqa: E402
@@ -254,8 +254,7 @@ POSE_WAIT_DOC = (
     "wall seconds to wait for the neighbours' poses once the velocity is in; a neighbour still "
     "missing then is out of range: zero wrench and ERROR; live"
 )
-EXECUTOR_DOC = f"how the node spins: {', '.join(EXECUTORS)} (formation_msgs_py.hotloop)"
-DIAG_DOC = "wall seconds between /diagnostics messages (>= 0.1); live"
+DIAG_DOC = "wall seconds between /diagnostics messages (>= 0.1; a message costs ~0.4 ms of CPU); live"
 FAULTS_DOC = (
     "file to write this agent's fault counts to when it stops (per kind: count, first and last sim time; "
     "formation-launch merges them into summary.json faults); empty: none"
@@ -286,10 +285,8 @@ class AgentNode(Node):
         self.view = view
         self.agent_id = view.agent_id
         pose_wait = declare(self, "pose_wait", 0.005, POSE_WAIT_DOC, low=0.0, high=1.0)
-        self.diag_period = declare(self, "diagnostics_period", 0.1, DIAG_DOC, low=0.1, high=3600.0)
+        self.diag_period = declare(self, "diagnostics_period", 0.5, DIAG_DOC, low=0.1, high=3600.0)
         self.measurement_qos = declare(self, "measurement_qos", "reliable", QOS_DOC, read_only=True)
-        self.executor_kind = declare(self, "executor", "events", EXECUTOR_DOC, read_only=True)
-        check_kind(self.executor_kind)
         policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
         self.faults_file = declare(self, "faults_file", "", FAULTS_DOC, read_only=True)
         gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
@@ -299,6 +296,9 @@ class AgentNode(Node):
             pose_wait=float(pose_wait),
             measurement_timeout_ns=round(view.controller.measurement_timeout * _NS),
         )
+        # load the controller's kernels before subscribing (compiled: numba's cache, ~1 s), not at step 0
+        identity = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+        AgentController(view).compute(0.0, {j: ((1.0, 0.0, 0.0), identity) for j in view.neighbours}, (0.0,) * 6)
         self.inputs = InputCheck(view.sensing_radius, round(view.controller.measurement_timeout * _NS))
         self.sync.set_gains(**live_gains(self.agent_id, gains))
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -423,13 +423,14 @@ class AgentNode(Node):
     def spin(self) -> None:
         sync = self.sync
         mono = time.monotonic
-        spinner = Spinner(self.executor_kind, self)
+        executor = EventsExecutor(context=self.context)  # one callback per spin_once (BENCHMARKS.md)
+        executor.add_node(self)
         ok = self.context.ok
         while ok():
             dl = sync.deadline()
             now = mono()
             timeout = min(self._next_diag - now, 0.1 if dl is None else dl - now)
-            spinner.spin_once(timeout)
+            executor.spin_once(timeout_sec=max(timeout, 0.0))
             now = mono()
             if sync.pending is not None and now >= sync.pending[2]:
                 sync.try_compute(now, final=True)

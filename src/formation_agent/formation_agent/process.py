@@ -1,16 +1,36 @@
-"""``formation-agent``: one agent process. The controller kernels run interpreted in it.
+"""``formation-agent``: one agent process, and whether its controller runs compiled.
 
-An agent process evaluates one controller per control step, at the rate ROS delivers
-measurements; loading numba and the compiled kernels costs more start time and memory per
-process than the interpreted form of the same source costs per step (BENCHMARKS.md, "Agent
-process"), and 50 such processes share a host. ``NUMBA_DISABLE_JIT=0`` in the environment
-selects the compiled kernels instead. ``--help`` is answered here, before rclpy is imported.
+An agent evaluates one controller per control step. Interpreted, a call costs ~0.1 ms; compiled
+(numba, loaded from the on-disk cache) ~0.02 ms, but the process then loads numba and the cached
+kernels: ~1.4 s more CPU at start and ~120 MB more RSS (BENCHMARKS.md, "Cost of a message").
+That pays back after ~10 000 steps, so :func:`compiled_pays` chooses the compiled form from
+:data:`COMPILED_FROM_RATE` on (the paper preset's 10 kHz lockstep), the interpreted one for
+realtime formations at tens to hundreds of Hz (50 such processes share a host). The launcher
+passes the choice as ``NUMBA_DISABLE_JIT``; an agent started alone (agent.sh) runs interpreted
+unless its environment says ``NUMBA_DISABLE_JIT=0``. ``--help`` is answered here, before rclpy
+is imported.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
+
+#: control rate [Hz] from which the launcher starts agents with the compiled controller
+COMPILED_FROM_RATE = 1000.0
+
+
+def numba_cache_warm() -> bool:
+    """Whether numba's on-disk cache holds the controller's kernel (a first run compiles it in the
+    simulator; an agent compiling at its first step would miss the lockstep step timeout)."""
+    return any(Path(__file__).parent.glob("__pycache__/controller.agent_step-*.nbi"))
+
+
+def compiled_pays(control_rate: float) -> bool:
+    """Whether agents of a run at ``control_rate`` [Hz] should run the compiled controller."""
+    return control_rate >= COMPILED_FROM_RATE and numba_cache_warm()
+
 
 USAGE = """usage: formation-agent --ros-args -p formation_file:=FILE -p agent_id:=ID [-p NAME:=VALUE ...]
        formation-agent --ros-args --params-file PARAMS.yaml [-p agent_id:=ID | -r __ns:=/agent_ID]
@@ -22,8 +42,6 @@ parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
   formation_file       formation file (YAML); only the agent's own view of it is used   read-only
   agent_id             the agent's id in the file                                      read-only
   measurement_qos      reliable (default) or best-effort, as the simulator's --measurement-qos  read-only
-  executor             events (default: rclpy's EventsExecutor), lean (one wait set over the
-                       node's subscriptions, raw takes) or single                       read-only
   intruder_policy      report (default) or refuse: a publisher other than the simulator on the
                        agent's measurements (or other than itself on its wrench) is logged; refuse
                        also ignores that topic's messages while it is there  read-only
@@ -31,7 +49,7 @@ parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
   pose_wait            wall s to wait for the neighbours' poses after the velocity (default 0.005);
                        a neighbour still missing then is out of range: zero wrench + ERROR     live
   faults_file          where to write the agent's fault counts when it stops (default: none)   read-only
-  diagnostics_period   wall s between /diagnostics messages (default 0.1, minimum 0.1)         live
+  diagnostics_period   wall s between /diagnostics messages (default 0.5, minimum 0.1)         live
   delta, gamma         the controller's gains (default: the formation file's); checked like the
                        file (> 0); applied from the next step                                  live
 A parameters file may hold every agent: a /** section for what they share and one

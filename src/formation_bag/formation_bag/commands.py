@@ -135,7 +135,7 @@ def analyze_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--animate",
         action="store_true",
-        help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for a 5 s run)",
+        help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~15 s for a 5 s run)",
     )
     p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
     return p

@@ -64,6 +64,10 @@ SUB_DEPTH = 1000
 #: with --formation, the ground-truth subscription waits until every other subscription has matched
 #: a publisher, then this many seconds (the publishers' side of discovery), at most DEFER_TIMEOUT s
 DEFER_SETTLE = 0.5
+#: lockstep (the recorder acknowledges steps): after a wake-up that took messages, wall seconds to
+#: let the rest of a step's burst arrive, so that one wake-up (a wait over every subscription)
+#: takes many messages instead of one; the simulator lets the recorder lag one step
+COALESCE_S = 0.0005
 DEFER_TIMEOUT = 60.0
 
 
@@ -317,9 +321,12 @@ class Recorder(Node):
                     if not context.ok():
                         break  # interrupted while waiting
                     raise
+                taken = 0
                 for ptr in wait_set.get_ready_entities("subscription"):
-                    self._take_all(*by_pointer[ptr])
+                    taken += self._take_all(*by_pointer[ptr])
                 self.acknowledge()
+                if taken and self.ack_pub is not None:
+                    time.sleep(COALESCE_S)  # lockstep: let the rest of the step's burst arrive
             else:
                 time.sleep(0.1)  # nothing to record yet: discovery below
             now = time.monotonic()

@@ -17,8 +17,9 @@ from rclpy.subscription import Subscription
 
 from formation_msgs_py.publisher_watch import Intruder, PublisherInfo, PublisherWatch, describe
 
-#: Graph poll period [wall s]: an intruder is reported within this plus the discovery latency.
-POLL_PERIOD = 0.2
+#: Graph poll period [wall s]: an intruder is reported within this plus the discovery latency. A
+#: poll costs an idle agent ~2 ms of CPU per second at 5 Hz (BENCHMARKS.md, "Cost of a message").
+POLL_PERIOD = 1.0
 
 
 class GraphWatch:

@@ -23,8 +23,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-from formation_msgs_py.hotloop import EXECUTORS
-
 HEADLESS, SIM, LAUNCH, CHECK = "headless", "sim", "launch", "check"
 RUNNERS = frozenset({HEADLESS, SIM, LAUNCH})
 ROS = frozenset({SIM, LAUNCH})
@@ -120,8 +118,6 @@ OPTIONS: tuple[Option, ...] = (
     Option("--ground-truth-rate", "ground-truth publication rate [Hz, sim time] (default: the record rate, at "
            "most the control rate; while recording: the control rate)", ROS, positive, forward=True),
     Option("--clock-rate", "/clock publication rate [Hz, sim time]", ROS, positive, forward=True),
-    Option("--executor", "how every node spins (formation_msgs_py.hotloop)", ROS, str, "events", EXECUTORS,
-           forward=True),
     Option("--measurement-qos", "QoS of relative poses and velocities; best-effort (realtime only) costs less CPU "
            "per message (agents need -p measurement_qos:=best-effort)", ROS, str, "reliable",
            ("reliable", "best-effort"), forward=True),
@@ -144,7 +140,7 @@ OPTIONS: tuple[Option, ...] = (
     Option("--stop-on-violation", "stop at the first funnel violation", frozenset({HEADLESS})),
     Option("--progress-period", "wall s between progress lines", frozenset({SIM}), positive, 1.0),
     Option("--no-plots", "skip the figures", RUNNERS, forward=True),
-    Option("--animate", "also write OUT/animation.gif: the formation in 3D and its funnel margins (~20 s for 5 s)",
+    Option("--animate", "also write OUT/animation.gif: the formation in 3D and its funnel margins (~15 s for 5 s)",
            frozenset({HEADLESS, LAUNCH})),
     Option("--force", "write into an existing non-empty output directory", RUNNERS),
     Option("--quiet", "no progress lines", RUNNERS | {CHECK}),
@@ -175,7 +171,6 @@ class RunOptions:
     lag_budget: float = 1.0
     ground_truth_rate: float | None = None
     clock_rate: float | None = None
-    executor: str = "events"
     measurement_qos: str = "reliable"
     intruder_policy: str = "report"
     marker_rate: float = 30.0

@@ -186,6 +186,6 @@ def relative_pose_from_values(values: Sequence[float]) -> tuple[list[float], lis
 
 def stamp_of(data: bytes) -> int:
     """The stamp (integer ns) CDR bytes start with: header.stamp of every stamped message of
-    DESIGN.md §3 (and PoseArray, DiagnosticArray), or the time of a rosgraph_msgs/Clock."""
+    docs/topics.md (and PoseArray, DiagnosticArray), or the time of a rosgraph_msgs/Clock."""
     sec, nsec = _STAMP.unpack_from(data, 4)
     return sec * NS_PER_S + nsec

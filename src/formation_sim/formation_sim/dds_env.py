@@ -17,7 +17,10 @@ import sys
 from pathlib import Path
 from typing import IO
 
-from formation_msgs_py.hotloop import FASTDDS_PROFILE
+from formation_msgs_py import errors
+
+#: the Fast DDS profile every non-secure process of a run loads (the file says what it sets and why)
+FASTDDS_PROFILE = Path(errors.__file__).with_name("fastdds_profile.xml")
 
 #: Ids Fast DDS accepts whose port blocks stay clear of Linux's ephemeral ports (102..214 may collide).
 DOMAIN_IDS = (*range(1, 102), *range(215, 233))

@@ -24,7 +24,6 @@ from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
 from formation_msgs_py import conversions, parameters, qos, topics
-from formation_msgs_py.hotloop import EXECUTORS
 from formation_msgs_py.options import RunOptions
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.spec import FormationSpec
@@ -123,8 +122,12 @@ def declare_simulator_parameters(node: Node, spec: FormationSpec, args: RunOptio
     The settings of :data:`SETTING_DOCS` are declared read-only: they show what the command line
     (``args``, after preflight) chose and cannot change a running simulation. ``marker_rate`` is live.
     """
-    settings = {"formation_file": str(args.file), "mode": args.mode, "control_rate": spec.simulation.control_rate}
-    settings.update(measurement_qos=args.measurement_qos, executor=args.executor)
+    settings = {
+        "formation_file": str(args.file),
+        "mode": args.mode,
+        "control_rate": spec.simulation.control_rate,
+        "measurement_qos": args.measurement_qos,
+    }
     for name, doc in SETTING_DOCS.items():
         parameters.declare(node, name, settings[name], doc, read_only=True)
     rate = parameters.declare(node, "marker_rate", float(args.marker_rate), MARKER_RATE_DOC, low=0.0, high=1000.0)
@@ -148,5 +151,4 @@ SETTING_DOCS = {
     "mode": "lockstep or realtime (--mode)",
     "control_rate": "control rate [Hz] (--control-rate or simulation.control_rate)",
     "measurement_qos": "reliable or best-effort (--measurement-qos)",
-    "executor": f"how the node spins: {', '.join(EXECUTORS)} (--executor)",
 }

@@ -28,6 +28,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from formation_agent.process import compiled_pays
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.faults import FaultLog
@@ -180,6 +181,8 @@ class Launcher:
             "sim", "sim", [sys.executable, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec)]
         )
         self._follow = LogFollower(sim.log)
+        # the agents' controller: compiled or interpreted (formation_agent.process), unless the environment says
+        jit = self.sup.env.get("NUMBA_DISABLE_JIT") or ("0" if compiled_pays(spec.simulation.control_rate) else "1")
         for a in spec.agents:
             cmd = [
                 str(_bin("formation-agent")),
@@ -193,12 +196,12 @@ class Launcher:
                 "-p",
                 f"measurement_qos:={args.measurement_qos}",
                 "-p",
-                f"executor:={args.executor}",
-                "-p",
                 f"intruder_policy:={args.intruder_policy}",
                 "-p",
                 f"faults_file:={agent_faults_file(self.out / 'logs', a.id)}",
             ]
+            key = self.sup.key_names.get(f"agent_{a.id}", f"agent_{a.id}")
+            self.sup.process_env[key] = {**self.sup.process_env.get(key, self.sup.env), "NUMBA_DISABLE_JIT": jit}
             self.sup.start(f"agent_{a.id}", "agent", cmd)
         return sim
 
@@ -237,8 +240,8 @@ class Launcher:
     def stop_others(self) -> None:
         """After the last step: SIGINT to the agents and the recorder (which takes what it holds and
         closes the bag) while the simulator writes OUT."""
-        if self.interrupted:
-            return
+        if self.interrupted or self.stop is not None:
+            return  # done already, or stopping every process (interrupted, a process died)
         others = [c for c in self.sup.alive() if c.role != "sim"]
         for c in others:
             c.signal(signal.SIGINT)

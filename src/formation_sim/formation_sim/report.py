@@ -404,7 +404,7 @@ class RunRecorder:
         incomplete: Incomplete | None = None,
         extra: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
-        """summary.json (DESIGN.md §8); ``requested_duration`` None: whatever was fed is the run."""
+        """summary.json (docs/outputs.md); ``requested_duration`` None: whatever was fed is the run."""
         j = self.judge
         result = self.outcome(requested_duration, incomplete)
         duration = self.t_last
@@ -463,8 +463,9 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
         np.savez(npz, **recorder.arrays())
         write_atomic(out_dir / "trajectory.npz", npz.getvalue())
         written.append("trajectory.npz")
-        figures_from = time.monotonic()
+        figures = 0.0
         if plots:
+            t_figures = time.monotonic()
             from formation_sim.figures import plot_run  # matplotlib only when figures are wanted
 
             staging = Path(tempfile.mkdtemp(dir=out_dir, prefix=".figures."))
@@ -474,6 +475,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
                     written.append(path.name)
             finally:
                 shutil.rmtree(staging, ignore_errors=True)
+            figures = time.monotonic() - t_figures
     except OSError as exc:
         failed = dict(summary)
         failed.update(
@@ -489,7 +491,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
             pass
         raise
     write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
-    return time.monotonic() - figures_from
+    return figures
 
 
 def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:

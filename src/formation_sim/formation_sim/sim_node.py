@@ -39,13 +39,13 @@ import rclpy
 from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import conversions, qos, topics, wire
 from formation_msgs_py.faults import FaultLog
 from formation_msgs_py.graph_watch import GraphWatch
-from formation_msgs_py.hotloop import Spinner
 from formation_msgs_py.options import RunOptions
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
@@ -432,7 +432,6 @@ class Runner:
             "steps": self.step,
             "clock_rate": s.control_rate / self.clock_every,
             "ground_truth_rate": s.control_rate / self.gt_every,
-            "executor": self.args.executor,
             "velocity_margins": "shadow controllers on the published measurements",
             "recorder_in_step": self.node.ack_sub is not None,
         }
@@ -478,7 +477,8 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         )
         check_secure_transport()
         node.display = declare_simulator_parameters(node, spec, args)
-        executor = Spinner(args.executor, node)
+        executor = EventsExecutor(context=node.context)
+        executor.add_node(node)
         runner = Runner(node, executor, spec, args)
         timeout = args.discovery_timeout or 30.0 + len(spec.agents)
         t_disc = time.monotonic()

@@ -1,4 +1,4 @@
-"""The simulator's stepping policy, without ROS (DESIGN.md §6-7).
+"""The simulator's stepping policy, without ROS (docs/ros2.md, "Modes").
 
 - :class:`LockstepWait`: who must answer step k before the world advances: every agent (its
   wrench stamped k) and, when a recorder takes part, the recorder (its acknowledgement that

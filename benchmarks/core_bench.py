@@ -37,10 +37,8 @@ REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / "config" / "paper_5agents.yaml"
 PY = sys.executable
 
-AGENT_PROBE = r"""
-import resource, sys, time
-t0 = time.perf_counter()
-import numpy as np
+#: agent 3 of the paper (3 edges) and its measurements at t = 0, after its first compute
+AGENT_SETUP = r"""
 from formation_agent.controller import AgentController
 from formation_msgs_py.spec import agent_view, load_formation
 spec = load_formation(sys.argv[1])
@@ -49,6 +47,16 @@ p = np.array([a.position for a in spec.agents]); R = np.array([a.R_world_body fo
 idx = {a.id: a.index for a in spec.agents}
 rel = {j: ((R[2].T @ (p[idx[j]] - p[2])).tolist(), (R[2].T @ R[idx[j]]).tolist()) for j in ctrl.view.neighbours}
 ctrl.compute(0.0, rel, [0.0] * 6)
+"""
+
+AGENT_PROBE = (
+    r"""
+import resource, sys, time
+t0 = time.perf_counter()
+import numpy as np
+"""
+    + AGENT_SETUP
+    + r"""
 start = time.perf_counter() - t0
 n = 5000
 c0 = time.process_time()
@@ -58,6 +66,7 @@ per_call = (time.process_time() - c0) / n * 1e6
 rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print({"start_s": round(start, 2), "compute_us": round(per_call, 1), "rss_mb": round(rss)})
 """
+)
 
 HEADLESS_PROBE = r"""
 import sys, time
@@ -203,16 +212,13 @@ print(out)
 """
 )
 
-CALL_PROBE = r"""
+CALL_PROBE = (
+    r"""
 import sys, time, numpy as np
-from formation_agent.controller import AgentController, agent_step
-from formation_msgs_py.spec import agent_view, load_formation
-spec = load_formation(sys.argv[1])
-ctrl = AgentController(agent_view(spec, "3"))
-p = np.array([a.position for a in spec.agents]); R = np.array([a.R_world_body for a in spec.agents])
-idx = {a.id: a.index for a in spec.agents}
-rel = {j: ((R[2].T @ (p[idx[j]] - p[2])).tolist(), (R[2].T @ R[idx[j]]).tolist()) for j in ctrl.view.neighbours}
-ctrl.compute(0.0, rel, [0.0] * 6)
+from formation_agent.controller import agent_step
+"""
+    + AGENT_SETUP
+    + r"""
 n = len(ctrl.neighbours)
 args = (ctrl._p, ctrl._R, np.zeros(6), ctrl._agents, ctrl._ends, ctrl._start, ctrl._out, ctrl._edge_out)
 
@@ -231,6 +237,7 @@ print({
         lambda k: ctrl.compute(1e-4 * k, rel, [0.0] * 6)),
 })
 """
+)
 
 
 def run(cmd: list[str], env: dict[str, str] | None = None, cwd: Path | None = None) -> tuple[str, float]:

@@ -361,7 +361,7 @@ def run_closed_loop(
 ) -> tuple[float, str]:
     """Run ``spec`` for ``simulation.duration`` into ``recorder``: (wall time [s], why it is incomplete or "").
 
-    Every control step is checked (``recorder.add_many``); faults are recorded as the streaming
+    Every control step is checked (:func:`check_step`, ``recorder.add_checked``); faults are recorded as the streaming
     runs record them (:func:`formation_sim.team.note_missing` before a step's funnel check,
     :func:`formation_sim.team.note_errors` after it). A state that stops being finite ends the
     run, incomplete, naming the agents (as :func:`formation_sim.inputs.advance_checked`).

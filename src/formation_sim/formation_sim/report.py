@@ -146,54 +146,43 @@ class Judge:
         p: np.ndarray,
         R: np.ndarray,
         margin_v: np.ndarray | None = None,
-        *,
-        stop_at_violation: bool = False,
     ) -> EdgeSample:
-        """Check samples at t ((T,) or scalar) of p (…,N,3), R (…,N,3,3); margin_v (…,N,6) if known.
-
-        With ``stop_at_violation`` the samples after the first violation are not taken (the
-        returned arrays say how many were).
-        """
+        """Check samples at t ((T,) or scalar) of p (…,N,3), R (…,N,3,3); margin_v (…,N,6) if known."""
         single = np.ndim(t) == 0
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         p = np.asarray(p, dtype=np.float64).reshape(len(t), -1, 3)
         R = np.asarray(R, dtype=np.float64).reshape(len(t), -1, 3, 3)
-        e, psi = self.edges.errors(p, R)
-        rho_e, rho_psi = self.edges.rho(t)
-        xi_e = e / rho_e
-        m_e = funnels.margin_e(xi_e, self.edges.c_col, self.edges.c_con)
-        m_psi = funnels.margin_psi(psi / rho_psi)
+        sample, xi_e, m_e, m_psi = self._margins(t, p, R)
         mv = None
         if margin_v is not None:
             margin_v = np.asarray(margin_v, dtype=np.float64).reshape(len(t), -1, 6)
             mv = margin_v.min(axis=2)  # (T,N); inf where unknown
-        n = len(t)
+            np.minimum(self.min_margin_v, mv.min(axis=0), out=self.min_margin_v)
         if self.first_violation is None:
-            self.first_violation, j = _first_violation(self, t, xi_e, m_e, m_psi, margin_v, mv)
-            if self.first_violation is not None and stop_at_violation:
-                n = j + 1
-        np.minimum(self.min_margin_e, m_e[:n].min(axis=0), out=self.min_margin_e)
-        np.minimum(self.min_margin_psi, m_psi[:n].min(axis=0), out=self.min_margin_psi)
-        if mv is not None:
-            np.minimum(self.min_margin_v, mv[:n].min(axis=0), out=self.min_margin_v)
-        self._settle(t[:n], e[:n], psi[:n])
-        self.samples += n
+            self.first_violation = _first_violation(self, t, xi_e, m_e, m_psi, margin_v, mv)
+        np.minimum(self.min_margin_e, m_e.min(axis=0), out=self.min_margin_e)
+        np.minimum(self.min_margin_psi, m_psi.min(axis=0), out=self.min_margin_psi)
+        self._settle(t, sample.e, sample.psi)
+        self.samples += len(t)
         self.t_first = float(t[0]) if self.t_first is None else self.t_first
-        self.t_last = float(t[n - 1])
+        self.t_last = float(t[-1])
         if single:
-            return EdgeSample(e[0], psi[0], rho_e[0], rho_psi[0])
-        return EdgeSample(e[:n], psi[:n], rho_e[:n], rho_psi[:n])
+            return EdgeSample(sample.e[0], sample.psi[0], sample.rho_e[0], sample.rho_psi[0])
+        return sample
 
-    def violation_at(self, t: float, p: np.ndarray, R: np.ndarray, margin_v: np.ndarray) -> Violation | None:
-        """The violation one sample shows (the rules of :meth:`update`), without taking the sample."""
-        e, psi = self.edges.errors(p[None], R[None])
-        rho_e, rho_psi = self.edges.rho(np.array([t]))
+    def _margins(self, t: np.ndarray, p: np.ndarray, R: np.ndarray) -> tuple[EdgeSample, np.ndarray, ...]:
+        """(e, ψ, ρ_e, ρ_ψ), ξ_e and the margins of every edge at samples t (T,) of p (T,N,3), R (T,N,3,3)."""
+        e, psi = self.edges.errors(p, R)
+        rho_e, rho_psi = self.edges.rho(t)
         xi_e = e / rho_e
         m_e = funnels.margin_e(xi_e, self.edges.c_col, self.edges.c_con)
+        return EdgeSample(e, psi, rho_e, rho_psi), xi_e, m_e, funnels.margin_psi(psi / rho_psi)
+
+    def violation_at(self, t: float, p: np.ndarray, R: np.ndarray, margin_v: np.ndarray) -> Violation | None:
+        """The violation one sample (p (N,3), R (N,3,3), margin_v (N,6)) shows, without taking it."""
+        _, xi_e, m_e, m_psi = self._margins(np.array([t]), p[None], R[None])
         margin_v = margin_v[None]
-        return _first_violation(
-            self, np.array([t]), xi_e, m_e, funnels.margin_psi(psi / rho_psi), margin_v, margin_v.min(axis=2)
-        )[0]
+        return _first_violation(self, np.array([t]), xi_e, m_e, m_psi, margin_v, margin_v.min(axis=2))
 
     def take_checked(self, t: np.ndarray, checked: CheckedSteps, violation: Violation | None) -> None:
         """Samples at t (T,) that a run core checked itself: its running minima and settle times
@@ -247,8 +236,8 @@ def _first_violation(
     m_psi: np.ndarray,
     margin_v: np.ndarray | None,
     mv: np.ndarray | None,
-) -> tuple[Violation | None, int]:
-    """The earliest sample with a margin ≤ 0 and its index; at one sample the worst edge before any agent."""
+) -> Violation | None:
+    """The earliest sample with a margin ≤ 0; at one sample the worst edge before any agent."""
     m_edge = np.minimum(m_e, m_psi)
     bad_edge = np.flatnonzero(m_edge.min(axis=1) <= 0)
     bad_v = np.flatnonzero(mv.min(axis=1) <= 0) if mv is not None else np.empty(0, dtype=int)
@@ -257,15 +246,15 @@ def _first_violation(
         k = int(np.argmin(m_edge[j]))
         name = judge.edges.names[k]
         if m_e[j, k] <= m_psi[j, k]:
-            return Violation(float(t[j]), "distance", name, "collision" if xi_e[j, k] < 0 else "connectivity"), j
-        return Violation(float(t[j]), "orientation", name, "psi"), j
+            return Violation(float(t[j]), "distance", name, "collision" if xi_e[j, k] < 0 else "connectivity")
+        return Violation(float(t[j]), "orientation", name, "psi")
     if bad_v.size:
         assert margin_v is not None and mv is not None
         j = int(bad_v[0])
         i = int(np.argmin(mv[j]))
         channel = VELOCITY_CHANNELS[int(np.argmin(margin_v[j, i]))]
-        return Violation(float(t[j]), "velocity", judge.spec.agents[i].id, channel), j
-    return None, -1
+        return Violation(float(t[j]), "velocity", judge.spec.agents[i].id, channel)
+    return None
 
 
 def judge(
@@ -331,30 +320,6 @@ class RunRecorder:
         np.maximum(self.peak_force, np.linalg.norm(u[:, :3], axis=1), out=self.peak_force)
         np.maximum(self.peak_torque, np.linalg.norm(u[:, 3:], axis=1), out=self.peak_torque)
 
-    def add_many(
-        self,
-        t: np.ndarray,
-        p: np.ndarray,
-        R: np.ndarray,
-        v: np.ndarray,
-        u: np.ndarray,
-        margin_v: np.ndarray,
-        *,
-        stop_at_violation: bool = False,
-    ) -> int:
-        """:meth:`add` of T consecutive samples at once (arrays with a leading axis T); returns how many.
-
-        The same checks (:meth:`Judge.update` on the stack: the run core's path). With
-        ``stop_at_violation`` the samples after the first violation are not added.
-        """
-        sample = self.judge.update(t, p, R, margin_v, stop_at_violation=stop_at_violation)
-        n = len(sample.e)
-        start = self.judge.samples - n
-        np.maximum(self.peak_force, np.linalg.norm(u[:n, :, :3], axis=2).max(axis=0), out=self.peak_force)
-        np.maximum(self.peak_torque, np.linalg.norm(u[:n, :, 3:], axis=2).max(axis=0), out=self.peak_torque)
-        self._keep(start, t, p, R, v, u, sample)
-        return n
-
     def add_checked(
         self,
         t: np.ndarray,
@@ -366,7 +331,7 @@ class RunRecorder:
         checked: CheckedSteps,
         violation: Violation | None,
     ) -> None:
-        """:meth:`add_many` for T samples the run core checked itself (``checked``, ``violation``:
+        """T consecutive samples (arrays with a leading axis T) the run core checked itself (``checked``, ``violation``:
         :meth:`Judge.take_checked`); ``edges`` holds their e, ψ, ρ_e, ρ_ψ (T,K)."""
         start = self.judge.samples
         self.judge.take_checked(t, checked, violation)

@@ -25,6 +25,18 @@ def test_wrench_book_keeps_the_latest_stamp() -> None:
     assert book.stamp == [200, -1] and book.value[0] == (2.0,) * 6
 
 
+def test_wrench_book_tells_a_repeated_answer() -> None:
+    """The same stamp and values again is a duplicate (an agent answering a re-sent step twice); a
+    different value or another stamp is not, so it still goes through the simulator's checks."""
+    book = WrenchBook(2)
+    assert not book.repeats(0, 200, (1.0,) * 6)  # nothing kept yet
+    book.accept(0, 200, (1.0,) * 6)
+    assert book.repeats(0, 200, (1.0,) * 6)
+    assert not book.repeats(0, 200, (1.0,) * 5 + (1.5,))
+    assert not book.repeats(0, 300, (1.0,) * 6)
+    assert not book.repeats(1, 200, (1.0,) * 6)
+
+
 def test_lockstep_waits_for_every_agent() -> None:
     """The step is done once every agent answered it; a resend goes to the late agents only."""
     w, book = wait(), WrenchBook(3)

@@ -153,6 +153,10 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
             while latest[0] < NS // 2:  # half a second of sim time in
                 assert time.monotonic() < deadline and sim.poll() is None, read_log(sim)
                 time.sleep(0.05)
+            # injections sent before agent 1 and the simulator matched the injector would be lost
+            while pose.get_subscription_count() < 1 or wrench.get_subscription_count() < 1:
+                assert time.monotonic() < deadline and sim.poll() is None, read_log(sim)
+                time.sleep(0.05)
             for _ in range(3):  # a few times, spread over a second of the run
                 ns = latest[0]
                 pose.publish(pose_codec.encode(ns, (math.nan, 0.0, 0.0, *IDENTITY_Q)))
@@ -195,10 +199,7 @@ def test_lockstep_run_is_not_stalled_by_a_future_stamped_wrench(procs, ros_env, 
     """Lockstep: wrenches stamped 2³¹−1 s and NaN wrenches for agent 2 all through the run (once, one such
     wrench stalled the run and blamed the healthy agent): the run completes and reports them for agent 2."""
     spec = load_formation(REALTIME)
-    for a in spec.agents:
-        procs.agent(REALTIME, a.id)
     out = tmp_path / "out"
-    sim = procs.sim(REALTIME, out, "--mode", "lockstep", "--duration", "1", "--physics-rate", "100")
     with injector_node(ros_env) as (node, executor):
         latest = [0]
         node.create_subscription(
@@ -206,6 +207,15 @@ def test_lockstep_run_is_not_stalled_by_a_future_stamped_wrench(procs, ros_env, 
         )
         wrench = node.create_publisher(WrenchStamped, topics.wrench("2"), qos.CONTROL)
         codec = conversions.wrench_codec("2")
+        sim = procs.sim(REALTIME, out, "--mode", "lockstep", "--duration", "1", "--physics-rate", "100")
+        # the simulator steps once the agents are matched: the injector must be matched before that,
+        # or on a busy machine the 100 steps can be over before it is discovered
+        deadline = time.monotonic() + 120
+        while wrench.get_subscription_count() < 1:
+            assert sim.poll() is None and time.monotonic() < deadline, read_log(sim)
+            executor.spin_once(timeout_sec=0.05)
+        for a in spec.agents:
+            procs.agent(REALTIME, a.id)
         deadline = time.monotonic() + 180
         while sim.poll() is None:
             assert time.monotonic() < deadline, read_log(sim)

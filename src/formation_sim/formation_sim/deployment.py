@@ -24,13 +24,14 @@ class Timing:
     expected: int = 0
     lags: list[float] = field(default_factory=list)
     resends: int = 0
+    duplicates: int = 0  # answers received again (an agent answering a resent step twice)
 
     def __post_init__(self) -> None:
         self.on_time = [0] * self.n_agents
         self.answered = [0] * self.n_agents
 
     def summary(self, ids: tuple[str, ...], period: float) -> dict[str, Any]:
-        out: dict[str, Any] = {"resends": self.resends}
+        out: dict[str, Any] = {"resends": self.resends, "duplicate_answers": self.duplicates}
         if self.latencies:
             lat = np.array(self.latencies) * 1e3
             out["latency_ms"] = {

@@ -152,9 +152,14 @@ class SimNode(Node):
         self.received += 1
         try:
             ns, u = self.wrench_codecs[i].decode(data)
-            refused = self.wrench_check.check(i, ns, u, self.current_ns)
         except struct.error:
             refused = self.wrench_check.malformed(i, self.current_ns)
+        else:
+            if self.wrenches.repeats(i, ns, u):
+                # the agent answered a resent step twice: the same answer again, not a bad input
+                self.timing.duplicates += 1
+                return
+            refused = self.wrench_check.check(i, ns, u, self.current_ns)
         if refused is not None:
             reason = self.wrench_check.log[(self.ids[i], refused)].reason
             if self.faults.add(self.current_ns / NS, self.ids[i], f"refused_wrench_{refused}", reason):

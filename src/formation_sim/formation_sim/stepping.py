@@ -46,6 +46,10 @@ class WrenchBook:
         self.stamp = [-1] * self.n
         self.value = [(0.0,) * 6] * self.n
 
+    def repeats(self, i: int, ns: int, u: tuple[float, ...]) -> bool:
+        """True if agent i's wrench stamped ns is exactly the answer already kept (a duplicate)."""
+        return ns == self.stamp[i] and tuple(u) == tuple(self.value[i])
+
     def accept(self, i: int, ns: int, u: tuple[float, ...]) -> bool:
         """Keep agent i's wrench stamped ns; False if older than what it has (a late duplicate)."""
         if ns < self.stamp[i]:

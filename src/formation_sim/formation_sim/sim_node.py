@@ -29,8 +29,10 @@ to finish.
 
 from __future__ import annotations
 
+import signal
 import struct
 import sys
+import threading
 import time
 from typing import Any
 
@@ -511,6 +513,10 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             raise
         incomplete = _interrupted(runner)  # a publish or wait cut short by SIGINT/SIGTERM
     finally:
+        # once stepping is over, a second SIGINT (or a KeyboardInterrupt that Python delivers late
+        # for the first) must not cut the summary and trajectory short; the launcher escalates to
+        # SIGTERM/SIGKILL if writing them takes too long
+        previous = _ignore_sigint()
         wall = time.monotonic() - runner.started if runner is not None else 0.0
         if node is not None:
             node.destroy_node()
@@ -518,9 +524,10 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             rclpy.try_shutdown()
         except RCLError:
             pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
-    if insecure:
-        return ExitCode.INVALID
-    if runner is None:
+    if insecure or runner is None:
+        _restore_sigint(previous)
+        if insecure:
+            return ExitCode.INVALID
         return ExitCode.INCOMPLETE if incomplete is None else incomplete.code
     summary = runner.summary(wall, incomplete, extra)
     plots = not args.no_plots and incomplete is None
@@ -534,9 +541,23 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
     except OSError as exc:
         print(f"formation-sim: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr, flush=True)
         return ExitCode.INCOMPLETE
+    finally:
+        _restore_sigint(previous)
     print(f"formation-sim: {out}/ written in {time.monotonic() - t_out:.2f} s (figures {figures:.2f} s)", flush=True)
     print(format_summary(summary), flush=True)
     return summary["exit_status"]
+
+
+def _ignore_sigint() -> Any:
+    """SIG_IGN for SIGINT (main thread only); the previous handler, or None."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _restore_sigint(previous: Any) -> None:
+    if previous is not None:
+        signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

@@ -543,7 +543,8 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         return ExitCode.INCOMPLETE
     finally:
         _restore_sigint(previous)
-    print(f"formation-sim: {out}/ written in {time.monotonic() - t_out:.2f} s (figures {figures:.2f} s)", flush=True)
+    figures_note = f" (figures {figures:.2f} s)" if plots else ""
+    print(f"formation-sim: {out}/ written in {time.monotonic() - t_out:.2f} s{figures_note}", flush=True)
     print(format_summary(summary), flush=True)
     return summary["exit_status"]
 

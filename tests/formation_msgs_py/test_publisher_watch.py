@@ -84,6 +84,18 @@ def test_nameless_publisher_waits_for_its_name_then_is_reported() -> None:
     assert [(i.gid, i.first_seen) for i in new] == [("dd11", 1.0)]
 
 
+def test_nameless_intruder_takes_its_name_when_it_arrives() -> None:
+    """On a busy machine a name can arrive after NAME_GRACE: the report then names the node."""
+    w = _watch()
+    w.observe("/agent_3/velocity", [SIM], 0.0)
+    nameless = PublisherInfo(UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_", "ee99")
+    w.observe("/agent_3/velocity", [SIM, nameless], 1.0)
+    assert len(w.observe("/agent_3/velocity", [SIM, nameless], 1.0 + NAME_GRACE)) == 1
+    assert w.observe("/agent_3/velocity", [SIM, OUTSIDER], 2.0 + NAME_GRACE) == []  # not a second intruder
+    (intruder,) = w.intruders.values()
+    assert (intruder.node, intruder.gid, intruder.last_seen) == ("/tools/outsider", "ee99", 2.0 + NAME_GRACE)
+
+
 def test_expected_publisher_named_late_is_pinned_not_reported() -> None:
     """The simulator seen first without its name, then with it: pinned, never reported."""
     w = _watch()

@@ -136,6 +136,8 @@ class PublisherWatch:
             known = self.intruders.get(key)
             if known is not None:
                 known.last_seen = wall
+                if known.node != p.qualified_node and p.node != UNKNOWN_NODE:
+                    known.node = p.qualified_node  # reported nameless; its name arrived since
                 continue
             first = wall
             if p.node == UNKNOWN_NODE:  # maybe the expected node, whose name has not arrived yet

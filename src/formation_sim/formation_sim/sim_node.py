@@ -34,6 +34,7 @@ import struct
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -524,11 +525,21 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             rclpy.try_shutdown()
         except RCLError:
             pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
-    if insecure or runner is None:
-        _restore_sigint(previous)
+    try:
         if insecure:
             return ExitCode.INVALID
-        return ExitCode.INCOMPLETE if incomplete is None else incomplete.code
+        if runner is None:
+            return ExitCode.INCOMPLETE if incomplete is None else incomplete.code
+        return _write_outputs(runner, out, args, wall, incomplete, extra)
+    finally:
+        _restore_sigint(previous)
+
+
+def _write_outputs(
+    runner: Runner, out: Path, args: RunOptions, wall: float, incomplete: Incomplete | None, extra: dict[str, Any]
+) -> int:
+    """Write OUT (summary, trajectory, figures unless stopped early or --no-plots), print the summary;
+    the exit status."""
     summary = runner.summary(wall, incomplete, extra)
     plots = not args.no_plots and incomplete is None
     what = "summary, trajectory" + (", figures" if plots else "")
@@ -541,8 +552,6 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
     except OSError as exc:
         print(f"formation-sim: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr, flush=True)
         return ExitCode.INCOMPLETE
-    finally:
-        _restore_sigint(previous)
     figures_note = f" (figures {figures:.2f} s)" if plots else ""
     print(f"formation-sim: {out}/ written in {time.monotonic() - t_out:.2f} s{figures_note}", flush=True)
     print(format_summary(summary), flush=True)

@@ -48,7 +48,7 @@ class WrenchBook:
 
     def repeats(self, i: int, ns: int, u: tuple[float, ...]) -> bool:
         """True if agent i's wrench stamped ns is exactly the answer already kept (a duplicate)."""
-        return ns == self.stamp[i] and tuple(u) == tuple(self.value[i])
+        return ns == self.stamp[i] and u == self.value[i]
 
     def accept(self, i: int, ns: int, u: tuple[float, ...]) -> bool:
         """Keep agent i's wrench stamped ns; False if older than what it has (a late duplicate)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from rosbags.rosbag2 import Reader
@@ -87,3 +88,22 @@ def test_an_existing_bag_is_not_overwritten(tmp_path: Path) -> None:
     (tmp_path / "bag").mkdir()
     with pytest.raises(FileExistsError, match="exists already"):
         RunBag(tmp_path / "bag", {})
+
+
+def test_display_messages_are_stored_with_zeroed_padding(tmp_path: Path) -> None:
+    """rclpy's serialize_message leaves CDR alignment padding uninitialised: the bag gets the same
+    values with zeros there (deterministic bytes), and rclpy's trailing padding as zeros."""
+    bag = _bag(tmp_path / "bag")
+    store = bag.writer.store
+    t = store.types
+    msg = t["std_msgs/msg/Float64MultiArray"](
+        layout=t["std_msgs/msg/MultiArrayLayout"](
+            dim=[t["std_msgs/msg/MultiArrayDimension"](label="ab", size=2, stride=2)], data_offset=0
+        ),
+        data=np.array([1.5, -2.0]),
+    )
+    clean = bytes(store.serialize_cdr(msg, "std_msgs/msg/Float64MultiArray"))
+    pad = clean.index(b"ab\x00") + 3  # one byte of padding before the uint32 size
+    dirty = clean[:pad] + b"\x7f" + clean[pad + 1 :] + b"\x55\x55\x55"
+    assert bag.zero_padded(FUNNELS, dirty) == clean + bytes(3)
+    bag.close()

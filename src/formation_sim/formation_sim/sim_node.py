@@ -108,7 +108,10 @@ class RecordedPublisher:
 
     def publish(self, msg: Any) -> None:
         self.publisher.publish(msg)
-        self.bag.write(self.topic, msg if isinstance(msg, bytes) else serialize_message(msg))
+        if isinstance(msg, bytes):
+            self.bag.write(self.topic, msg)
+        else:  # a message object (the display topics): serialised here, with its padding zeroed
+            self.bag.write(self.topic, self.bag.zero_padded(self.topic, serialize_message(msg)))
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.publisher, name)

@@ -3,7 +3,8 @@
 A node creates one :class:`GraphWatch` for the topics it subscribes to (the simulator: every
 topic of the formation). It polls ``get_publishers_info_by_topic`` on a steady-clock timer (wall
 time, also under ``use_sim_time``), logs each new intruder once, and answers :meth:`accept` for
-every taken message under the ``refuse`` policy.
+every taken message under the ``refuse`` policy. A report withdrawn (the expected node, named
+late) is logged as a warning.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ class GraphWatch:
 
     def poll(self) -> None:
         now = time.monotonic()
+        withdrawn = len(self.watch.withdrawn)
         for topic in self.watch.expected:
             infos = self.node.get_publishers_info_by_topic(topic)
             pubs = [PublisherInfo(i.node_name, i.node_namespace, bytes(i.endpoint_gid).hex()) for i in infos]
@@ -46,6 +48,9 @@ class GraphWatch:
                 self.node.get_logger().error(describe(intruder))
                 if self.on_intruder is not None:
                     self.on_intruder(intruder)
+        for late in self.watch.withdrawn[withdrawn:]:
+            msg = f"{late.topic}: the nameless publisher reported is {late.node}, {late.reason}"
+            self.node.get_logger().warning(msg)
 
     def accept(self, topic: str, subscription: Subscription) -> bool:
         """Whether to apply a message just taken from ``subscription`` of ``topic`` (see PublisherWatch.accept)."""

@@ -33,7 +33,7 @@ from formation_bag.analysis import analyze_run, message_ages
 from formation_bag.dataset import load_run
 from formation_bag.interop import check_bag
 from formation_bag.synth import write_run_bag
-from formation_bag.writer import SegmentedBagWriter
+from formation_msgs_py.bag.writer import SegmentedBagWriter
 from formation_msgs_py.spec import load_formation
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -7,9 +7,10 @@
 # Default: every topic of docs/topics.md (discovered on the graph, or all of FILE's with
 # --formation, which also stores FILE in the bag for formation-analyze). Stop with Ctrl-C or
 # SIGTERM: the bag is closed cleanly. Segments of 100 MiB: a killed recorder loses at most the last.
-# With --formation it acknowledges every lockstep step: start it first, then sim.sh FILE
-# --wait-recorder, and the bag holds every message from the first step; started later, it says
-# which steps it missed. Log times are simulation time in lockstep.
+# Start it first, then sim.sh FILE --wait-recorder: the simulator waits for it and the bag starts at
+# the first step; started later, it says which steps it missed. It is an observer: nothing waits
+# for it while stepping (for a lockstep bag that cannot lose a message: sim.sh FILE --bag DIR).
+# Log times are simulation time in lockstep.
 # Network: --network host (default: LOCALHOST unless ROS_AUTOMATIC_DISCOVERY_RANGE is set) or lan;
 # --secure KEYS [--hosts FILE] joins a secure run with the key 'recorder' (needs --formation FILE:
 # the ports follow its agents; docs/security.md).

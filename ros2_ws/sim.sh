@@ -10,7 +10,7 @@
 # Network: --network host (default: this machine only), --network lan, --secure KEYS (key
 # 'simulator'), --hosts, --port-base as for agent.sh (agent.sh --help, docs/security.md).
 # Environment: ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS as for agent.sh.
-# Exit status: 0 PASS, 1 FAIL, 2 invalid, 3 an agent or the recorder stopped answering, 4 incomplete, 130 interrupted.
+# Exit status: 0 PASS, 1 FAIL, 2 invalid, 3 a process died or an agent stopped answering, 4 incomplete, 130 interrupted.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case "${1:-}" in

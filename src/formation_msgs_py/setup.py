@@ -11,11 +11,11 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "numpy", "numba", "scipy", "PyYAML"],
+    install_requires=["setuptools", "numpy", "numba", "scipy", "PyYAML", "rosbags"],
     extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
-    description="Formation files, SO(3) helpers, funnels, topics, QoS and message conversions.",
+    description="Formation files, SO(3) helpers, funnels, topics, QoS, message conversions and bag writing.",
     license="Apache-2.0",
 )

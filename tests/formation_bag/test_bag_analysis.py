@@ -19,7 +19,7 @@ from formation_bag.dataset import apply_overrides, load_run
 from formation_bag.errors import BagFormatError, OverrideError
 from formation_bag.reader import Bag
 from formation_bag.rerun import rerun_all
-from formation_bag.writer import SegmentedBagWriter
+from formation_msgs_py.bag.writer import SegmentedBagWriter
 from formation_sim.headless import run_headless
 
 IGNORED = {"wall_time", "real_time_factor", "bag", "source", "controller", "physics_rate", "mode", "samples"}

@@ -16,10 +16,11 @@ import pytest
 import yaml
 
 from formation_bag import messages as m
-from formation_bag.errors import BagExistsError, BagNotFoundError, BagWriterError
+from formation_bag.errors import BagNotFoundError
 from formation_bag.interop import JAZZY_KEYS, check_bag
 from formation_bag.reader import Bag, repair
-from formation_bag.writer import SegmentedBagWriter
+from formation_msgs_py.bag.errors import BagExistsError, BagWriterError
+from formation_msgs_py.bag.writer import SegmentedBagWriter
 
 START = 1_700_000_000 * m.NS_PER_S
 
@@ -94,7 +95,7 @@ def test_sigkill_loses_at_most_the_open_segment(tmp_path: Path, storage: str) ->
         f"""
         import sys, time
         from formation_bag import messages as m
-        from formation_bag.writer import SegmentedBagWriter
+        from formation_msgs_py.bag.writer import SegmentedBagWriter
         enc = m.Encoder()
         w = SegmentedBagWriter({str(bag)!r}, storage={storage!r}, segment_seconds=0.2)
         w.add_topic("/clock", m.CLOCK)

@@ -19,7 +19,7 @@ from formation_bag.analysis import analyze_run
 from formation_bag.dataset import load_run
 from formation_bag.interop import check_bag
 from formation_bag.reader import Bag
-from formation_bag.writer import SegmentedBagWriter
+from formation_msgs_py.bag.writer import SegmentedBagWriter
 
 
 def _recorder(ros_procs, bag: Path, *extra: str, env: dict[str, str] | None = None):

@@ -142,3 +142,34 @@ def test_unknown_policy_is_refused_with_its_value() -> None:
     """A policy that is neither report nor refuse raises ValueError naming it."""
     with pytest.raises(ValueError, match="'block'"):
         PublisherWatch({}, "block")  # type: ignore[arg-type]
+
+
+def test_expected_publisher_named_after_the_grace_is_withdrawn_and_pinned() -> None:
+    """On a busy machine the simulator's name can come after NAME_GRACE: reported nameless, then
+    withdrawn and pinned once named, so that ``refuse`` applies its messages again."""
+    w = _watch("refuse")
+    early = PublisherInfo(UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_", "aa01")
+    w.observe("/agent_3/velocity", [early], 0.0)
+    assert len(w.observe("/agent_3/velocity", [early], NAME_GRACE)) == 1
+    assert not w.accept("/agent_3/velocity", 1)
+    assert w.observe("/agent_3/velocity", [SIM], 0.9) == []
+    assert w.intruders == {} and w.pinned["/agent_3/velocity"] == "aa01"
+    assert w.accept("/agent_3/velocity", 1)
+    report = w.report()
+    assert report["intruders"] == [] and report["refused_messages"] == {"/agent_3/velocity": 1}
+    (late,) = report["withdrawn"]  # type: ignore[misc]
+    assert (late["node"], late["first_seen"], late["last_seen"]) == ("/formation_sim", 0.0, 0.9)
+
+
+def test_named_late_twin_of_a_pinned_publisher_stays_an_intruder() -> None:
+    """A nameless endpoint that turns out to carry the expected name while the expected one is pinned
+    is a second publisher with that name: still reported."""
+    w = _watch("refuse")
+    w.observe("/agent_3/velocity", [SIM], 0.0)
+    twin = PublisherInfo(UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_", "ff02")
+    w.observe("/agent_3/velocity", [SIM, twin], 1.0)
+    assert len(w.observe("/agent_3/velocity", [SIM, twin], 1.0 + NAME_GRACE)) == 1
+    named = PublisherInfo("formation_sim", "/", "ff02")
+    assert w.observe("/agent_3/velocity", [SIM, named], 2.0) == []
+    assert list(w.intruders) == [("/agent_3/velocity", "ff02")] and w.withdrawn == []
+    assert not w.accept("/agent_3/velocity", 2)

@@ -41,8 +41,8 @@ from formation_agent.controller import ERROR
 from formation_bag import messages as m
 from formation_bag.commands import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_bag.dataset import RunData, Series, load_run
-from formation_bag.errors import BagError
 from formation_bag.rerun import AgentRerun, rerun_all
+from formation_msgs_py.bag.errors import BagError
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
 from formation_sim.report import RunRecorder, format_summary, report_animation, write_json, write_outputs

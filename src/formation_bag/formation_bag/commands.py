@@ -14,11 +14,10 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from formation_msgs_py.bag import SEGMENT_MB, STORAGE_NAMES
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.outcome import EXIT_STATUS_HELP
 
-#: storage plugins of formation-record (formation_bag.metadata.STORAGES maps them to rosbags')
-STORAGE_NAMES = ("mcap", "sqlite3")
 #: formation-analyze --velocity-margins
 VELOCITY_MARGIN_MODES = ("rerun", "none")
 #: formation-rerun --tolerance: max |Δu| counted as equal
@@ -52,7 +51,9 @@ def record_parser() -> argparse.ArgumentParser:
         default=None,
         help="also close a segment after S s of log time (simulated s with --log-time sim; default: by size only)",
     )
-    p.add_argument("--segment-mb", type=float, default=100.0, help="close a segment after M MiB (default 100)")
+    p.add_argument(
+        "--segment-mb", type=float, default=SEGMENT_MB, help=f"close a segment after M MiB (default {SEGMENT_MB:g})"
+    )
     p.add_argument(
         "--log-time",
         choices=("auto", "sim", "receive"),

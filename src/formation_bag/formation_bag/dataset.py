@@ -18,13 +18,10 @@ from typing import Any
 from formation_bag import messages as m
 from formation_bag.errors import BagFormatError, BagTopicError, OverrideError
 from formation_bag.reader import Bag
+from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.loader import parse_document, read_document
 from formation_msgs_py.spec import FormationSpec, formation_from_dict
-
-#: custom_data keys the recorder writes
-KEY_FORMATION_YAML = "formation_yaml"
-KEY_FORMATION_FILE = "formation_file"
 
 
 @dataclass

@@ -1,20 +1,11 @@
-"""Exception types of formation_bag; every message names the bad path, topic or field."""
+"""Exception types of reading and analysing bags; every message names the bad path, topic or field.
+
+Writing's (``BagError``, ``BagExistsError``, ``BagWriterError``) are :mod:`formation_msgs_py.bag.errors`.
+"""
 
 from __future__ import annotations
 
-from formation_msgs_py.errors import FormationError
-
-
-class BagError(FormationError):
-    """Base class of the errors this package raises on purpose."""
-
-
-class BagExistsError(BagError, FileExistsError):
-    """An output path exists already; we never overwrite."""
-
-    def __init__(self, path: object, what: str = "output") -> None:
-        self.path = path
-        super().__init__(f"{what} {path} exists already, not overwriting (choose another path or remove it)")
+from formation_msgs_py.bag.errors import BagError
 
 
 class BagNotFoundError(BagError, FileNotFoundError):
@@ -30,10 +21,6 @@ class BagTopicError(BagError, KeyError):
 
     def __str__(self) -> str:  # KeyError would quote the message
         return str(self.args[0]) if self.args else ""
-
-
-class BagWriterError(BagError, RuntimeError):
-    """Writing a bag failed (closed writer, unknown type, storage error)."""
 
 
 class OverrideError(BagError, ValueError):

@@ -16,6 +16,7 @@ import yaml
 
 from formation_bag import messages as m
 from formation_bag.reader import Bag
+from formation_msgs_py.bag.writer import typestore
 
 #: top-level keys of metadata.yaml version 9, in the order rosbag2 (Jazzy) writes them
 JAZZY_KEYS = (
@@ -106,7 +107,7 @@ def check_bag(path: str | Path) -> InteropReport:
     report = InteropReport(path)
     if path.is_dir():
         check_metadata(path, report)
-    ts = m.typestore()
+    ts = typestore()
     stamps_rb: dict[str, list[int | None]] = {}
     with Bag(path) as bag:
         report.lost = list(bag.lost)

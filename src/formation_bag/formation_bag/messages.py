@@ -10,13 +10,10 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import cache
 from typing import Any
 
-from rosbags.typesys import Stores, get_typestore
-from rosbags.typesys.store import Typestore
-
 from formation_msgs_py import topics, wire
+from formation_msgs_py.bag.writer import typestore
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.wire import NS_PER_S, stamp_ns
 
@@ -28,12 +25,6 @@ CLOCK = "rosgraph_msgs/msg/Clock"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 FLOAT64_MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
-
-
-@cache
-def typestore() -> Typestore:
-    """The ROS 2 Jazzy typestore (shared, built once)."""
-    return get_typestore(Stores.ROS2_JAZZY)
 
 
 @dataclass(frozen=True)

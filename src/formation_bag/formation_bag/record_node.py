@@ -1,7 +1,7 @@
 """``formation-record``: record the docs/topics.md topics of a running formation into a bag.
 
 A thin rclpy node: raw subscriptions (the CDR bytes, nothing is deserialized) drained by one
-wait-set loop straight into a :class:`formation_bag.writer.SegmentedBagWriter`
+wait-set loop straight into a :class:`formation_msgs_py.bag.writer.SegmentedBagWriter`
 (a segment closes in a few ms; every subscription queues up to 1000 messages meanwhile).
 Counts: received and written per topic, and the publishers' sequence numbers (what they
 published in total and while we listened), stored in metadata.yaml custom_data ``recorder_counts``
@@ -10,10 +10,10 @@ the subscriptions already hold (no waiting for silence: agents publish /diagnost
 are stopped), close the last segment and write metadata.yaml (exit status 0). A SIGKILL loses at
 most the open segment. A full disk stops the recording with one line and exit status 4.
 
-Lockstep: with ``--formation`` the recorder publishes ``formation/recorder_ack`` (the stamp up
-to which it holds every agent's velocity and wrench); ``formation-sim --wait-recorder`` does not
-advance more than one step past it, so the recorder never falls behind far enough to drop. A
-recorder started after the simulator reports the steps it missed.
+An observer: no process waits for it (formation-launch records a lockstep run in the simulator
+itself, ``formation-sim --bag``, and uses this recorder in realtime). ``formation-sim
+--wait-recorder`` waits for it to subscribe before the first step; a recorder started after the
+simulator reports the steps it missed.
 
 Topics: every docs/topics.md topic of ``--formation FILE`` (exact, known before anything runs),
 plus whatever the graph shows that matches (checked every ``--discovery-period`` s); or only
@@ -40,34 +40,26 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
-from rosgraph_msgs.msg import Clock
 
 from formation_bag import messages as m
 from formation_bag.commands import record_parser
-from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
-from formation_bag.errors import BagError, BagTopicError
-from formation_bag.writer import SegmentedBagWriter, make_qos
+from formation_bag.errors import BagTopicError
 from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics, wire
+from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, STAMPED_TYPES, ros_type_name
+from formation_msgs_py.bag.errors import BagError
+from formation_msgs_py.bag.writer import SegmentedBagWriter
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import load_formation
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 
-#: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time)
-STAMPED_TYPES = frozenset(
-    {"TwistStamped", "WrenchStamped", "TransformStamped", "PoseArray", "Clock", "DiagnosticArray"}
-)
 #: depth of the recorder's own subscription queues (it must never be the one that drops)
 SUB_DEPTH = 1000
 #: with --formation, the ground-truth subscription waits until every other subscription has matched
 #: a publisher, then this many seconds (the publishers' side of discovery), at most DEFER_TIMEOUT s
 DEFER_SETTLE = 0.5
-#: lockstep (the recorder acknowledges steps): after a wake-up that took messages, wall seconds to
-#: let the rest of a step's burst arrive, so that one wake-up (a wait over every subscription)
-#: takes many messages instead of one; the simulator lets the recorder lag one step
-COALESCE_S = 0.0005
 DEFER_TIMEOUT = 60.0
 
 
@@ -86,15 +78,6 @@ def offered_profile(topic: str) -> QoSProfile:
     if topic == topics.DIAGNOSTICS:
         return fqos.DIAGNOSTICS
     return fqos.CONTROL
-
-
-def to_bag_qos(p: QoSProfile) -> Any:
-    return make_qos(
-        depth=int(p.depth),
-        reliable=p.reliability != ReliabilityPolicy.BEST_EFFORT,
-        transient_local=p.durability == DurabilityPolicy.TRANSIENT_LOCAL,
-        keep_all=p.history == HistoryPolicy.KEEP_ALL,
-    )
 
 
 def parse_decimation(items: Sequence[str]) -> list[tuple[str, int]]:
@@ -144,15 +127,9 @@ class Recorder(Node):
     ) -> None:
         super().__init__("formation_record")
         self.sim_log_time = sim_log_time
-        # lockstep acknowledgement: the latest stamp of each per-step topic (velocities, wrenches)
-        self.latest: dict[str, int] = {}
-        self.step_topics = step_topics or []
+        self.step_topics = step_topics or []  # velocities and wrenches: the first one dates the recording
         self.first_step_stamp: int | None = None
         self.sim_now = 0  # the latest stamp taken [ns]
-        self.ack_ns = -1
-        self.ack_pub = None
-        if self.step_topics:
-            self.ack_pub = self.create_publisher(Clock, topics.RECORDER_ACK, fqos.CONTROL)
         self.writer = writer
         self.namespace = namespace
         self.only = only
@@ -248,7 +225,7 @@ class Recorder(Node):
         offered = [p.qos_profile for p in pubs] or [offered_profile(name)]
         best_effort = any(p.reliability == ReliabilityPolicy.BEST_EFFORT for p in offered)
         try:
-            self.writer.add_topic(name, msgtype, tuple(to_bag_qos(p) for p in offered[:1]))
+            self.writer.add_topic(name, msgtype, tuple(fqos.bag_qos(p) for p in offered[:1]))
         except BagError as exc:
             self.get_logger().warning(f"{name}: {exc}; not recorded")
             self.subs[name] = None
@@ -321,12 +298,9 @@ class Recorder(Node):
                     if not context.ok():
                         break  # interrupted while waiting
                     raise
-                taken = 0
+
                 for ptr in wait_set.get_ready_entities("subscription"):
-                    taken += self._take_all(*by_pointer[ptr])
-                self.acknowledge()
-                if taken and self.ack_pub is not None:
-                    time.sleep(COALESCE_S)  # lockstep: let the rest of the step's burst arrive
+                    self._take_all(*by_pointer[ptr])
             else:
                 time.sleep(0.1)  # nothing to record yet: discovery below
             now = time.monotonic()
@@ -345,15 +319,6 @@ class Recorder(Node):
         if context.ok():
             self.drain()
 
-    def acknowledge(self) -> None:
-        """Publish the stamp up to which every per-step topic is in the bag (when it advanced)."""
-        if self.ack_pub is None or len(self.latest) < len(self.step_topics):
-            return
-        ack = min(self.latest[t] for t in self.step_topics)
-        if ack > self.ack_ns:
-            self.ack_ns = ack
-            self.ack_pub.publish(wire.clock_bytes(ack))
-
     def drain(self, limit: float = 1.0) -> None:
         """Take what the subscriptions hold now, until a pass finds nothing (at most ``limit`` s).
 
@@ -366,11 +331,11 @@ class Recorder(Node):
         """Take and write every queued message of one subscription; returns how many."""
         take = sub.handle.take_message
         received, seq, write = self.received, self.seq, self.writer.write
-        sim_time, latest = self.sim_log_time, self.latest
-        step_topic = name in self.step_topics
+        sim_time = self.sim_log_time
+        step_topic = name in self.step_topics and self.first_step_stamp is None
         # messages that start with a stamp (header or Clock); others (markers, funnels, /tf) are
         # logged at the latest simulation time seen
-        stamped = cls.__name__ in STAMPED_TYPES
+        stamped = ros_type_name(cls) in STAMPED_TYPES
         count = 0
         while (got := take(cls, True)) is not None:
             data, info = got
@@ -379,11 +344,8 @@ class Recorder(Node):
                 self.sim_now = max(self.sim_now, stamp)
             else:
                 stamp = self.sim_now
-            if step_topic:
-                if stamp > latest.get(name, -1):
-                    latest[name] = stamp
-                if self.first_step_stamp is None:
-                    self.first_step_stamp = stamp
+            if step_topic and self.first_step_stamp is None:
+                self.first_step_stamp = stamp
             count += 1
             n = received[name]
             received[name] = n + 1

@@ -29,7 +29,8 @@ from formation_agent.controller import LEVEL_NAMES, AgentController, ControlOutp
 from formation_bag import messages as m
 from formation_bag.commands import rerun_parser
 from formation_bag.dataset import RunData, apply_overrides, load_run, spec_from_document
-from formation_bag.errors import BagError, OverrideError
+from formation_bag.errors import OverrideError
+from formation_msgs_py.bag.errors import BagError
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import FormationSpec, agent_view

@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 
 from formation_bag import messages as m
-from formation_bag.dataset import KEY_FORMATION_FILE, KEY_FORMATION_YAML
-from formation_bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py import topics
+from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
+from formation_msgs_py.bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.report import RunRecorder
 from formation_sim.simulation import Measurements, Simulation

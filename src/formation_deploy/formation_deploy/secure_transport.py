@@ -32,6 +32,7 @@ from pathlib import Path
 from xml.sax.saxutils import escape
 
 from formation_deploy.keys import cert_path, init_keys, key_path, process_names
+from formation_msgs_py.faults import write_atomic
 from formation_msgs_py.transport_check import SECURE_FLAG
 
 #: Default first port of a multi-host secure run (one port per process above it).
@@ -172,8 +173,9 @@ def write_process_config(
             raise SecureTransportError(f"{needed}: missing (formation-keys init {keys} --formation FILE)")
     directory.mkdir(parents=True, exist_ok=True)
     # one file per process, replaced atomically: processes starting together never read a half-written one
-    profile = _write_atomic(directory / f"{name}.xml", profile_xml(peers[name], peers, keys, listen=listen))
-    conf = _write_atomic(directory / f"{name}.openssl.cnf", OPENSSL_CONF)
+    profile, conf = directory / f"{name}.xml", directory / f"{name}.openssl.cnf"
+    write_atomic(profile, profile_xml(peers[name], peers, keys, listen=listen).encode("utf-8"))
+    write_atomic(conf, OPENSSL_CONF.encode("utf-8"))
     return {
         SECURE_FLAG: "1",  # the nodes refuse to run if the profile did not apply (transport_check)
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
@@ -181,13 +183,6 @@ def write_process_config(
         "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile.resolve()),
         "OPENSSL_CONF": str(conf.resolve()),
     }
-
-
-def _write_atomic(path: Path, text: str) -> Path:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-    return path
 
 
 def secure_environment(base: Mapping[str, str], additions: Mapping[str, str]) -> dict[str, str]:

@@ -110,9 +110,11 @@ OPTIONS: tuple[Option, ...] = (
            forward=True),
     Option("--settle", "wall s to wait after discovery", frozenset({SIM}), nonnegative, 0.3),
     Option("--resend", "lockstep: re-send an unanswered step after [wall s]", frozenset({SIM}), positive, 0.25),
-    Option("--wait-recorder", "wait for a bag recorder (formation-record --formation FILE) before the first step; "
-           "in lockstep the recorder then takes part in every step (its acknowledgement), so the bag holds every "
-           "message", frozenset({SIM})),
+    Option("--bag", "lockstep: write the run's bag into DIR (must not exist) in this process: every message the "
+           "simulator publishes, every wrench and /diagnostics it receives, log time = simulation time (what "
+           "formation-launch does when it records a lockstep run)", frozenset({SIM}), Path),
+    Option("--wait-recorder", "wait until a bag recorder (formation-record --formation FILE) subscribes before the "
+           "first step (formation-launch: when it records a realtime run)", frozenset({SIM})),
     Option("--lag-budget", "realtime: stop INCOMPLETE (exit 4) when a tick lags more than this many wall s behind "
            "the wall clock", ROS, nonnegative, 1.0, forward=True),
     Option("--ground-truth-rate", "ground-truth publication rate [Hz, sim time] (default: the record rate, at "
@@ -130,9 +132,10 @@ OPTIONS: tuple[Option, ...] = (
            frozenset({LAUNCH}), Path),
     Option("--marker-rate", "display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off]; "
            "also the live parameter marker_rate", ROS, nonnegative, 30.0, forward=True),
-    Option("--record", "record a bag into OUT/bag with formation-record (default: on; --no-record to skip). While "
-           "recording, ground truth is published at every control step unless --ground-truth-rate is given, so "
-           "that formation-analyze OUT/bag reproduces the run's summary", frozenset({LAUNCH}), "bool", True),
+    Option("--record", "record a bag into OUT/bag (default: on; --no-record to skip): in lockstep the simulator "
+           "writes it (formation-sim --bag), in realtime formation-record. While recording, ground truth is published "
+           "at every control step unless --ground-truth-rate is given, so that formation-analyze OUT/bag reproduces "
+           "the run's summary", frozenset({LAUNCH}), "bool", True),
     Option("--netns", "private network namespace: auto = when more than 30 DDS participants", frozenset({LAUNCH}),
            str, "auto", ("auto", "on", "off")),
     Option("--allow-low-rate", "run even if the control rate is below what the velocity loop needs (warn)",
@@ -167,6 +170,7 @@ class RunOptions:
     discovery_timeout: float | None = None
     settle: float = 0.3
     resend: float = 0.25
+    bag: Path | None = None
     wait_recorder: bool = False
     lag_budget: float = 1.0
     ground_truth_rate: float | None = None

@@ -13,6 +13,11 @@ has a publisher other than the pinned one: rclpy 7.1.6 does not give the publish
 taken message (its message info holds timestamps and sequence numbers only), so the message of
 an intruder cannot be told from the expected one's and the topic as a whole is refused: a fail-safe
 (the formation sees a missing measurement or wrench) instead of a command from an outsider.
+
+An endpoint is nameless until its participant's ROS node information arrives; after
+:data:`NAME_GRACE` it is reported. If it then turns out to be the topic's one publisher with the
+expected node name, the report is withdrawn (kept under ``withdrawn``) and it is pinned: on a busy
+machine a name can take longer than the grace, and a refused simulator or agent would stop the run.
 """
 
 from __future__ import annotations
@@ -107,6 +112,8 @@ class PublisherWatch:
     pinned: dict[str, str] = field(default_factory=dict)
     intruders: dict[tuple[str, str], Intruder] = field(default_factory=dict)
     refused: dict[str, int] = field(default_factory=dict)
+    #: nameless sightings withdrawn: the topic's expected publisher, whose name came late
+    withdrawn: list[Intruder] = field(default_factory=list)
     _present: dict[str, set[str]] = field(default_factory=dict)
     _nameless_since: dict[tuple[str, str], float] = field(default_factory=dict)
 
@@ -138,6 +145,15 @@ class PublisherWatch:
                 known.last_seen = wall
                 if known.node != p.qualified_node and p.node != UNKNOWN_NODE:
                     known.node = p.qualified_node  # reported nameless; its name arrived since
+                    if pinned is None and p.qualified_node in exp.nodes and len(publishers) == 1:
+                        # the expected node, named after NAME_GRACE (a busy machine): it is the
+                        # topic's one publisher, as when pinned on time; the report keeps the sighting
+                        del self.intruders[key]
+                        late = wall - known.first_seen
+                        known.reason = f"the expected node, named {late:.3f} s after its first sighting"
+                        self.withdrawn.append(known)
+                        self.pinned[topic] = pinned = p.gid
+                        present.discard(p.gid)
                 continue
             first = wall
             if p.node == UNKNOWN_NODE:  # maybe the expected node, whose name has not arrived yet
@@ -184,6 +200,7 @@ class PublisherWatch:
             "intruders": [i.as_dict() for i in self.intruders.values()],
             "intruders_per_agent": per_agent,
             "refused_messages": dict(self.refused),
+            "withdrawn": [i.as_dict() for i in self.withdrawn],
         }
 
 

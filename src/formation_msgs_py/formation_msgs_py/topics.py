@@ -12,9 +12,6 @@ MARKERS = "formation/markers"  # visualization_msgs/MarkerArray for viewers; no 
 FUNNELS = "formation/funnels"  # std_msgs/Float64MultiArray: e, ψ and their bounds per edge, for plots
 TF = "/tf"  # tf2_msgs/TFMessage world -> agent_<id>, where tf2_msgs is installed
 DIAGNOSTICS = "/diagnostics"  # the ROS convention: one global diagnostics topic
-#: lockstep: the bag recorder's acknowledgement (rosgraph_msgs/Clock): every step up to this stamp
-#: is in the bag. Not recorded; the simulator does not advance more than one step past it.
-RECORDER_ACK = "formation/recorder_ack"
 WORLD_FRAME = "world"
 
 

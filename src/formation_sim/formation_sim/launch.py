@@ -1,17 +1,17 @@
 """``formation-launch FILE …`` (what ``ros2_ws/run.sh`` runs): a formation as ROS 2 processes.
 
 Validates the file (exit 2 before any process starts) and checks OUT (writable, room for the
-expected bag), then starts the simulator node, one agent process per agent and (by default) the
-bag recorder through :class:`formation_sim.supervisor.Supervisor`, in the DDS environment of
-:mod:`formation_sim.dds_env`. The simulator's progress is relayed from its log. The run stops on
-completion, Ctrl-C, SIGTERM, SIGHUP or the death of a process (in realtime an agent's death is
-reported and the run goes on: the simulator zeroes that agent's wrench); the death is named. In
-lockstep the recorder takes part in every step (``formation-sim --wait-recorder``), so the bag
-holds every message. After the last step, agents and recorder are stopped together while the
-simulator writes OUT (the recorder takes what it holds and closes the bag), then OUT/summary.json
-is completed with the verdict of the whole run: the simulator's, made INCOMPLETE when a process
-died, the run was interrupted, the bag misses messages in lockstep or was not closed cleanly, and
-with every agent's own fault counts
+expected bag), then starts the simulator node and one agent process per agent through
+:class:`formation_sim.supervisor.Supervisor`, in the DDS environment of :mod:`formation_sim.dds_env`.
+Recording (the default): in lockstep the simulator writes OUT/bag itself (``formation-sim --bag``:
+the recorder is part of the step, nothing crosses DDS twice); in realtime a ``formation-record``
+process records it, and the simulator waits for it before the first step. The simulator's progress
+is relayed from its log. The run stops on completion, Ctrl-C, SIGTERM, SIGHUP or the death of a
+process (in realtime an agent's death is reported and the run goes on: the simulator zeroes that
+agent's wrench); the death is named. After the last step, agents (and recorder) are stopped
+together while the simulator writes OUT, then OUT/summary.json is completed with the verdict of
+the whole run: the simulator's, made INCOMPLETE when a process died, the run was interrupted or
+the realtime bag was not closed cleanly, and with every agent's own fault counts
 (``faults_file``: resets, refused measurements, missing poses). ``OUT/logs/processes.json`` lists every
 process with its exit status, CPU time and peak memory.
 """
@@ -118,15 +118,16 @@ def build_parser() -> OptionParser:
         options.LAUNCH,
         "formation-launch",
         "Run a formation through ROS 2: the simulator node and one process per agent "
-        "(and, unless --no-record, a bag recorder). Writes OUT as docs/outputs.md with one log per process in "
+        "(unless --no-record, the simulator records the bag in lockstep, a recorder process in realtime). "
+        "Writes OUT as docs/outputs.md with one log per process in "
         "OUT/logs. " + EXIT_STATUS_HELP + ".",
     )
 
 
-def _sim_args(args: RunOptions, out: Path, spec: FormationSpec) -> list[str]:
+def _sim_args(args: RunOptions, out: Path, spec: FormationSpec, mode: str) -> list[str]:
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", *args.child_argv(options.SIM)]
     if args.record:
-        cmd.append("--wait-recorder")
+        cmd += ["--bag", str(out / "bag")] if mode == "lockstep" else ["--wait-recorder"]
         if args.ground_truth_rate is None:
             # the analysis checks the funnels at the recorded ground-truth samples: all of them
             cmd += ["--ground-truth-rate", repr(spec.simulation.control_rate)]
@@ -150,6 +151,8 @@ class Launcher:
         self.timing: dict[str, float] = {}
         #: children sent SIGINT after the last step (their exit is no death)
         self.interrupted: set[str] = set()
+        #: realtime recording: formation-record (in lockstep the simulator writes the bag)
+        self.recorder_process = args.record and self.mode == "realtime"
 
     def on_signal(self, signum: int, _frame: Any) -> None:
         if self.signalled is None:
@@ -158,7 +161,7 @@ class Launcher:
     def start_all(self) -> Child:
         spec, args = self.spec, self.args
         formation = str(args.file.resolve())
-        if args.record:
+        if self.recorder_process:
             self.sup.start(
                 "recorder",
                 "recorder",
@@ -178,7 +181,9 @@ class Launcher:
                 ],
             )
         sim = self.sup.start(
-            "sim", "sim", [sys.executable, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec)]
+            "sim",
+            "sim",
+            [sys.executable, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec, self.mode)],
         )
         self._follow = LogFollower(sim.log)
         # the agents' controller: compiled or interpreted (formation_agent.process), unless the environment says
@@ -248,7 +253,8 @@ class Launcher:
             c.signal(signal.SIGINT)
         self.interrupted = {c.name for c in others}
         if not self.args.quiet:
-            print("formation-launch: stepping done; stopping agents and recorder, closing the bag", flush=True)
+            what = "agents and recorder, closing the bag" if self.recorder_process else "agents"
+            print(f"formation-launch: stepping done; stopping {what}", flush=True)
 
     def note(self, text: str) -> None:
         print(f"formation-launch: {text}", file=sys.stderr, flush=True)
@@ -319,7 +325,12 @@ class Launcher:
             }
             if self.stop is None:
                 sim = next(c for c in self.sup.children if c.role == "sim")
-                self.stop = Incomplete(ExitCode.PROCESS_DIED, f"{sim.describe_exit()}: no summary written")
+                # a simulator that stopped INCOMPLETE (a full disk) or interrupted says so with its status
+                code = sim.returncode if sim.returncode in (ExitCode.INCOMPLETE, ExitCode.INTERRUPTED) else None
+                self.stop = Incomplete(
+                    ExitCode(code or ExitCode.PROCESS_DIED),
+                    f"{sim.describe_exit()}: no summary written" + _last_error(sim.log),
+                )
         merge_agent_faults(summary, self.out / "logs", self.spec.agent_ids)
         incomplete = self.stop
         if incomplete is None and self.agent_died:
@@ -327,11 +338,7 @@ class Launcher:
         recorder = self._recorder_counts()
         if recorder is not None:
             summary["recorder"] = recorder
-            if recorder["not_recorded"] and self.mode == "lockstep" and incomplete is None:
-                incomplete = Incomplete(
-                    ExitCode.INCOMPLETE, f"the bag misses {recorder['not_recorded']} published messages"
-                )
-            elif recorder["not_recorded"]:  # realtime: the recorder may fall behind, by dropping with a count
+            if recorder["not_recorded"]:  # realtime: the recorder may fall behind, by dropping with a count
                 self.note(f"the recorder fell behind: {recorder['not_recorded']} published messages are not in the bag")
         if incomplete is not None:
             result = decide(summary.get("first_violation") is not None, incomplete)
@@ -358,7 +365,8 @@ class Launcher:
         return summary
 
     def _recorder_counts(self) -> dict[str, Any] | None:
-        if not self.args.record:
+        """The realtime recorder's counts (a lockstep run's bag is the simulator's: its summary has them)."""
+        if not self.recorder_process:
             return None
         try:
             counts = json.loads((self.out / "logs" / "recorder_counts.json").read_text(encoding="utf-8"))
@@ -410,7 +418,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return ExitCode.INVALID
-    participants = len(spec.agents) + 1 + int(args.record)
+    participants = len(spec.agents) + 1 + int(args.record and mode == "realtime")
     want_netns = args.netns == "on" or (args.netns == "auto" and participants > dds_env.NETNS_THRESHOLD)
     if not dds_env.in_netns() and want_netns:
         reason = dds_env.netns_available()
@@ -447,7 +455,8 @@ def main(argv: list[str] | None = None) -> int:
     transport = f"secure: TLS over TCP ports {secure.describe()['ports']}" if secure else None
     print(
         f"formation-launch: {spec.name}: simulator + {len(spec.agents)} agent processes"
-        f"{' + recorder' if args.record else ''}, {mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
+        f"{' + recorder' if args.record and mode == 'realtime' else ''}, "
+        f"{mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
         f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, "
         f"{transport or 'discovery ' + env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
         f"{' in a private network namespace' if dds_env.in_netns() else ''}; logs in {out / 'logs'}/",

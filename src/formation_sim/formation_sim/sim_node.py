@@ -6,12 +6,10 @@ returns (relative poses of the tree pairs within sensing radius, noisy body twis
 and the ground truth, and collects every agent's wrench. When to advance is decided by the
 ROS-free policy of :mod:`formation_sim.stepping`; this module is the thin node around it.
 
-- **lockstep**: waits for every agent's WrenchStamped whose stamp equals step k's (integer ns)
-  and, with ``--wait-recorder``, for the bag recorder's acknowledgement (``formation/recorder_ack``:
-  the recorder is a participant of the step, at most one step behind, none at the last step), then
-  ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps not
+- **lockstep**: waits for every agent's WrenchStamped whose stamp equals step k's (integer ns),
+  then ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps not
   answered within ``--resend`` wall seconds are published again to the missing agents; an agent
-  or recorder silent for ``simulation.step_timeout`` wall seconds is named: INCOMPLETE, exit 3.
+  silent for ``simulation.step_timeout`` wall seconds is named: INCOMPLETE, exit 3.
 - **realtime**: ticks at the control rate on the wall clock; each tick integrates the previous
   period with the latest wrench of each agent held (zero-order hold), then publishes the new
   measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by
@@ -25,6 +23,12 @@ the record rate, at most the control rate; ``/clock`` at most 10 Hz in realtime)
 outputs (docs/outputs.md) go to ``--out``, also when the run is interrupted (SIGINT/SIGTERM:
 summary and trajectory, no figures, so that the stop is fast). The node never needs its stdout
 to finish.
+
+``--bag DIR`` (what formation-launch gives a recorded lockstep run): the simulator is the run's
+recorder (:mod:`formation_sim.run_bag`). Every publisher the node creates writes what it sends
+into the bag, the wrench and /diagnostics subscriptions what they receive; a bag I/O error ends
+the run INCOMPLETE (exit 4). ``--wait-recorder``: wait before the first step until a recorder
+(``formation-record --formation FILE``) subscribes to the ground truth.
 """
 
 from __future__ import annotations
@@ -34,19 +38,24 @@ import struct
 import sys
 import threading
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
+from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
-from formation_msgs_py import conversions, qos, topics, wire
+from formation_msgs_py import conversions, qos, topics
+from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, ros_type_name
+from formation_msgs_py.bag.errors import BagError
 from formation_msgs_py.faults import FaultLog
 from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.options import RunOptions
@@ -60,6 +69,7 @@ from formation_sim.deployment import Timing
 from formation_sim.display import DisplayPublisher, declare_simulator_parameters
 from formation_sim.preflight import Prepared
 from formation_sim.report import RunRecorder, format_summary, write_outputs
+from formation_sim.run_bag import RunBag
 from formation_sim.simulation import Measurements, Simulation
 from formation_sim.stepping import (
     NS,
@@ -88,19 +98,40 @@ class RunStoppedError(Exception):
         self.incomplete = incomplete
 
 
+class RecordedPublisher:
+    """An rclpy publisher that also writes every message it sends into the run's bag (the bytes sent)."""
+
+    def __init__(self, publisher: Any, bag: RunBag) -> None:
+        self.publisher = publisher
+        self.bag = bag
+        self.topic = publisher.topic_name
+
+    def publish(self, msg: Any) -> None:
+        self.publisher.publish(msg)
+        if isinstance(msg, bytes):
+            self.bag.write(self.topic, msg)
+        else:  # a message object (the display topics): serialised here, with its padding zeroed
+            self.bag.write(self.topic, self.bag.zero_padded(self.topic, serialize_message(msg)))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.publisher, name)
+
+
 class SimNode(Node):
     """Publishers and subscriptions of the simulator; the stepping loops are :class:`Runner`'s."""
 
     display: DisplayPublisher | None = None
+    bag: RunBag | None = None  # a class attribute: Node.__init__ creates a publisher already
 
     def __init__(
         self,
         spec: FormationSpec,
         measurement_qos: str = "reliable",
         intruder_policy: str = "report",
-        recorder: bool = False,
+        bag: RunBag | None = None,
     ) -> None:
         super().__init__(topics.SIM_NODE_NAME)
+        self.bag = bag
         meas_qos = qos.measurements(measurement_qos)
         self.spec = spec
         self.ids = spec.agent_ids
@@ -143,13 +174,29 @@ class SimNode(Node):
             PublisherWatch(expected_publishers(self.ids, self.links), intruder_policy),  # type: ignore[arg-type]
             on_intruder=lambda intruder: print(f"formation-sim: {describe(intruder)}", flush=True),
         )
-        self.ack_ns = -1
-        self.ack_sub = None
-        if recorder:
-            self.ack_sub = self.create_subscription(Clock, topics.RECORDER_ACK, self._on_ack, qos.CONTROL, raw=True)
+        if bag is not None:  # what the simulator receives goes into the bag as received
+            for name in self.wrench_topics:
+                bag.add_topic(name, ros_type_name(WrenchStamped), qos.bag_qos(qos.CONTROL), published=False)
+            diagnostics = ros_type_name(DiagnosticArray)
+            bag.add_topic(topics.DIAGNOSTICS, diagnostics, qos.bag_qos(qos.DIAGNOSTICS), published=False)
+            self.diagnostics_sub = self.create_subscription(
+                DiagnosticArray, topics.DIAGNOSTICS, partial(bag.write, topics.DIAGNOSTICS), qos.DIAGNOSTICS, raw=True
+            )
+
+    def create_publisher(self, msg_type: Any, topic: str, qos_profile: Any, **kwargs: Any) -> Any:
+        """rclpy's publisher; with a bag, one that also writes what it sends (display topics included)."""
+        publisher = super().create_publisher(msg_type, topic, qos_profile, **kwargs)
+        if self.bag is None:
+            return publisher
+        self.bag.add_topic(
+            publisher.topic_name, ros_type_name(msg_type), qos.bag_qos(publisher.qos_profile), published=True
+        )
+        return RecordedPublisher(publisher, self.bag)
 
     def accept_wrench(self, i: int, data: bytes) -> None:
         """Every wrench agent i publishes comes here (the one place wrenches are accepted)."""
+        if self.bag is not None:
+            self.bag.write(self.wrench_topics[i], data)
         if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
             return
         self.received += 1
@@ -174,9 +221,6 @@ class SimNode(Node):
             sent = self.pub_wall.get(ns)
             if sent is not None:
                 self.timing.latencies.append(time.monotonic() - sent)
-
-    def _on_ack(self, data: bytes) -> None:
-        self.ack_ns = max(self.ack_ns, wire.stamp_of(data))
 
     # publishing ------------------------------------------------------------------------------
     def publish_step(self, meas: Measurements, ns: int, only: list[int] | None = None) -> None:
@@ -212,9 +256,8 @@ class SimNode(Node):
         return out
 
     def recorder_matched(self) -> bool:
-        """A recorder subscribes to the ground truth (and, in lockstep, acknowledges steps)."""
-        ack = self.ack_sub is None or self.ack_sub.get_publisher_count() > 0
-        return ack and self.gt_pub.get_subscription_count() > 0
+        """A recorder subscribes to the ground truth (formation-record subscribes to it last)."""
+        return self.gt_pub.get_subscription_count() > 0
 
 
 class Runner:
@@ -329,8 +372,6 @@ class Runner:
             node.ids,
             step_timeout=self.spec.simulation.step_timeout,
             resend=self.args.resend,
-            recorder=node.ack_sub is not None,
-            period_ns=self.stamp_ns(1),
         )
         self.started = mono()
         for k in range(self.n_steps + 1):
@@ -350,11 +391,10 @@ class Runner:
             rec.add(meas.t, s.p, s.R, s.v, None, margin_v)
             self.shadow.note_errors(meas.t, outputs, rec)
             while True:
-                wait.on_ack(node.ack_ns)
-                if wait.done(node.wrenches, final):
+                if wait.done(node.wrenches):
                     break
                 now = mono()
-                late = wait.poll(node.wrenches, now, final)
+                late = wait.poll(node.wrenches, now)
                 if late:
                     node.publish_step(meas, ns, only=late)
                     timing.resends += 1
@@ -366,6 +406,8 @@ class Runner:
             timing.expected += 1
             u = np.array(node.wrenches.value)
             rec.set_inputs(u)
+            if node.bag is not None and node.bag.failed:
+                raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, node.bag.failed))
             if final:
                 break
             self.advance(u)
@@ -462,7 +504,6 @@ class Runner:
             "clock_rate": s.control_rate / self.clock_every,
             "ground_truth_rate": s.control_rate / self.gt_every,
             "velocity_margins": "shadow controllers on the published measurements",
-            "recorder_in_step": self.node.ack_sub is not None,
         }
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
         refused = self.node.wrench_check.report()
@@ -471,6 +512,19 @@ class Runner:
         info["security"] = self.node.watch.watch.report()
         info.update(extra)
         return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)
+
+
+def bag_custom_data(spec: FormationSpec, args: RunOptions) -> dict[str, str]:
+    """custom_data of the run's bag: the formation file and the run's effective settings, as
+    formation-record --formation FILE --meta mode=… control_rate=… duration=… stores them."""
+    s = spec.simulation
+    return {
+        "mode": args.mode or s.mode,
+        "control_rate": repr(s.control_rate),
+        "duration": repr(s.duration),
+        KEY_FORMATION_YAML: args.file.read_text(encoding="utf-8"),
+        KEY_FORMATION_FILE: args.file.name,
+    }
 
 
 def _interrupted(runner: Runner | None) -> Incomplete:
@@ -492,18 +546,20 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         f"(physics {s.physics_rate:g} Hz), {s.duration:g} s; outputs in {out}/",
         flush=True,
     )
+    bag = None
+    if args.bag is not None:
+        try:
+            bag = RunBag(args.bag, bag_custom_data(spec, args))
+        except (BagError, OSError) as exc:
+            print(f"formation-sim: {exc}", file=sys.stderr, flush=True)
+            return ExitCode.INVALID
     rclpy.init(args=raw)
     node = runner = None
     incomplete: Incomplete | None = None
     insecure = False
     extra: dict[str, Any] = {}
     try:
-        node = SimNode(
-            spec,
-            args.measurement_qos,
-            args.intruder_policy,
-            recorder=args.wait_recorder and args.mode == "lockstep",
-        )
+        node = SimNode(spec, args.measurement_qos, args.intruder_policy, bag)
         check_secure_transport()
         node.display = declare_simulator_parameters(node, spec, args)
         executor = EventsExecutor(context=node.context)
@@ -546,6 +602,11 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             rclpy.try_shutdown()
         except RCLError:
             pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
+        if bag is not None:
+            extra["recorder"] = bag.close()
+            if bag.failed is not None and incomplete is None:
+                print(f"formation-sim: ERROR: {bag.failed}", file=sys.stderr, flush=True)
+                incomplete = Incomplete(ExitCode.INCOMPLETE, bag.failed)
     try:
         if insecure:
             return ExitCode.INVALID

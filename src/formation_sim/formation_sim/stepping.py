@@ -1,10 +1,8 @@
 """The simulator's stepping policy, without ROS (docs/ros2.md, "Modes").
 
 - :class:`LockstepWait`: who must answer step k before the world advances: every agent (its
-  wrench stamped k) and, when a recorder takes part, the recorder (its acknowledgement that
-  the bag holds the step, at most ``recorder_window`` steps behind). Resends an unanswered step
-  to the agents that have not answered after ``resend`` wall seconds; gives up after
-  ``step_timeout`` and names who stopped answering.
+  wrench stamped k). Resends an unanswered step to the agents that have not answered after
+  ``resend`` wall seconds; gives up after ``step_timeout`` and names who stopped answering.
 - :class:`CommandHold`: realtime zero-order hold of each agent's latest wrench, replaced by zero
   once older than ``command_timeout`` (sim time); every tick without the agent's answer to the
   previous step is a counted fault (a held, stale command or a zeroed wrench).
@@ -23,11 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 NS = 1_000_000_000
-RECORDER = "recorder"
 
 
 class ParticipantMissingError(RuntimeError):
-    """An agent or the recorder did not answer a lockstep step within the step timeout."""
+    """An agent was not matched, or did not answer a lockstep step within the step timeout."""
 
     def __init__(self, names: list[str], message: str) -> None:
         super().__init__(message)
@@ -67,10 +64,6 @@ class LockstepWait:
     ids: tuple[str, ...]
     step_timeout: float
     resend: float
-    recorder: bool = False
-    recorder_window: int = 1
-    period_ns: int = 1
-    ack_ns: int = -1
     resends: list[int] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -85,31 +78,21 @@ class LockstepWait:
         self.sent = now
         self.next_resend = now + self.resend
 
-    def on_ack(self, ns: int) -> None:
-        self.ack_ns = max(self.ack_ns, ns)
-
-    def recorder_behind(self, final: bool = False) -> bool:
-        """True while the recorder lags more than its window (none at the final step)."""
-        if not self.recorder:
-            return False
-        window = 0 if final else self.recorder_window
-        return self.ack_ns < self.ns - window * self.period_ns
-
     def late_agents(self, wrenches: WrenchBook) -> list[int]:
         return [i for i, s in enumerate(wrenches.stamp) if s != self.ns]
 
-    def done(self, wrenches: WrenchBook, final: bool = False) -> bool:
-        return not self.recorder_behind(final) and all(s == self.ns for s in wrenches.stamp)
+    def done(self, wrenches: WrenchBook) -> bool:
+        return all(s == self.ns for s in wrenches.stamp)
 
-    def poll(self, wrenches: WrenchBook, now: float, final: bool = False) -> list[int]:
+    def poll(self, wrenches: WrenchBook, now: float) -> list[int]:
         """Agents to send the step again now (empty: keep waiting until :meth:`wake_at`).
 
         Raises ParticipantMissingError once the step timeout has passed.
         """
         late = self.late_agents(wrenches)
         if now >= self.sent + self.step_timeout:
-            names = [self.ids[i] for i in late] + ([RECORDER] if self.recorder_behind(final) else [])
-            who = ", ".join(f"agent {n}" if n != RECORDER else "the bag recorder" for n in names)
+            names = [self.ids[i] for i in late]
+            who = ", ".join(f"agent {n}" for n in names)
             raise ParticipantMissingError(
                 names,
                 f"lockstep: no answer from {who} for the step at t={self.ns / NS:.6f} s within "

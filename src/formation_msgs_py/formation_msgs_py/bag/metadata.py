@@ -1,5 +1,5 @@
 """metadata.yaml of a rosbag2 bag (version 9, as Jazzy writes it), without ROS: shared by the
-writer, the reader (which rebuilds it for a bag left without one) and nothing else.
+writer and formation_bag's reader (which rebuilds it for a bag left without one).
 
 Emitted with PyYAML's libyaml dumper: rosbags' own (ruamel.yaml) takes ~30 ms per topic, which
 would stall a recorder at every segment.
@@ -15,7 +15,10 @@ from rosbags.interfaces import Qos
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import dump_qos_v9
 
-STORAGES = {"mcap": (StoragePlugin.MCAP, ".mcap"), "sqlite3": (StoragePlugin.SQLITE3, ".db3")}
+from formation_msgs_py.bag import STORAGE_NAMES
+
+#: storage name -> (rosbags plugin, file suffix)
+STORAGES = dict(zip(STORAGE_NAMES, ((StoragePlugin.MCAP, ".mcap"), (StoragePlugin.SQLITE3, ".db3")), strict=True))
 METADATA_VERSION = 9
 ROS_DISTRO = "jazzy"
 _DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)

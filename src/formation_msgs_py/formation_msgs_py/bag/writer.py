@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 import shutil
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -42,11 +43,11 @@ from rosbags.interfaces import (
 )
 from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.errors import WriterError
+from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from formation_bag.errors import BagExistsError, BagWriterError
-from formation_bag.messages import typestore
-from formation_bag.metadata import METADATA_VERSION, STORAGES, SegmentInfo, metadata_yaml, qos_yaml
+from formation_msgs_py.bag.errors import BagExistsError, BagWriterError
+from formation_msgs_py.bag.metadata import METADATA_VERSION, STORAGES, SegmentInfo, metadata_yaml, qos_yaml
 
 #: rmw's "infinite" duration, as Jazzy writes it in metadata.yaml
 INFINITE = QosTime(sec=9223372036, nsec=854775807)
@@ -55,6 +56,12 @@ ZERO = QosTime(sec=0, nsec=0)
 #: bytes of MCAP record and message index per message beyond its payload (the paper's default run:
 #: a 142 890 890 B file for 97 358 996 B of payload in 965 765 messages, 47.1 B each)
 MESSAGE_OVERHEAD = 48
+
+
+@cache
+def typestore() -> Typestore:
+    """The ROS 2 Jazzy typestore (shared, built once)."""
+    return get_typestore(Stores.ROS2_JAZZY)
 
 
 def make_qos(*, depth: int = 10, reliable: bool = True, transient_local: bool = False, keep_all: bool = False) -> Qos:
@@ -77,7 +84,7 @@ class _SegmentFileWriter(Writer):
 
     rosbags dumps the QoS of every connection and the file metadata with ruamel.yaml, ~30 ms per
     topic: a recorder would stall for a second at every segment. Connections and the embedded
-    metadata are the same records, emitted by :mod:`formation_bag.metadata` (libyaml).
+    metadata are the same records, emitted by :mod:`formation_msgs_py.bag.metadata` (libyaml).
     """
 
     def add_topic_fast(self, topic: str, msgtype: str, msgdef: str, rihs01: str, qos: list[Qos]) -> Connection:

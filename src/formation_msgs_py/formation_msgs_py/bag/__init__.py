@@ -1,0 +1,33 @@
+"""Writing standard ROS 2 bags without ROS (rosbags), shared by the simulator and formation_bag.
+
+:mod:`writer` (the segmented rosbag2 writer and the ROS 2 Jazzy typestore), :mod:`metadata`
+(metadata.yaml, version 9), :mod:`errors`. The simulator writes a lockstep run's bag itself with
+it (formation_sim.run_bag); formation_bag records, reads and analyses bags with it. This module
+imports nothing heavy: the command-line parsers read the names below.
+"""
+
+#: storage plugins, by the name the command lines take (metadata.STORAGES maps them to rosbags')
+STORAGE_NAMES = ("mcap", "sqlite3")
+#: custom_data keys of a run's bag: the formation file's text and name (analysis needs no other input)
+KEY_FORMATION_YAML = "formation_yaml"
+KEY_FORMATION_FILE = "formation_file"
+#: default segment size [MiB]: a killed writer loses at most the open segment
+SEGMENT_MB = 100.0
+#: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time): their log
+#: time in simulation time is that stamp; other types (markers, funnel values, /tf) take the latest one
+STAMPED_TYPES = frozenset(
+    f"{pkg}/msg/{name}"
+    for pkg, name in (
+        ("geometry_msgs", "TwistStamped"),
+        ("geometry_msgs", "WrenchStamped"),
+        ("geometry_msgs", "TransformStamped"),
+        ("geometry_msgs", "PoseArray"),
+        ("rosgraph_msgs", "Clock"),
+        ("diagnostic_msgs", "DiagnosticArray"),
+    )
+)
+
+
+def ros_type_name(msg_class: type) -> str:
+    """``pkg/msg/Name`` of a generated ROS 2 message class (``geometry_msgs.msg.TwistStamped``)."""
+    return f"{msg_class.__module__.split('.')[0]}/msg/{msg_class.__name__}"

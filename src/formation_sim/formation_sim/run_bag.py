@@ -1,0 +1,120 @@
+"""A lockstep run's bag, written by the simulator itself (no ROS import).
+
+In lockstep the recorder is part of the step (docs/bags.md), so the simulator is the recorder:
+every message it publishes is written as the CDR bytes it sent, and every wrench and
+/diagnostics message it receives as the bytes it received (accepted or refused), with log time =
+simulation time. No second copy of any message crosses DDS and nothing needs acknowledging; a
+message cannot be lost between publication and bag. The bag is what ``formation-record
+--formation FILE`` leaves (segmented, metadata.yaml version 9, the formation file and the run's
+settings in custom_data, ``recorder_counts``), so every bag tool reads both alike.
+
+A write or close that fails (disk full, I/O error) stops the writing: :attr:`RunBag.failed` says
+why and the simulator ends the run INCOMPLETE; the messages it could not write are counted.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+from typing import Any
+
+from formation_msgs_py.bag import SEGMENT_MB, STAMPED_TYPES
+from formation_msgs_py.bag.errors import BagError
+from formation_msgs_py.bag.writer import SegmentedBagWriter
+from formation_msgs_py.wire import stamp_of
+
+MIB = 1024 * 1024
+
+
+class RunBag:
+    """The bag at ``path`` (must not exist); topics are added before their first message."""
+
+    def __init__(self, path: Path, custom_data: dict[str, str], *, segment_mb: float = SEGMENT_MB) -> None:
+        self.path = path
+        self.writer = SegmentedBagWriter(
+            path, segment_seconds=None, segment_bytes=round(segment_mb * MIB), custom_data=custom_data
+        )
+        #: log time [ns] of messages without a stamp of their own (markers, funnels, /tf) and of
+        #: malformed ones: the latest stamp the simulator published (the step being published)
+        self.now_ns = 0
+        self.written: dict[str, int] = {}
+        self.own: set[str] = set()  # topics the simulator publishes (the others it receives)
+        self.types: dict[str, str] = {}
+        self.stamped: dict[str, bool] = {}
+        self.not_written: dict[str, int] = {}
+        self.failed: str | None = None
+
+    def add_topic(self, name: str, msgtype: str, qos: Any, *, published: bool) -> None:
+        """Register a topic (absolute name, ``pkg/msg/Name``, rosbags Qos); ``published``: by the simulator."""
+        self.writer.add_topic(name, msgtype, (qos,))
+        self.written[name] = 0
+        self.types[name] = msgtype
+        self.stamped[name] = msgtype in STAMPED_TYPES
+        if published:
+            self.own.add(name)
+
+    def write(self, topic: str, data: bytes | memoryview) -> None:
+        """One message as sent or received; log time: its stamp, else :attr:`now_ns`."""
+        ns = self.now_ns
+        if self.stamped[topic]:
+            try:
+                ns = stamp_of(data)
+            except struct.error:
+                pass  # a malformed message (refused by the node) is kept as received
+            else:
+                if topic in self.own and ns > self.now_ns:
+                    self.now_ns = ns  # not a received stamp: a bad wrench may claim any time
+        if self.failed is None:
+            try:
+                self.writer.write(topic, ns, data)
+            except (OSError, BagError) as exc:
+                self.failed = f"I/O error writing the bag {self.path}: {exc}"
+            else:
+                self.written[topic] += 1
+                return
+        self.not_written[topic] = self.not_written.get(topic, 0) + 1
+
+    def zero_padded(self, topic: str, data: bytes) -> bytes:
+        """The same message with its CDR alignment padding zeroed.
+
+        rclpy's ``serialize_message`` leaves the padding uninitialised (the simulator publishes its
+        display messages as objects), so a bag would differ from run to run and carry stray memory;
+        rosbags re-serialises with zeros, and rclpy's trailing padding (to 4 bytes) is kept as zeros.
+        ~2 ms for the paper's MarkerArray, published at 30 Hz of simulated time.
+        """
+        store, msgtype = self.writer.store, self.types[topic]
+        clean = bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype))
+        return clean + bytes(len(data) - len(clean))
+
+    def counts(self) -> dict[str, Any]:
+        """What formation-record stores as ``recorder_counts``: per topic received, written and, for the
+        simulator's own topics, published (every publication is written: lossless by construction)."""
+        published = {t: (n + self.not_written.get(t, 0) if t in self.own else None) for t, n in self.written.items()}
+        return {
+            "received": {t: n + self.not_written.get(t, 0) for t, n in self.written.items()},
+            "written": dict(self.written),
+            "published_seen": published,
+            "published_total": published,
+            "decimate": {},
+            "log_time": "sim",
+            "missed_start": None,
+            "writer": "simulator",
+        }
+
+    def close(self) -> dict[str, Any]:
+        """Close the bag with its counts in custom_data; the run summary's ``recorder`` entry."""
+        counts = self.counts()
+        self.writer.custom_data["recorder_counts"] = json.dumps(counts, sort_keys=True)
+        try:
+            self.writer.close()
+        except (OSError, BagError) as exc:
+            self.failed = self.failed or f"I/O error closing the bag {self.path}: {exc}"
+        return {
+            "received": sum(counts["received"].values()),
+            "written": sum(self.written.values()),
+            "not_recorded": sum(self.not_written.values()),
+            "not_recorded_by_topic": dict(self.not_written),
+            "missed_start": None,
+            "writer": "simulator",
+        }

@@ -1,0 +1,109 @@
+"""The simulator's own bag (formation_sim.run_bag), without ROS: log times, counts, an I/O error."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from rosbags.rosbag2 import Reader
+
+from formation_msgs_py import wire
+from formation_msgs_py.bag.writer import make_qos
+from formation_sim.run_bag import RunBag
+
+CLOCK, WRENCH, FUNNELS = "/clock", "/agent_1/wrench", "/formation/funnels"
+STEP_NS = 100_000  # 10 kHz
+
+
+def _bag(path: Path) -> RunBag:
+    bag = RunBag(path, {"mode": "lockstep", "formation_file": "f.yaml"})
+    bag.add_topic(CLOCK, "rosgraph_msgs/msg/Clock", make_qos(depth=1), published=True)
+    bag.add_topic(WRENCH, "geometry_msgs/msg/WrenchStamped", make_qos(), published=False)
+    bag.add_topic(FUNNELS, "std_msgs/msg/Float64MultiArray", make_qos(), published=True)
+    return bag
+
+
+def _log_times(path: Path) -> dict[str, list[int]]:
+    """Log times per topic, in the order the reader returns them (by log time)."""
+    out: dict[str, list[int]] = {}
+    with Reader(path) as reader:
+        for conn, t, _ in reader.messages():
+            out.setdefault(conn.topic, []).append(t)
+    return out
+
+
+def test_log_time_is_simulation_time(tmp_path: Path) -> None:
+    """Stamped messages are logged at their stamp; unstamped ones (funnels) and malformed ones at the
+    latest stamp the simulator itself published, never at a stamp an agent claimed."""
+    bag = _bag(tmp_path / "bag")
+    codec = wire.wrench_codec("1")
+    for k in range(3):
+        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+        bag.write(FUNNELS, b"\x00\x01\x00\x00" + bytes(12))  # contents are not read
+        bag.write(WRENCH, codec.encode(k * STEP_NS, [float(k)] * 6))
+    bag.write(WRENCH, codec.encode(10**12, [0.0] * 6))  # from the future: refused by the node, kept here
+    bag.write(WRENCH, b"\x00\x01")  # malformed
+    bag.write(FUNNELS, b"\x00\x01\x00\x00" + bytes(12))
+    counts = bag.close()
+    assert bag.failed is None
+    assert counts == {
+        "received": 12,
+        "written": 12,
+        "not_recorded": 0,
+        "not_recorded_by_topic": {},
+        "missed_start": None,
+        "writer": "simulator",
+    }
+    times = _log_times(tmp_path / "bag")
+    assert times[CLOCK] == [0, STEP_NS, 2 * STEP_NS]
+    assert times[FUNNELS] == [0, STEP_NS, 2 * STEP_NS, 2 * STEP_NS]
+    assert times[WRENCH] == [0, STEP_NS, 2 * STEP_NS, 2 * STEP_NS, 10**12]  # read back in log-time order
+    custom = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    custom = custom["custom_data"]
+    assert custom["mode"] == "lockstep" and custom["formation_file"] == "f.yaml"
+    stored = json.loads(custom["recorder_counts"])
+    assert stored["written"] == {CLOCK: 3, WRENCH: 5, FUNNELS: 4}
+    # the simulator's own topics: every publication written; received ones: publisher unknown here
+    assert stored["published_total"] == {CLOCK: 3, WRENCH: None, FUNNELS: 4}
+    assert stored["log_time"] == "sim"
+
+
+def test_a_failed_write_stops_the_bag_and_counts_what_is_lost(tmp_path: Path) -> None:
+    """A write that fails (here: to a closed writer) names the bag; later messages are counted, not written."""
+    bag = _bag(tmp_path / "bag")
+    bag.write(CLOCK, wire.clock_bytes(0))
+    bag.writer.close()
+    bag.write(CLOCK, wire.clock_bytes(STEP_NS))
+    bag.write(WRENCH, wire.wrench_codec("1").encode(STEP_NS, [0.0] * 6))
+    assert bag.failed is not None and str(tmp_path / "bag") in bag.failed and "closed" in bag.failed
+    counts = bag.close()
+    assert counts["written"] == 1 and counts["not_recorded"] == 2
+    assert counts["not_recorded_by_topic"] == {CLOCK: 1, WRENCH: 1}
+
+
+def test_an_existing_bag_is_not_overwritten(tmp_path: Path) -> None:
+    (tmp_path / "bag").mkdir()
+    with pytest.raises(FileExistsError, match="exists already"):
+        RunBag(tmp_path / "bag", {})
+
+
+def test_display_messages_are_stored_with_zeroed_padding(tmp_path: Path) -> None:
+    """rclpy's serialize_message leaves CDR alignment padding uninitialised: the bag gets the same
+    values with zeros there (deterministic bytes), and rclpy's trailing padding as zeros."""
+    bag = _bag(tmp_path / "bag")
+    store = bag.writer.store
+    t = store.types
+    msg = t["std_msgs/msg/Float64MultiArray"](
+        layout=t["std_msgs/msg/MultiArrayLayout"](
+            dim=[t["std_msgs/msg/MultiArrayDimension"](label="ab", size=2, stride=2)], data_offset=0
+        ),
+        data=np.array([1.5, -2.0]),
+    )
+    clean = bytes(store.serialize_cdr(msg, "std_msgs/msg/Float64MultiArray"))
+    pad = clean.index(b"ab\x00") + 3  # one byte of padding before the uint32 size
+    dirty = clean[:pad] + b"\x7f" + clean[pad + 1 :] + b"\x55\x55\x55"
+    assert bag.zero_padded(FUNNELS, dirty) == clean + bytes(3)
+    bag.close()

@@ -218,7 +218,7 @@ def wrench(t_since_start, e_v, gains, start, out):
 def limit_wrench(out, max_force, max_torque):
     """Scale the force and the torque in ``out`` down to their norms' limits, keeping directions."""
     for lo, limit in ((U, max_force), (U + 3, max_torque)):
-        norm = np.sqrt(out[lo] ** 2 + out[lo + 1] ** 2 + out[lo + 2] ** 2)
+        norm = np.sqrt(out[lo] * out[lo] + out[lo + 1] * out[lo + 1] + out[lo + 2] * out[lo + 2])
         if norm > limit:
             for c in range(lo, lo + 3):
                 out[c] = out[c] * limit / norm

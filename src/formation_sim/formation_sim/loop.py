@@ -190,8 +190,8 @@ def check_step(watch, buf, n, t, p, R, out):
             m_v = min(m_v, out[i, MARGIN_V + ch])
         c.min_margin_v[i] = min(c.min_margin_v[i], m_v)
         outside = outside or m_v <= 0
-        force = np.sqrt(out[i, U] ** 2 + out[i, U + 1] ** 2 + out[i, U + 2] ** 2)
-        torque = np.sqrt(out[i, U + 3] ** 2 + out[i, U + 4] ** 2 + out[i, U + 5] ** 2)
+        force = np.sqrt(out[i, U] * out[i, U] + out[i, U + 1] * out[i, U + 1] + out[i, U + 2] * out[i, U + 2])
+        torque = np.sqrt(out[i, U + 3] * out[i, U + 3] + out[i, U + 4] * out[i, U + 4] + out[i, U + 5] * out[i, U + 5])
         c.peak_force[i] = max(c.peak_force[i], force)
         c.peak_torque[i] = max(c.peak_torque[i], torque)
     return outside

@@ -77,7 +77,7 @@ def measure_end(p, R, sens, noise, k, p_rel, R_rel):
     for x in range(3):
         p_rel[x] = p_i_j_in_i[x]
     set3x3(R_rel, R_i_j)
-    return d_world[0] ** 2 + d_world[1] ** 2 + d_world[2] ** 2 <= sens.radius2[k]
+    return d_world[0] * d_world[0] + d_world[1] * d_world[1] + d_world[2] * d_world[2] <= sens.radius2[k]
 
 
 @kernel

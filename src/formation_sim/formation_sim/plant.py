@@ -91,7 +91,7 @@ def saturate_into(u, plant, out):
         for c in range(6):
             out[i, c] = u[i, c]
         for lo, limit in ((0, plant.max_force[i]), (3, plant.max_torque[i])):
-            norm2 = u[i, lo] ** 2 + u[i, lo + 1] ** 2 + u[i, lo + 2] ** 2
+            norm2 = u[i, lo] * u[i, lo] + u[i, lo + 1] * u[i, lo + 1] + u[i, lo + 2] * u[i, lo + 2]
             if norm2 > limit * limit:
                 scale = limit / np.sqrt(norm2)
                 for c in range(lo, lo + 3):

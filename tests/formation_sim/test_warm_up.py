@@ -1,0 +1,79 @@
+"""The simulator compiles (or loads) its kernels when it is built, before discovery, not inside
+lockstep step 0 (on a cold numba cache that took longer than the step timeout), and the warm-up
+has no side effect on the run (noise stream, state, the agents' funnel start)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from formation_msgs_py.spec import load_formation, simulator_view
+from formation_sim.simulation import Simulation
+from formation_sim.team import AgentTeam
+
+REPO = Path(__file__).resolve().parents[2]
+PAPER = REPO / "config" / "paper_5agents.yaml"
+
+#: A fresh process (its dispatchers know no signature yet) builds what sim_node.Runner builds
+#: before discovery, then steps as run_lockstep does and lists the kernels that compiled then.
+STEPS_AFTER_CONSTRUCTION = r"""
+import json, sys
+import numpy as np
+from formation_sim import measurement, plant, team
+from formation_msgs_py.spec import load_formation, simulator_view
+from formation_sim.report import RunRecorder
+from formation_sim.simulation import Simulation
+spec = load_formation(sys.argv[1])
+sim, shadow = Simulation(simulator_view(spec)), team.AgentTeam(spec)
+kernels = {"team_step": team.team_step, "rkmk4_step": plant.rkmk4_step,
+           "measured_velocity_into": plant.measured_velocity_into, "relative_poses": measurement.relative_poses}
+built = {name: len(k.signatures) for name, k in kernels.items()}
+rec = RunRecorder(spec, record_every=1, mode="ros2-lockstep", control_rate=spec.simulation.control_rate)
+for k in range(3):
+    meas = sim.sense()
+    _, margin_v, outputs = shadow.evaluate(meas, rec)
+    rec.add(meas.t, sim.state.p, sim.state.R, sim.state.v, None, margin_v)
+    u = np.zeros((len(spec.agents), 6))
+    rec.set_inputs(u)
+    sim.advance(u)
+print(json.dumps({"built": built, "new": {n: len(k.signatures) - built[n] for n, k in kernels.items()}}))
+"""
+
+
+def test_simulator_compiles_its_kernels_when_built() -> None:
+    """Every kernel a lockstep step calls has its signature after Simulation and AgentTeam are built:
+    no compilation inside a step (compiled mode, as the simulator runs)."""
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "0"}
+    out = subprocess.run(
+        [sys.executable, "-c", STEPS_AFTER_CONSTRUCTION, str(PAPER)],
+        capture_output=True, text=True, check=True, env=env, timeout=600,
+    )  # fmt: skip
+    result = json.loads(out.stdout.splitlines()[-1])
+    assert all(n >= 1 for n in result["built"].values()), result
+    assert result["new"] == dict.fromkeys(result["built"], 0), result
+
+
+def test_warm_up_has_no_side_effect() -> None:
+    """A simulator that warmed up gives exactly the measurements and states of one that did not (same
+    noise draws); a shadow team that warmed up has started no agent's velocity funnel."""
+    spec = load_formation(PAPER)
+    warm, cold = Simulation(simulator_view(spec)), Simulation(simulator_view(spec), warm_up=False)
+    team = AgentTeam(spec)
+    assert np.isnan(team.start).all()
+    for _ in range(3):
+        a, b = warm.sense(), cold.sense()
+        np.testing.assert_array_equal(a.velocities, b.velocities)
+        for aid, poses in a.relative_poses.items():
+            for j, (p, R) in poses.items():
+                np.testing.assert_array_equal(p, b.relative_poses[aid][j][0])
+                np.testing.assert_array_equal(R, b.relative_poses[aid][j][1])
+        u, _, _ = team.evaluate(a, None)
+        warm.advance(u)
+        cold.advance(u)
+        np.testing.assert_array_equal(warm.state.p, cold.state.p)
+        np.testing.assert_array_equal(warm.state.R, cold.state.R)

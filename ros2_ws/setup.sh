@@ -4,6 +4,9 @@
 #   ros2_ws/setup.sh            # idempotent; fast (< 2 s) when nothing changed
 #   ros2_ws/setup.sh --force    # reinstall requirements and the src/ packages
 #
+# It also compiles the closed-loop kernels into numba's cache whenever a file under src/ changed
+# (~15-25 s once), so that a first run does not compile them.
+#
 # Other scripts call "$(dirname "$0")/setup.sh" and then use .venv/bin/python or .venv/bin/NAME.
 # Environment: PYTHON=/path/to/python3.11 picks the interpreter (default: python3.11 on PATH).
 set -euo pipefail
@@ -100,6 +103,29 @@ if [ "${#pkgs[@]}" -gt 0 ] && { [ "$FORCE" = 1 ] || [ "$(cat "$SRC_STAMP" 2>/dev
   run_pip install --no-build-isolation --use-pep517 "${edit_args[@]}"
   INSTALLED=1
   echo "$src_hash" >"$SRC_STAMP"
+fi
+
+# --- 4. numba's cache of the compiled core --------------------------------------------------------
+# A first run would compile the closed loop (~15 s on two cores); here it is done once per change of
+# the sources. numba checks only a kernel's own file, not the formulas it compiled in from other
+# files, so a change anywhere in src/ drops the tree's cache first. A short headless run of the paper
+# scenario compiles the headless loop and, as its parts, the kernels the simulator and the agents
+# load (team_step, agent_step, rkmk4_step, relative_poses, measured_velocity_into).
+NUMBA_STAMP="$VENV/.stamp-numba"
+numba_hash="$(find "$ROOT/src" -name '*.py' -not -path '*/.*' | LC_ALL=C sort | { mapfile -t f; hash_files "${f[@]}"; })"
+if [ "$FORCE" = 1 ] || [ "$(cat "$NUMBA_STAMP" 2>/dev/null || true)" != "$numba_hash" ]; then
+  say "compiling the closed-loop kernels into numba's cache (once per change of src/, ~15-25 s)…"
+  find "$ROOT/src" -path '*/__pycache__/*' \( -name '*.nbi' -o -name '*.nbc' \) -delete
+  warm_out="$(mktemp -d)"
+  if "$VENV/bin/formation-headless" "$ROOT/config/paper_5agents.yaml" --duration 0.001 --no-plots --quiet \
+      --force --out "$warm_out" >"$warm_out.log" 2>&1; then
+    echo "$numba_hash" >"$NUMBA_STAMP"
+    INSTALLED=1
+  else
+    say "warning: compiling the kernels failed (the first run will compile them); last lines:"
+    tail -n 5 "$warm_out.log" >&2
+  fi
+  rm -rf "$warm_out" "$warm_out.log"
 fi
 
 [ "$INSTALLED" = 1 ] && say "done in ${SECONDS} s"

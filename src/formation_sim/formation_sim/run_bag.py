@@ -80,12 +80,13 @@ class RunBag:
 
         rclpy's ``serialize_message`` leaves the padding uninitialised (the simulator publishes its
         display messages as objects), so a bag would differ from run to run and carry stray memory;
-        rosbags re-serialises with zeros, and rclpy's trailing padding (to 4 bytes) is kept as zeros.
-        ~2 ms for the paper's MarkerArray, published at 30 Hz of simulated time.
+        rosbags re-serialises with zeros. Padded with zeros to a multiple of 4 bytes, as a subscriber
+        receives it from Fast DDS: the bytes formation-record stores. ~2 ms for the paper's
+        MarkerArray, published at 30 Hz of simulated time.
         """
         store, msgtype = self.writer.store, self.types[topic]
         clean = bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype))
-        return clean + bytes(len(data) - len(clean))
+        return clean + bytes(-len(clean) % 4)
 
     def counts(self) -> dict[str, Any]:
         """What formation-record stores as ``recorder_counts``: per topic received, written and, for the

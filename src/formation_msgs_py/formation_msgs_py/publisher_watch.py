@@ -172,6 +172,10 @@ class PublisherWatch:
         self._present[topic] = present
         return new
 
+    def settled(self, topic: str) -> bool:
+        """Whether ``topic``'s last observation showed its pinned publisher and nobody else."""
+        return topic in self.pinned and not self._present.get(topic)
+
     def accept(self, topic: str, publisher_count: int) -> bool:
         """Whether to apply a message of ``topic`` taken now, given its matched publisher count.
 

@@ -2,6 +2,9 @@
 
 (The simulator's shadow of the agents' controllers is :class:`formation_sim.team.AgentTeam`.)
 - :class:`Timing`: latency (measurements published -> wrench received, wall) and on-time counts.
+  Per agent and step: ``answered`` (lockstep: every step; realtime: the wrench was in when the next
+  tick applied it) and ``on_time`` (realtime: answered, and that tick within half a period of its
+  wall-clock time; lockstep: never counted).
 """
 
 from __future__ import annotations

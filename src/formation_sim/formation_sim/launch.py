@@ -187,7 +187,8 @@ class Launcher:
         )
         self._follow = LogFollower(sim.log)
         # the agents' controller: compiled or interpreted (formation_agent.process), unless the environment says
-        jit = self.sup.env.get("NUMBA_DISABLE_JIT") or ("0" if compiled_pays(spec.simulation.control_rate) else "1")
+        compiled = compiled_pays(spec.simulation.control_rate, args.mode)
+        jit = self.sup.env.get("NUMBA_DISABLE_JIT") or ("0" if compiled else "1")
         for a in spec.agents:
             cmd = [
                 str(_bin("formation-agent")),

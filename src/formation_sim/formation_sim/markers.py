@@ -55,14 +55,22 @@ class Shape:
     text: str = ""
 
 
+def margin_colours(margin: np.ndarray) -> np.ndarray:
+    """(K, 4) RGBA of K margins: green at ≥ 1, yellow at 0.5, red at 0, magenta below 0 or NaN."""
+    m = np.minimum(np.asarray(margin, dtype=np.float64), 1.0)
+    out = np.empty((m.size, 4))
+    out[:, 0] = np.where(m >= 0.5, 2.0 * (1.0 - m), 1.0)
+    out[:, 1] = np.where(m >= 0.5, 0.8, 1.6 * m)
+    out[:, 2] = 0.0
+    out[:, 3] = 1.0
+    out[~(m >= 0.0)] = (1.0, 0.0, 1.0, 1.0)  # outside the funnel, or not finite
+    return out
+
+
 def margin_colour(margin: float) -> Rgba:
-    """Green at margin ≥ 1, yellow at 0.5, red at 0, magenta below 0 (outside the funnel)."""
-    if not np.isfinite(margin) or margin < 0.0:
-        return (1.0, 0.0, 1.0, 1.0)
-    m = min(margin, 1.0)
-    if m >= 0.5:
-        return (float(2.0 * (1.0 - m)), 0.8, 0.0, 1.0)
-    return (1.0, float(1.6 * m), 0.0, 1.0)
+    """The colour of one margin (:func:`margin_colours`)."""
+    r, g, b, a = margin_colours(np.array([margin]))[0].tolist()
+    return (r, g, b, a)
 
 
 def arrow_length(magnitude: float, arrow_scale: float) -> float:
@@ -72,6 +80,28 @@ def arrow_length(magnitude: float, arrow_scale: float) -> float:
 
 def _v(x: np.ndarray) -> Vec3:
     return (float(x[0]), float(x[1]), float(x[2]))
+
+
+@dataclass(frozen=True)
+class SceneFrame:
+    """What moves in one display instant, world frame [m]: N agents, K edges.
+
+    ``q`` (N,4) quaternions (x, y, z, w) of R_world_body; ``axis_ends`` (N,3,3): end of body axis c
+    of agent i at ``[i, c]``; ``labels`` (N,3); ``tips`` (N,2,3): tips of the force and torque
+    arrows (they start at ``p``); ``edge_ends`` (K,2,3) tail and head; ``edge_colours`` (K,4) RGBA by
+    the worst margin; ``ghosts`` (K,3); ``funnels``: :meth:`FormationScene.funnels`.
+    """
+
+    t: float
+    p: np.ndarray
+    q: np.ndarray
+    axis_ends: np.ndarray
+    labels: np.ndarray
+    tips: np.ndarray
+    edge_ends: np.ndarray
+    edge_colours: np.ndarray
+    ghosts: np.ndarray
+    funnels: dict[str, np.ndarray]
 
 
 class FormationScene:
@@ -111,40 +141,65 @@ class FormationScene:
             "margin_psi": funnels.margin_psi(psi / rho_psi),
         }
 
+    def frame(self, t: float, p: np.ndarray, R: np.ndarray, u: np.ndarray | None) -> SceneFrame:
+        """The scene at time t [s] from world poses p (N,3), R (N,3,3) and body wrenches u (N,6; None: 0)."""
+        n = len(self.ids)
+        r = self.radius
+        q = np.array([quaternion_from_matrix(Ri) for Ri in R.tolist()])
+        axis_ends = p[:, None, :] + r[:, None, None] * np.swapaxes(R, 1, 2)  # row c: p + r·(column c of R)
+        labels = p + np.outer(0.6 * r, (0.0, 0.0, 1.0))
+        body = np.zeros((n, 2, 3)) if u is None else np.asarray(u, dtype=np.float64).reshape(n, 2, 3)
+        w_world = np.einsum("nij,nkj->nki", R, body)  # force and torque in the world frame
+        norm = np.linalg.norm(w_world, axis=-1)
+        length = self.arrow_scale * r[:, None] * np.log1p(norm)
+        unit = np.divide(w_world, norm[..., None], out=np.zeros_like(w_world), where=norm[..., None] > 0.0)
+        tips = p[:, None, :] + unit * length[..., None]
+        f = self.funnels(t, p, R)
+        a, b = p[self.tail], p[self.head]
+        direction = b - a
+        dist = np.linalg.norm(direction, axis=-1)
+        ahead = np.divide(
+            direction, dist[:, None], out=np.tile([1.0, 0.0, 0.0], (len(dist), 1)), where=dist[:, None] > 0.0
+        )
+        return SceneFrame(
+            t=t,
+            p=p,
+            q=q,
+            axis_ends=axis_ends,
+            labels=labels,
+            tips=tips,
+            edge_ends=np.stack([a, b], axis=1),
+            edge_colours=margin_colours(np.minimum(f["margin_e"], f["margin_psi"])),
+            ghosts=a + ahead * self.d_des[:, None],
+            funnels=f,
+        )
+
     def shapes(self, t: float, p: np.ndarray, R: np.ndarray, u: np.ndarray | None) -> list[Shape]:
-        """Every marker at time t [s] from world poses p (N,3), R (N,3,3) and body wrenches u (N,6)."""
+        """Every marker at time t [s] (:meth:`frame`); no wrench arrows when ``u`` is None."""
+        return self.shapes_of(self.frame(t, p, R, u), arrows=u is not None)
+
+    def shapes_of(self, f: SceneFrame, arrows: bool = True) -> list[Shape]:
+        """The markers of one :class:`SceneFrame`, agents then edges (the order of /formation/markers)."""
         out: list[Shape] = []
+        cols = tuple(AXIS_COLOURS[c] for c in range(3) for _ in range(2))
         for i, aid in enumerate(self.ids):
             r = float(self.radius[i])
-            q = tuple(float(x) for x in quaternion_from_matrix(R[i]))
-            out.append(Shape("bodies", i, CUBE, _v(p[i]), q, (0.8 * r, 0.5 * r, 0.25 * r), BODY_COLOUR))
-            ends = [_v(p[i] + r * R[i][:, c]) for c in range(3)]
-            start = _v(p[i])
-            pts = tuple(x for c in range(3) for x in (start, ends[c]))
-            cols = tuple(AXIS_COLOURS[c] for c in range(3) for _ in range(2))
+            start = _v(f.p[i])
+            q = tuple(float(x) for x in f.q[i])
+            out.append(Shape("bodies", i, CUBE, start, q, (0.8 * r, 0.5 * r, 0.25 * r), BODY_COLOUR))
+            pts = tuple(x for c in range(3) for x in (start, _v(f.axis_ends[i, c])))
             out.append(Shape("frames", i, LINE_LIST, scale=(0.03 * r, 0.0, 0.0), points=pts, colors=cols))
-            label = _v(p[i] + np.array([0.0, 0.0, 0.6 * r]))
-            out.append(Shape("labels", i, TEXT_VIEW_FACING, label, scale=(0.0, 0.0, 0.4 * r), text=str(aid)))
-            if u is not None:
-                for ns, lo, colour in (("forces", 0, FORCE_COLOUR), ("torques", 3, TORQUE_COLOUR)):
-                    w_world = R[i] @ np.asarray(u[i, lo : lo + 3], dtype=np.float64)
-                    norm = float(np.linalg.norm(w_world))
-                    length = arrow_length(norm, self.arrow_scale * r)
-                    tip = p[i] + (w_world / norm * length if norm > 0.0 else 0.0)
-                    scale = (0.05 * r, 0.1 * r, 0.1 * r)
-                    out.append(Shape(ns, i, ARROW, scale=scale, color=colour, points=(start, _v(tip))))
-        f = self.funnels(t, p, R)
-        worst = np.minimum(f["margin_e"], f["margin_psi"])
+            out.append(Shape("labels", i, TEXT_VIEW_FACING, _v(f.labels[i]), scale=(0.0, 0.0, 0.4 * r), text=str(aid)))
+            if arrows:
+                scale = (0.05 * r, 0.1 * r, 0.1 * r)
+                for c, (ns, colour) in enumerate((("forces", FORCE_COLOUR), ("torques", TORQUE_COLOUR))):
+                    out.append(Shape(ns, i, ARROW, scale=scale, color=colour, points=(start, _v(f.tips[i, c]))))
         for k in range(len(self.d_des)):
-            a, b = p[self.tail[k]], p[self.head[k]]
-            colour = margin_colour(float(worst[k]))
+            colour = tuple(float(x) for x in f.edge_colours[k])
             width = 0.06 * float(min(self.radius[self.tail[k]], self.radius[self.head[k]]))
-            out.append(Shape("edges", k, LINE_LIST, scale=(width, 0.0, 0.0), color=colour, points=(_v(a), _v(b))))
-            direction = b - a
-            dist = float(np.linalg.norm(direction))
-            ghost = a + (direction / dist if dist > 0.0 else np.array([1.0, 0.0, 0.0])) * self.d_des[k]
+            ends = (_v(f.edge_ends[k, 0]), _v(f.edge_ends[k, 1]))
+            out.append(Shape("edges", k, LINE_LIST, scale=(width, 0.0, 0.0), color=colour, points=ends))  # type: ignore[arg-type]
             size = 0.5 * float(self.radius[self.head[k]])
-            out.append(
-                Shape("desired", k, SPHERE, _v(ghost), scale=(size, size, size), color=(*colour[:3], GHOST_ALPHA))
-            )
+            ghost = (*colour[:3], GHOST_ALPHA)
+            out.append(Shape("desired", k, SPHERE, _v(f.ghosts[k]), scale=(size, size, size), color=ghost))  # type: ignore[arg-type]
         return out

@@ -234,9 +234,8 @@ class SimNode(Node):
             for j, (p, R) in rel[a].items():
                 pub, codec = self.links[(a, j)]
                 pub.publish(codec.encode(ns, values(p, R)))
-        for i in range(len(self.ids)):  # velocities last: an agent computes when its velocity is in
-            if only is not None and i not in only:
-                continue
+            # its velocity after its poses: an agent computes when its velocity is in, and the first
+            # agents compute while the simulator publishes for the others
             self.vel_pubs[i].publish(self.vel_codecs[i].encode(ns, vel[i]))
 
     def publish_clock(self, ns: int) -> None:
@@ -432,26 +431,20 @@ class Runner:
             self.drain()
             lag = mono() - target
             timing.lags.append(lag)
-            if prev is not None:
-                pmeas, pstate, pmargin, pouts = prev
-                pns = self.stamp_ns(k - 1)
-                u, faults = hold.applied(node.wrenches, pns)
-                late = {i for i, _, _ in faults}
-                for i in range(len(node.ids)):
-                    timing.on_time[i] += i not in late
-                for i, kind, why in faults:
-                    first = rec.fault(pmeas.t, kind, node.ids[i], why)
-                    if first and kind == ZERO_WRENCH:
-                        print(f"formation-sim: agent {node.ids[i]}: t={pmeas.t:.4f}: {why}: zero wrench", flush=True)
-                timing.expected += 1
-                rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
-                rec.set_inputs(u)
-                self.shadow.note_errors(pmeas.t, pouts, rec)
-                prev = None
-                self.advance(u)
-            if budget.late(lag):
+            done, prev = prev, None  # step k-1: its wrenches apply now; its bookkeeping waits until step k is out
+            late_tick = budget.late(lag)
+            if done is not None:
+                u, faults = hold.applied(node.wrenches, self.stamp_ns(k - 1))
+                try:
+                    self.advance(u)
+                except RunStoppedError:
+                    self._close_step(done, u, faults, late_tick)
+                    raise
+            if late_tick:
                 rec.fault(sim.t, "late_tick", "simulator", f"{lag * 1e3:.1f} ms late")
             if budget.exceeded(lag):
+                if done is not None:
+                    self._close_step(done, u, faults, late_tick)
                 raise RunStoppedError(
                     Incomplete(
                         ExitCode.INCOMPLETE,
@@ -462,18 +455,46 @@ class Runner:
             meas = sim.sense()
             ns = self.stamp_ns(k)
             node.current_ns = ns
-            self._publish_aux(k, meas.t, ns)
             node.pub_wall[ns] = mono()
             if len(node.pub_wall) > 64:
                 del node.pub_wall[next(iter(node.pub_wall))]
-            node.publish_step(meas, ns)
+            node.publish_step(meas, ns)  # first: the agents' time to answer runs from here
+            if done is not None:
+                self._close_step(done, u, faults, late_tick)
+            self._publish_aux(k, meas.t, ns)
             _, margin_v, outputs = self.shadow.evaluate(meas, rec)
             prev = (meas, sim.state, margin_v, outputs)
             self.progress(meas.t)
         if prev is not None:  # the last sample, with the wrenches held at the end
-            pmeas, pstate, pmargin, pouts = prev
+            pmeas, pstate, pmargin, _ = prev
             rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
             rec.set_inputs(u)
+
+    def _close_step(
+        self, step: tuple[Measurements, Any, np.ndarray, list], u: np.ndarray, faults: list, late_tick: bool
+    ) -> None:
+        """Realtime: count and record step k-1 (measurements, state, margins, shadow outputs) once
+        its wrenches ``u`` were applied; ``faults`` (agent index, kind, detail) lists who had not answered.
+
+        An agent's step is *answered* if its wrench was in when the next tick applied it, and *on
+        time* if, besides, that tick came within half a period of its wall-clock time: a simulator
+        running late gives the agents more time, and a step closed late is not a real-time step.
+        """
+        node, rec, timing = self.node, self.recorder, self.node.timing
+        meas, state, margin_v, outputs = step
+        late = {i for i, _, _ in faults}
+        for i in range(len(node.ids)):
+            answered = i not in late
+            timing.answered[i] += answered
+            timing.on_time[i] += answered and not late_tick
+        for i, kind, why in faults:
+            first = rec.fault(meas.t, kind, node.ids[i], why)
+            if first and kind == ZERO_WRENCH:
+                print(f"formation-sim: agent {node.ids[i]}: t={meas.t:.4f}: {why}: zero wrench", flush=True)
+        timing.expected += 1
+        rec.add(meas.t, state.p, state.R, state.v, None, margin_v)
+        rec.set_inputs(u)
+        self.shadow.note_errors(meas.t, outputs, rec)
 
     def summary(self, wall: float, incomplete: Incomplete | None, extra: dict[str, Any]) -> dict[str, Any]:
         s = self.spec.simulation

@@ -19,8 +19,11 @@ the faults) and names the first violation (:meth:`formation_sim.report.Judge.vio
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -37,7 +40,7 @@ from formation_agent.controller import (
     new_outputs,
 )
 from formation_msgs_py import funnels
-from formation_msgs_py.compiled import formula, kernel
+from formation_msgs_py.compiled import INTERPRETED, formula, kernel
 from formation_msgs_py.so3 import flat_rows, matmul3, matrix_rows
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_sim.inputs import non_finite_agents
@@ -335,9 +338,31 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
     )
 
 
+def compile_in_two_processes(spec: FormationSpec) -> None:
+    """On a cold numba cache (no :func:`run_sampled` in it), compile the controllers' kernel
+    (:func:`formation_sim.team.team_step`) in a second process while this one compiles the plant
+    and measurement kernels, both into the shared cache; :func:`run_sampled` then loads them and
+    compiles only itself. A first run takes the longer of the two parts, not their sum (numba's
+    compiler lock rules out threads). No-op when the cache has run_sampled, or interpreted; if the
+    second process fails, this one compiles team_step itself when it needs it.
+    """
+    if INTERPRETED or Path(run_sampled._cache._cache_file._index_path).exists():
+        return
+    helper = subprocess.Popen(
+        [sys.executable, "-c", "from formation_sim.team import load_team_step; load_team_step()"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        Simulation(simulator_view(spec))  # its warm-up compiles rkmk4_step, relative_poses, measured_velocity_into
+    finally:
+        helper.wait()
+
+
 def first_step(spec: FormationSpec) -> np.ndarray:
     """``start`` (N, 7) after every agent's first step on the initial measurements: the run core's
     step 0, without physics (the velocity funnels as the agents set them)."""
+    compile_in_two_processes(spec)
     sim = Simulation(simulator_view(spec), warm_up=False)
     loop = closed_loop(spec, sim)
     n, n_ends = loop.agents.shape[0], loop.ends.shape[0]
@@ -394,6 +419,8 @@ def run_closed_loop(
     continuous mode at least :func:`continuous_substeps`).
     """
     started = time.perf_counter()
+    if not continuous:
+        compile_in_two_processes(spec)
     sim_spec = spec.simulation
     sim = Simulation(simulator_view(spec), warm_up=False)
     loop = closed_loop(spec, sim)

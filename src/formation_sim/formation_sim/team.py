@@ -17,6 +17,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from formation_agent.controller import (
+    AGENT_COLUMNS,
+    END_COLUMNS,
     ERROR,
     MARGIN_V,
     REASON_MISSING,
@@ -47,6 +49,15 @@ def team_step(t, p_rel, R_rel, in_range, v_measured, first_end, agents, ends, st
             agent_step(t, i, lo, hi, p_rel, R_rel, v_measured[i], agents, ends, start, out, edge_out)
         else:
             fault_wrench(i, lo, hi, REASON_MISSING, out, edge_out)
+
+
+def load_team_step() -> None:
+    """Load (or compile into numba's cache) :func:`team_step` for the types every caller passes,
+    on one agent without edges (what it computes is thrown away)."""
+    first_end, agents, ends = np.zeros(2, dtype=np.int64), np.zeros((1, AGENT_COLUMNS)), np.zeros((0, END_COLUMNS))
+    p_rel, R_rel, in_range = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, dtype=np.bool_)
+    outputs = (new_funnel_start(1), *new_outputs(1, 0))
+    team_step(0.0, p_rel, R_rel, in_range, np.zeros((1, 6)), first_end, agents, ends, *outputs)
 
 
 def note_missing(

@@ -110,9 +110,9 @@ class RecordedPublisher:
     def publish(self, msg: Any) -> None:
         self.publisher.publish(msg)
         if isinstance(msg, bytes):
-            self.bag.write(self.topic, msg)
-        else:  # a message object (the display topics): serialised here, with its padding zeroed
-            self.bag.write(self.topic, self.bag.zero_padded(self.topic, serialize_message(msg)))
+            self.bag.write_sent(self.topic, msg)
+        else:  # a message object: serialised here, with its padding zeroed
+            self.bag.write_sent(self.topic, self.bag.zero_padded(self.topic, serialize_message(msg)))
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.publisher, name)

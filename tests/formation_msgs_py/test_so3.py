@@ -21,19 +21,22 @@ def exp_rows(theta: np.ndarray) -> np.ndarray:
 
 
 def test_small_products_and_vee() -> None:
-    """cross3, matvec3, matTvec3, matmul3_into, matTmul3_into equal numpy's to rounding; vee inverts S(w)."""
+    """cross3, matvec3, matTvec3, transpose3, matmul3 on row tuples (as compiled callers pass them)
+    equal numpy's to rounding (1e-14 on entries of order 1); the readers are exact; vee inverts S(w)."""
     w, x = RNG.normal(size=(2, 50, 3))
     A, B = RNG.normal(size=(2, 50, 3, 3))
     for k in range(50):
-        np.testing.assert_allclose(so3.cross3(w[k], x[k]), np.cross(w[k], x[k]), atol=1e-14)
-        np.testing.assert_allclose(so3.matvec3(A[k], x[k]), A[k] @ x[k], atol=1e-14)
-        np.testing.assert_allclose(so3.matTvec3(A[k], x[k]), A[k].T @ x[k], atol=1e-14)
-        np.testing.assert_allclose(so3.matmul3(A[k], B[k]), A[k] @ B[k], atol=1e-14)
-        np.testing.assert_allclose(so3.matmul3(A[k].T, B[k]), A[k].T @ B[k], atol=1e-14)
-        rows = tuple(map(tuple, B[k]))  # B as row tuples, as exp_rows gives it
-        np.testing.assert_allclose(so3.matmul3(A[k], rows), A[k] @ B[k], atol=1e-14)
+        rows_A, rows_B = so3.matrix_rows(A[k]), so3.flat_rows(B[k].ravel(), 0)
+        assert rows_A == tuple(map(tuple, A[k])) and rows_B == tuple(map(tuple, B[k]))
+        assert so3.vec3(x[k]) == tuple(x[k])
+        np.testing.assert_allclose(so3.cross3(so3.vec3(w[k]), so3.vec3(x[k])), np.cross(w[k], x[k]), atol=1e-14)
+        np.testing.assert_allclose(so3.matvec3(rows_A, so3.vec3(x[k])), A[k] @ x[k], atol=1e-14)
+        np.testing.assert_allclose(so3.matTvec3(rows_A, so3.vec3(x[k])), A[k].T @ x[k], atol=1e-14)
+        np.testing.assert_array_equal(so3.transpose3(rows_A), A[k].T)
+        np.testing.assert_allclose(so3.matmul3(rows_A, rows_B), A[k] @ B[k], atol=1e-14)
+        np.testing.assert_allclose(so3.matmul3(so3.transpose3(rows_A), rows_B), A[k].T @ B[k], atol=1e-14)
         out = np.empty((3, 3))
-        so3.set3x3(out, rows)
+        so3.set3x3(out, rows_B)
         np.testing.assert_array_equal(out, B[k])
         S = np.cross(np.eye(3), -w[k]).T  # S(w): column j is w × e_j
         np.testing.assert_allclose(S @ x[k], np.cross(w[k], x[k]), atol=1e-14)

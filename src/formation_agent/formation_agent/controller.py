@@ -1,6 +1,7 @@
 """One agent's prescribed-performance controller, from local measurements only.
 
-The paper's Steps I–II (Section "Main Results"; docs/controller.md), one compiled kernel per step:
+The paper's Steps I–II (Section "Main Results"; docs/controller.md), one function per step
+(:func:`formation_msgs_py.compiled.formula`, compiled into :func:`agent_step`, the kernel):
 
 - :func:`edge_errors`: e_k, ψ_k, e_Rk of an incident edge from the neighbour's relative pose;
 - :func:`distance_term`, :func:`orientation_term`: ξ, the margin and the weight
@@ -33,9 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from formation_msgs_py import funnels
-from formation_msgs_py.compiled import kernel
+from formation_msgs_py.compiled import formula, kernel
 from formation_msgs_py.errors import FormationError
-from formation_msgs_py.so3 import add3, matmul3, matTvec3, matvec3, scale3
+from formation_msgs_py.so3 import add3, flat_rows, matmul3, matrix_rows, matTvec3, matvec3, scale3, transpose3, vec3
 from formation_msgs_py.spec import AgentView
 
 OK, WARN, ERROR = 0, 1, 2
@@ -90,37 +91,27 @@ def new_funnel_start(n_agents: int) -> np.ndarray:
 # --- the paper's steps -------------------------------------------------------------------------
 
 
-@kernel
-def rows3(row, at):
-    """The 3×3 matrix stored row-major in ``row[at:at + 9]``, as three row tuples."""
-    return (
-        (row[at], row[at + 1], row[at + 2]),
-        (row[at + 3], row[at + 4], row[at + 5]),
-        (row[at + 6], row[at + 7], row[at + 8]),
-    )
-
-
-@kernel
+@formula
 def edge_errors(p_i_j_in_i, R_i_j, is_tail, d2, R_des):
     """Step I for edge k seen by agent i: (e_k, ψ_k, e_Rk) (eq. errors and eq. e_R_k and psi_k).
 
     In the tail's frame q = R_k1ᵀ(p_k2 − p_k1) and Q = R_k1ᵀR_k2: the tail measures them, the head
     measures R_k2ᵀ(p_k1 − p_k2) and R_k2ᵀR_k1 (NOTES.md, conventions). Then e = ‖q‖² − d² [m²],
-    ψ = ½(3 − tr A) and e_R = S⁻¹(A − Aᵀ) with A = Q R_des. e_R is a 3-tuple.
+    ψ = ½(3 − tr A) and e_R = S⁻¹(A − Aᵀ) with A = Q R_des. Vectors are 3-tuples, matrices row tuples.
     """
     if is_tail:
-        q = (p_i_j_in_i[0], p_i_j_in_i[1], p_i_j_in_i[2])
+        q = p_i_j_in_i
         A = matmul3(R_i_j, R_des)
     else:
         q = scale3(-1.0, matTvec3(R_i_j, p_i_j_in_i))
-        A = matmul3(R_i_j.T, R_des)
+        A = matmul3(transpose3(R_i_j), R_des)
     e = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] - d2
     psi = 0.5 * (3.0 - A[0][0] - A[1][1] - A[2][2])
     e_R = (A[2][1] - A[1][2], A[0][2] - A[2][0], A[1][0] - A[0][1])
     return e, psi, e_R
 
 
-@kernel
+@formula
 def distance_term(e, t, c_col, c_con, rho_e_floor, decay_e, saturation_margin):
     """Step I-a/b, distance: (ξ_e, margin, weight, saturated) with weight = 2 r_e(ξ_e) ε_e / ρ_e.
 
@@ -139,7 +130,7 @@ def distance_term(e, t, c_col, c_con, rho_e_floor, decay_e, saturation_margin):
     return xi, margin, weight, saturated
 
 
-@kernel
+@formula
 def orientation_term(psi, t, rho_psi_0, rho_psi_inf, decay_psi, saturation_margin):
     """Step I-a/b, orientation: (ξ_ψ, margin, weight, saturated) with weight = r_ψ(ξ_ψ) / ρ_ψ."""
     rho_psi = funnels.rho(t, rho_psi_0, rho_psi_inf, decay_psi)
@@ -152,7 +143,7 @@ def orientation_term(psi, t, rho_psi_0, rho_psi_inf, decay_psi, saturation_margi
     return xi, margin, funnels.r_psi(max(x, 0.0)) / rho_psi, saturated
 
 
-@kernel
+@formula
 def alpha(R_i_j, is_tail, x):
     """α(i, k)·x (eq. vel_i_des): −x for the tail, R_k2ᵀR_k1 x = R_i_j x for the head."""
     if is_tail:
@@ -160,7 +151,7 @@ def alpha(R_i_j, is_tail, x):
     return matvec3(R_i_j, x)
 
 
-@kernel
+@formula
 def desired_velocity(t, p_rel, R_rel, ends, lo, hi, delta, saturation_margin, edge_out):
     """v_i,des (eq. vel_i_des) from agent i's ends lo:hi, a 6-tuple; fills ``edge_out`` rows; (v_des, saturated).
 
@@ -173,15 +164,16 @@ def desired_velocity(t, p_rel, R_rel, ends, lo, hi, delta, saturation_margin, ed
     for k in range(lo, hi):
         g = ends[k]
         is_tail = g[TAIL] > 0.5
-        e, psi, e_R = edge_errors(p_rel[k], R_rel[k], is_tail, g[D2], rows3(g, R_DES))
+        p_i_j_in_i, R_i_j = vec3(p_rel[k]), matrix_rows(R_rel[k])
+        e, psi, e_R = edge_errors(p_i_j_in_i, R_i_j, is_tail, g[D2], flat_rows(g, R_DES))
         xi_e, m_e, w_e, sat_e = distance_term(e, t, g[C_COL], g[C_CON], g[RHO_E_FLOOR], g[DECAY_E], saturation_margin)
         xi_psi, m_psi, w_psi, sat_psi = orientation_term(
             psi, t, g[RHO_PSI_0], g[RHO_PSI_INF], g[DECAY_PSI], saturation_margin
         )
         saturated = saturated or sat_e or sat_psi
-        alpha_q = scale3(-1.0, p_rel[k])
+        alpha_q = scale3(-1.0, p_i_j_in_i)
         v_lin = add3(v_lin, scale3(w_e, alpha_q))
-        v_ang = add3(v_ang, scale3(w_psi, alpha(R_rel[k], is_tail, e_R)))
+        v_ang = add3(v_ang, scale3(w_psi, alpha(R_i_j, is_tail, e_R)))
         edge_out[k, E] = e
         edge_out[k, PSI] = psi
         edge_out[k, XI_E] = xi_e
@@ -193,7 +185,7 @@ def desired_velocity(t, p_rel, R_rel, ends, lo, hi, delta, saturation_margin, ed
     return (v_lin[0], v_lin[1], v_lin[2], v_ang[0], v_ang[1], v_ang[2]), saturated
 
 
-@kernel
+@formula
 def velocity_funnel_start(e_v0, gains, start):
     """ρ_v0 per channel into ``start``: the file's value, or auto_scale·|e_v(0)| + auto_offset (Step II-a)."""
     for c in range(6):
@@ -203,7 +195,7 @@ def velocity_funnel_start(e_v0, gains, start):
             start[START_RHO_V0 + c] = gains[RHO_V0 + c]
 
 
-@kernel
+@formula
 def wrench(t_since_start, e_v, gains, start, out):
     """u_i = −γ_i ρ_v⁻¹ r_v(ξ_v) T_v(ξ_v) per channel (eq. u_i) into ``out``; fills ξ_v and margins; saturated?"""
     saturated = False
@@ -222,7 +214,7 @@ def wrench(t_since_start, e_v, gains, start, out):
     return saturated
 
 
-@kernel
+@formula
 def limit_wrench(out, max_force, max_torque):
     """Scale the force and the torque in ``out`` down to their norms' limits, keeping directions."""
     for lo, limit in ((U, max_force), (U + 3, max_torque)):
@@ -232,7 +224,7 @@ def limit_wrench(out, max_force, max_torque):
                 out[c] = out[c] * limit / norm
 
 
-@kernel
+@formula
 def fault_wrench(i, lo, hi, reason, out, edge_out):
     """The fault policy: zero wrench, level ERROR, margins −1 (unknown, treated as outside)."""
     for c in range(6):
@@ -247,7 +239,7 @@ def fault_wrench(i, lo, hi, reason, out, edge_out):
     out[i, REASON] = reason
 
 
-@kernel
+@formula
 def level_of(saturated, finite, out, edge_out, lo, hi):
     """(level, reason) of a step: ERROR when saturated or not finite, WARN near a bound, else OK."""
     if not finite:

@@ -1,11 +1,20 @@
 """The one switch between the compiled (numba) and the interpreted form of the numerical kernels.
 
 The controller, the SO(3) maps, the funnels, the plant and the closed-loop stepping are written
-once, as plain Python on floats and small numpy arrays, and compiled with :func:`kernel`
-(``numba.njit``, cached on disk so that a second process loads the machine code instead of
-compiling it); the small formulas they share are :func:`formula` (compiled into their callers).
-``NUMBA_DISABLE_JIT=1`` runs every kernel as the Python it is written in; each compiled kernel
-also keeps that Python as ``.py_func``.
+once, as plain Python on floats, tuples and small numpy arrays. A :func:`kernel` is an entry point
+called from Python: compiled per argument types (``numba.njit``) and cached on disk, so that a
+second process loads the machine code instead of compiling it. A :func:`formula` is every other
+function: compiled into the kernels that call it, typed by its arguments' types (never by their
+literal values: a formula called with ``0`` and with ``i`` is compiled once), with no Python or C
+entry of its own. ``NUMBA_DISABLE_JIT=1`` runs every kernel and formula as the Python it is
+written in; each compiled kernel also keeps that Python as ``.py_func``.
+
+A first run compiles every (function, argument types) it meets, each through numba's typing and
+lowering and LLVM, so the code keeps that set small: formulas take 3-vectors as tuples and 3×3
+matrices as row tuples (:func:`formation_msgs_py.so3.vec3` and :func:`formation_msgs_py.so3.matrix_rows`
+read them from arrays), every call site of a kernel passes the same types (C-contiguous arrays),
+and a kernel's own body calls formulas that no other formula calls (numba compiles a formula once
+per kind of caller, kernel or formula: the SO(3) products and funnels are called from formulas only).
 
 ``error_model="numpy"``: a division by zero gives inf/NaN as in numpy instead of raising; the
 callers check finiteness where the paper's law can leave its domain.
@@ -34,8 +43,8 @@ _PENDING: list[Callable] = []
 
 
 def formula(fn: F) -> F:
-    """A small formula on floats and tuples (an SO(3) product, a funnel): plain Python when called
-    from Python (where numpy arrays work elementwise), compiled into every kernel that calls it.
+    """A function compiled into every kernel that calls it (an SO(3) product, a funnel, a step of
+    the controller): plain Python when called from Python (where numpy arrays work elementwise).
 
     Declaring it does not import numba (``formation_msgs_py.spec`` uses funnels and SO(3) maps
     and is imported by every command); :func:`kernel` registers it before any kernel compiles.
@@ -48,7 +57,11 @@ def formula(fn: F) -> F:
 
 
 def kernel(fn: F) -> F:
-    """Compile ``fn`` in nopython mode, cached next to its source (or in numba's user cache)."""
+    """Compile ``fn`` in nopython mode, cached next to its source (or in ``NUMBA_CACHE_DIR``).
+
+    No C entry (``no_cfunc_wrapper``): kernels are called from Python or from other kernels, never
+    as C function pointers, and the wrapper is LLVM work at every compilation.
+    """
     if INTERPRETED:
         return fn
     global _numba
@@ -56,7 +69,7 @@ def kernel(fn: F) -> F:
 
     _numba = numba
     _register_pending()
-    return numba.njit(cache=True, error_model="numpy", _nrt=False)(fn)
+    return numba.njit(cache=True, error_model="numpy", _nrt=False, no_cfunc_wrapper=True)(fn)
 
 
 _numba = None
@@ -66,4 +79,4 @@ def _register_pending() -> None:
     from numba.extending import register_jitable
 
     while _PENDING:
-        register_jitable(error_model="numpy", _nrt=False)(_PENDING.pop())
+        register_jitable(error_model="numpy", _nrt=False, no_cfunc_wrapper=True)(_PENDING.pop())

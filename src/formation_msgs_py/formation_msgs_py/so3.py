@@ -1,11 +1,12 @@
 """SO(3) formulas of the controller, the plant and the measurement model.
 
 The 3-vector / 3×3 products, ``exp_rows`` (Rodrigues) and ``dexpinv`` (the RKMK chart) are
-formulas compiled into the kernels that call them (:func:`formation_msgs_py.compiled.formula`),
-on one 3-vector or 3×3 matrix given as an array or as tuples; from Python they are plain numpy
-and importing this module does not import numba. Rotation vectors are axis * angle in radians.
-Rotations as data (checks, projection, quaternion / rpy / axis-angle conversions) live in
-:mod:`formation_msgs_py.rotations`.
+formulas compiled into the kernels that call them (:func:`formation_msgs_py.compiled.formula`).
+Compiled callers pass 3-vectors as tuples and 3×3 matrices as three row tuples, read from arrays
+by :func:`vec3`, :func:`matrix_rows` and :func:`flat_rows`: one argument type per formula, so each
+is compiled once. From Python they are plain numpy (arrays work too) and importing this module
+does not import numba. Rotation vectors are axis * angle in radians. Rotations as data (checks,
+projection, quaternion / rpy / axis-angle conversions) live in :mod:`formation_msgs_py.rotations`.
 """
 
 from __future__ import annotations
@@ -18,7 +19,40 @@ from formation_msgs_py.compiled import formula
 FloatArray = NDArray[np.float64]
 
 
-# --- compiled 3-vector / 3×3 formulas: vectors as tuples (x, y, z), no heap allocation ------
+# --- reading arrays into tuples -------------------------------------------------------------------
+
+
+@formula
+def vec3(a):
+    """The 3-vector ``a`` (an array row) as a tuple."""
+    return (a[0], a[1], a[2])
+
+
+@formula
+def matrix_rows(A):
+    """The 3×3 array ``A`` as three row tuples."""
+    return ((A[0, 0], A[0, 1], A[0, 2]), (A[1, 0], A[1, 1], A[1, 2]), (A[2, 0], A[2, 1], A[2, 2]))
+
+
+@formula
+def flat_rows(row, at):
+    """The 3×3 matrix stored row-major in ``row[at:at + 9]``, as three row tuples."""
+    return (
+        (row[at], row[at + 1], row[at + 2]),
+        (row[at + 3], row[at + 4], row[at + 5]),
+        (row[at + 6], row[at + 7], row[at + 8]),
+    )
+
+
+@formula
+def set3x3(out, rows):
+    """out[:, :] = rows (a 3×3 array from three row tuples), element by element."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = rows[i][j]
+
+
+# --- 3-vectors (x, y, z) and 3×3 matrices (three rows) ---------------------------------------------
 
 
 @formula
@@ -47,46 +81,34 @@ def cross3(a, b):
 
 @formula
 def matvec3(A, x):
-    """A x for a 3×3 array A."""
+    """A x."""
     return (
-        A[0, 0] * x[0] + A[0, 1] * x[1] + A[0, 2] * x[2],
-        A[1, 0] * x[0] + A[1, 1] * x[1] + A[1, 2] * x[2],
-        A[2, 0] * x[0] + A[2, 1] * x[1] + A[2, 2] * x[2],
+        A[0][0] * x[0] + A[0][1] * x[1] + A[0][2] * x[2],
+        A[1][0] * x[0] + A[1][1] * x[1] + A[1][2] * x[2],
+        A[2][0] * x[0] + A[2][1] * x[1] + A[2][2] * x[2],
     )
 
 
 @formula
 def matTvec3(A, x):
-    """Aᵀ x for a 3×3 array A."""
+    """Aᵀ x."""
     return (
-        A[0, 0] * x[0] + A[1, 0] * x[1] + A[2, 0] * x[2],
-        A[0, 1] * x[0] + A[1, 1] * x[1] + A[2, 1] * x[2],
-        A[0, 2] * x[0] + A[1, 2] * x[1] + A[2, 2] * x[2],
+        A[0][0] * x[0] + A[1][0] * x[1] + A[2][0] * x[2],
+        A[0][1] * x[0] + A[1][1] * x[1] + A[2][1] * x[2],
+        A[0][2] * x[0] + A[1][2] * x[1] + A[2][2] * x[2],
     )
 
 
 @formula
-def matmul3_entry(A, B, i, j):
-    """(A B)[i, j] for 3×3 A and B given as arrays or as rows of tuples."""
-    return A[i][0] * B[0][j] + A[i][1] * B[1][j] + A[i][2] * B[2][j]
+def transpose3(A):
+    """Aᵀ."""
+    return ((A[0][0], A[1][0], A[2][0]), (A[0][1], A[1][1], A[2][1]), (A[0][2], A[1][2], A[2][2]))
 
 
 @formula
 def matmul3(A, B):
-    """A B for 3×3 A and B (arrays or rows of tuples), as three row tuples."""
-    return (
-        (matmul3_entry(A, B, 0, 0), matmul3_entry(A, B, 0, 1), matmul3_entry(A, B, 0, 2)),
-        (matmul3_entry(A, B, 1, 0), matmul3_entry(A, B, 1, 1), matmul3_entry(A, B, 1, 2)),
-        (matmul3_entry(A, B, 2, 0), matmul3_entry(A, B, 2, 1), matmul3_entry(A, B, 2, 2)),
-    )
-
-
-@formula
-def set3x3(out, rows):
-    """out[:, :] = rows (a 3×3 array from three row tuples), element by element."""
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = rows[i][j]
+    """A B: row i is Bᵀ (row i of A)."""
+    return (matTvec3(B, A[0]), matTvec3(B, A[1]), matTvec3(B, A[2]))
 
 
 @formula

@@ -1,15 +1,16 @@
 """The run core: the closed loop of a whole formation stepped many control steps at a time, compiled.
 
-Per control step k (t_k = k / control_rate) :func:`run_steps` does what the ROS 2 lockstep run
+Per control step k (t_k = k / control_rate) :func:`run_sampled` does what the ROS 2 lockstep run
 does, step for step: the measurements of step k (relative poses with their noise, noisy
 twists), every agent's controller (:func:`formation_sim.team.team_step`, with the fault policy),
 the step's ground truth, wrenches and velocity-funnel margins into the recording buffers, every
 funnel checked on ground truth (:func:`check_step`, the :class:`Watch`), then ``substeps``
-physics steps: with the wrenches held (``sampled``, zero-order hold) or with the controller
-evaluated on every integrator stage (``continuous``, the paper's law, sub-stepped to within
-RK4's stability limit: :func:`continuous_substeps`). It returns to Python after a buffer's worth
-of steps, at the first violation when the run stops there, or when a state is no longer finite
-(naming the agents). Python then hands the buffers to the recorder (the decimated trajectory,
+physics steps with the wrenches held (zero-order hold); :func:`run_continuous` evaluates the
+controller on every integrator stage instead (the paper's law, sub-stepped to within RK4's
+stability limit: :func:`continuous_substeps`); two kernels, so that a sampled run does not compile
+the continuous one. Each returns to Python after a buffer's worth of steps, at the first
+violation when the run stops there, or when a state is no longer finite (naming the agents).
+Python then hands the buffers to the recorder (the decimated trajectory,
 the faults) and names the first violation (:meth:`formation_sim.report.Judge.violation_at`).
 
 :func:`run_closed_loop` drives it for a formation and a :class:`RunRecorder`.
@@ -34,11 +35,10 @@ from formation_agent.controller import (
     gains,
     new_funnel_start,
     new_outputs,
-    rows3,
 )
 from formation_msgs_py import funnels
-from formation_msgs_py.compiled import kernel
-from formation_msgs_py.so3 import matmul3
+from formation_msgs_py.compiled import formula, kernel
+from formation_msgs_py.so3 import flat_rows, matmul3, matrix_rows
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_sim.inputs import non_finite_agents
 from formation_sim.measurement import Sensing, relative_poses
@@ -59,7 +59,7 @@ from formation_sim.report import CheckedSteps, EdgeSample, Judge, RunRecorder
 from formation_sim.simulation import Simulation
 from formation_sim.team import note_errors, note_missing, team_step
 
-#: run_steps' reasons to return early
+#: why a chunk ended early (run_sampled, run_continuous)
 EVENT_NONE, EVENT_NON_FINITE = 0, 1
 #: (t, real-time factor, worst margin so far)
 ProgressFn = Callable[[float, float, float], None]
@@ -80,6 +80,7 @@ class ClosedLoop(NamedTuple):
     R_rel: np.ndarray  # (n_ends, 3, 3)
     in_range: np.ndarray  # (n_ends,) bool
     v_measured: np.ndarray  # (N, 6) scratch: the step's noisy twists
+    u: np.ndarray  # (N, 6) scratch: the step's commanded wrenches (columns U of ``out``)
     noise: np.ndarray  # (draws, 2, n_links, 3) standard normal draws, or (1, 0, 0, 3) without noise
     cursor: np.ndarray  # (1,) int: next row of ``noise``
 
@@ -150,7 +151,7 @@ def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
     return Watch(np.stack([judge.edges.tail, judge.edges.head], axis=1).astype(np.int64), edges, checked)
 
 
-@kernel
+@formula
 def settle(s, t, inside):
     """The settle time after a sample at t: NaN (none) while outside the band, else the first t inside."""
     if not inside:
@@ -158,7 +159,7 @@ def settle(s, t, inside):
     return t if np.isnan(s) else s
 
 
-@kernel
+@formula
 def check_step(watch, buf, n, t, p, R, out):
     """The funnels at step n of the chunk on ground truth (e, ψ, ρ into ``buf``); True if one is left."""
     c = watch.checked
@@ -167,7 +168,7 @@ def check_step(watch, buf, n, t, p, R, out):
         g, i, j = watch.edges[k], watch.pairs[k, 0], watch.pairs[k, 1]
         d = (p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2])
         e = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - g[W_D2]
-        A = matmul3(R[j], rows3(g, W_R_DES))  # ψ = ½(3 − Σ (R_k2 R_des)∘R_k1)
+        A = matmul3(matrix_rows(R[j]), flat_rows(g, W_R_DES))  # ψ = ½(3 − Σ (R_k2 R_des)∘R_k1)
         trace = 0.0
         for a in range(3):
             for b in range(3):
@@ -196,9 +197,10 @@ def check_step(watch, buf, n, t, p, R, out):
     return outside
 
 
-@kernel
+@formula
 def sense_and_control(loop, t, p, R, v):
-    """The measurements at t (consuming one noise draw) and every agent's answer, into ``loop.out``."""
+    """The measurements at t (consuming one noise draw) and every agent's answer, into ``loop.out``
+    (and its wrenches into ``loop.u``)."""
     if loop.noise.shape[1] == 0:
         draws = loop.noise[0]
     else:
@@ -210,26 +212,29 @@ def sense_and_control(loop, t, p, R, v):
         t, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured,
         loop.first_end, loop.agents, loop.ends, loop.start, loop.out, loop.edge_out,
     )  # fmt: skip
+    for i in range(loop.u.shape[0]):
+        for c in range(6):
+            loop.u[i, c] = loop.out[i, U + c]
 
 
-@kernel
+@formula
 def continuous_step(loop, t, p, R, v, h, work):
     """One RKMK4 step (as :func:`formation_sim.plant.rkmk4_step`) with the controller at every stage."""
     sense_and_control(loop, t, p, R, v)
-    saturate_into(loop.out[:, U : U + 6], loop.plant, work.u)
+    saturate_into(loop.u, loop.plant, work.u)
     body_rates(t, p, R, v, work.u, loop.plant, work.p_dot[0], work.v_dot[0])
     body_chart_rates(v, work)
     for k in range(3):
         c = h if k == 2 else 0.5 * h
         rkmk4_stage(c, p, R, v, k, work)
         sense_and_control(loop, t + c, work.p, work.R, work.v)
-        saturate_into(loop.out[:, U : U + 6], loop.plant, work.u)
+        saturate_into(loop.u, loop.plant, work.u)
         body_rates(t + c, work.p, work.R, work.v, work.u, loop.plant, work.p_dot[k + 1], work.v_dot[k + 1])
         chart_rates(k + 1, work)
     rkmk4_combine(h, p, R, v, work)
 
 
-@kernel
+@formula
 def all_finite_state(p, R, v):
     """True while every entry of the state is finite (the caller names the agents otherwise)."""
     total = 0.0  # NaN or inf in any entry makes the sum non-finite
@@ -241,7 +246,7 @@ def all_finite_state(p, R, v):
     return np.isfinite(total)
 
 
-@kernel
+@formula
 def record_step(buf, n, t, p, R, v, out, in_range):
     """Row n of the buffers: the step's ground truth, wrenches, velocity margins, levels and ranges."""
     buf.t[n] = t
@@ -260,32 +265,52 @@ def record_step(buf, n, t, p, R, v, out, in_range):
         buf.in_range[n, k] = in_range[k]
 
 
+@formula
+def control_step(loop, watch, buf, n, t, p, R, v, first_outside):
+    """Step n of a chunk at t [s]: measurements, controllers, the sample recorded and every funnel
+    checked; returns the chunk's first step outside a funnel so far (−1: none)."""
+    sense_and_control(loop, t, p, R, v)
+    record_step(buf, n, t, p, R, v, loop.out, loop.in_range)
+    if check_step(watch, buf, n, t, p, R, loop.out) and first_outside < 0:
+        return n
+    return first_outside
+
+
 @kernel
-def run_steps(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, continuous, stop, buf):
-    """Control steps k0 … k_stop − 1 (no physics after step k_last), (p, R, v) in place.
+def run_sampled(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, stop, buf):
+    """Control steps k0 … k_stop − 1, each followed by ``substeps`` RKMK4 steps with its wrenches held
+    (none after step k_last); (p, R, v) in place.
 
     Returns (steps done, event, the chunk's first step outside a funnel or −1): ``EVENT_NON_FINITE``
     when the state is no longer finite; with ``stop`` the chunk ends at its first violation.
     """
-    n = 0
     first_outside = -1
-    for k in range(k0, k_stop):
-        t = k / control_rate
-        sense_and_control(loop, t, p, R, v)
-        record_step(buf, n, t, p, R, v, loop.out, loop.in_range)
-        if check_step(watch, buf, n, t, p, R, loop.out) and first_outside < 0:
-            first_outside = n
-        n += 1
-        if k == k_last or (stop and first_outside >= 0):
-            break
+    for n in range(k_stop - k0):
+        t = (k0 + n) / control_rate
+        first_outside = control_step(loop, watch, buf, n, t, p, R, v, first_outside)
+        if k0 + n == k_last or (stop and first_outside >= 0):
+            return n + 1, EVENT_NONE, first_outside
         for s in range(substeps):
-            if continuous:
-                continuous_step(loop, t + s * h, p, R, v, h, work)
-            else:
-                rkmk4_step(t + s * h, p, R, v, loop.out[:, U : U + 6], h, loop.plant, work)
+            rkmk4_step(t + s * h, p, R, v, loop.u, h, loop.plant, work)
         if not all_finite_state(p, R, v):
-            return n, EVENT_NON_FINITE, first_outside
-    return n, EVENT_NONE, first_outside
+            return n + 1, EVENT_NON_FINITE, first_outside
+    return k_stop - k0, EVENT_NONE, first_outside
+
+
+@kernel
+def run_continuous(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, stop, buf):
+    """:func:`run_sampled` with the controller evaluated at every stage of every physics step."""
+    first_outside = -1
+    for n in range(k_stop - k0):
+        t = (k0 + n) / control_rate
+        first_outside = control_step(loop, watch, buf, n, t, p, R, v, first_outside)
+        if k0 + n == k_last or (stop and first_outside >= 0):
+            return n + 1, EVENT_NONE, first_outside
+        for s in range(substeps):
+            continuous_step(loop, t + s * h, p, R, v, h, work)
+        if not all_finite_state(p, R, v):
+            return n + 1, EVENT_NON_FINITE, first_outside
+    return k_stop - k0, EVENT_NONE, first_outside
 
 
 def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
@@ -304,6 +329,7 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
         np.zeros((n_ends, 3, 3)),
         np.zeros(n_ends, dtype=np.bool_),
         np.zeros((n, 6)),
+        np.zeros((n, 6)),
         sim.sensors.draw_noise(1),
         np.zeros(1, dtype=np.int64),
     )
@@ -318,9 +344,8 @@ def first_step(spec: FormationSpec) -> np.ndarray:
     buf = new_buffers(1, n, n_ends, len(spec.edges))
     s = sim.state
     rate = float(spec.simulation.control_rate)
-    run_steps(
-        loop, new_watch(spec, Judge(spec)), s.p, s.R, s.v, new_workspace(n), 0, 1, 0, rate, 1, 1.0 / rate, False,
-        False, buf,
+    run_sampled(
+        loop, new_watch(spec, Judge(spec)), s.p, s.R, s.v, new_workspace(n), 0, 1, 0, rate, 1, 1.0 / rate, False, buf
     )  # fmt: skip
     return loop.start
 
@@ -385,14 +410,15 @@ def run_closed_loop(
     draws_per_step = 1 + (4 * substeps if continuous else 0)
     p, R, v = sim.state.p, sim.state.R, sim.state.v  # advanced in place
     work = new_workspace(len(ids))
+    run_chunk = run_continuous if continuous else run_sampled
     k = 0
     incomplete = ""
     last_report = started
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
-        done, event, j = run_steps(
+        done, event, j = run_chunk(
             loop, watch, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
-            substeps, h, continuous, stop_on_violation, buf,
+            substeps, h, stop_on_violation, buf,
         )  # fmt: skip
         violation = None
         if j >= 0 and recorder.first_violation is None:

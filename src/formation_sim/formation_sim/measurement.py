@@ -21,8 +21,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from formation_msgs_py.compiled import kernel
-from formation_msgs_py.so3 import exp_rows, matmul3, matTvec3, set3x3
+from formation_msgs_py.compiled import formula, kernel
+from formation_msgs_py.so3 import add3, exp_rows, matmul3, matrix_rows, matTvec3, scale3, set3x3, transpose3, vec3
 from formation_msgs_py.spec import SimulatorView
 
 #: {agent_id: {neighbour_id: (p_i_j_in_i (3,), R_i_j (3,3))}}
@@ -61,27 +61,33 @@ def sensing(view: SimulatorView) -> Sensing:
     )
 
 
+@formula
+def measure_end(p, R, sens, noise, k, p_rel, R_rel):
+    """Edge end k's relative pose into ``p_rel`` (3,), ``R_rel`` (3,3), with the observer's noise if
+    ``noise`` holds any; True if its target is within the observer's sensing radius."""
+    i, j = sens.observer[k], sens.target[k]
+    d_world = (p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2])
+    R_world_i = matrix_rows(R[i])
+    p_i_j_in_i = matTvec3(R_world_i, d_world)
+    R_i_j = matmul3(transpose3(R_world_i), matrix_rows(R[j]))
+    if noise.shape[0] > 0:
+        lk, s = sens.link[k], sens.rotation_std[k]
+        p_i_j_in_i = add3(p_i_j_in_i, scale3(sens.position_std[k], vec3(noise[0, lk])))
+        R_i_j = matmul3(R_i_j, exp_rows(scale3(s, vec3(noise[1, lk]))))
+    for x in range(3):
+        p_rel[x] = p_i_j_in_i[x]
+    set3x3(R_rel, R_i_j)
+    return d_world[0] ** 2 + d_world[1] ** 2 + d_world[2] ** 2 <= sens.radius2[k]
+
+
 @kernel
 def relative_poses(p, R, sens, noise, p_rel, R_rel, in_range):
     """Fill p_rel (n_ends,3), R_rel (n_ends,3,3), in_range (n_ends,) from world poses p (N,3), R (N,3,3).
 
     ``noise`` is (2, n_links, 3) standard normal draws (position, rotation) or empty (no noise).
     """
-    noisy = noise.shape[0] > 0
     for k in range(sens.observer.shape[0]):
-        i, j = sens.observer[k], sens.target[k]
-        d_world = (p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2])
-        in_range[k] = d_world[0] ** 2 + d_world[1] ** 2 + d_world[2] ** 2 <= sens.radius2[k]
-        p_i_j_in_i = matTvec3(R[i], d_world)
-        for x in range(3):
-            p_rel[k, x] = p_i_j_in_i[x]
-        R_i_j = matmul3(R[i].T, R[j])
-        if noisy:
-            lk, s = sens.link[k], sens.rotation_std[k]
-            for x in range(3):
-                p_rel[k, x] += noise[0, lk, x] * sens.position_std[k]
-            R_i_j = matmul3(R_i_j, exp_rows((noise[1, lk, 0] * s, noise[1, lk, 1] * s, noise[1, lk, 2] * s)))
-        set3x3(R_rel[k], R_i_j)
+        in_range[k] = measure_end(p, R, sens, noise, k, p_rel[k], R_rel[k])
 
 
 class MeasurementModel:

@@ -24,8 +24,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from formation_msgs_py.compiled import kernel
-from formation_msgs_py.so3 import cross3, dexpinv, exp_rows, matmul3, matTvec3, matvec3, set3x3, sub3
+from formation_msgs_py.compiled import formula, kernel
+from formation_msgs_py.so3 import cross3, dexpinv, exp_rows, matmul3, matrix_rows, matTvec3, matvec3, set3x3, sub3, vec3
 from formation_msgs_py.spec import SimulatorView
 from formation_sim.signals import NONE, SignalParams, l1_norm, signal_params, signal_value, signals_at, signals_into
 
@@ -81,7 +81,7 @@ def new_workspace(n: int) -> Workspace:
     )
 
 
-@kernel
+@formula
 def saturate_into(u, plant, out):
     """out (N,6) = the wrenches the actuators apply: force and torque norms at most their limits.
 
@@ -98,7 +98,7 @@ def saturate_into(u, plant, out):
                     out[i, c] = scale * u[i, c]
 
 
-@kernel
+@formula
 def body_rates(t, p, R, v, u, plant, p_dot, v_dot):
     """Fill ṗ = R v_L (N,3) and v̇ = M⁻¹(u − C(v)v − g(x) − w(x, v, t)) (N,6) (eq. system)."""
     ref_first = l1_norm(p, 0)
@@ -112,19 +112,21 @@ def body_rates(t, p, R, v, u, plant, p_dot, v_dot):
             torque = (torque[0] - w[3], torque[1] - w[4], torque[2] - w[5])
         lin = (v[i, 0], v[i, 1], v[i, 2])
         ang = (v[i, 3], v[i, 4], v[i, 5])
-        velocity_world = matvec3(R[i], lin)
+        R_world_body = matrix_rows(R[i])
+        velocity_world = matvec3(R_world_body, lin)
         # m v̇_L = f − m ω×v_L + m Rᵀ g_world
         spin = cross3(ang, lin)
-        gravity_body = matTvec3(R[i], plant.gravity)
+        gravity_body = matTvec3(R_world_body, vec3(plant.gravity))
         # J ω̇ = τ − ω×Jω
-        alpha = matvec3(plant.inertia_inv[i], sub3(torque, cross3(ang, matvec3(plant.inertia[i], ang))))
+        J, J_inv = matrix_rows(plant.inertia[i]), matrix_rows(plant.inertia_inv[i])
+        alpha = matvec3(J_inv, sub3(torque, cross3(ang, matvec3(J, ang))))
         for c in range(3):
             p_dot[i, c] = velocity_world[c]
             v_dot[i, c] = force[c] / plant.mass[i] - spin[c] + gravity_body[c]
             v_dot[i, 3 + c] = alpha[c]
 
 
-@kernel
+@formula
 def rkmk4_stage(c, p0, R0, v0, k, work):
     """The next stage's state at offset c [s] from stage k's rates, into ``work``.
 
@@ -134,21 +136,21 @@ def rkmk4_stage(c, p0, R0, v0, k, work):
         for x in range(3):
             work.theta[i, x] = c * work.theta_dot[k, i, x]
             work.p[i, x] = p0[i, x] + c * work.p_dot[k, i, x]
-        set3x3(work.R[i], matmul3(R0[i], exp_rows(work.theta[i])))
+        set3x3(work.R[i], matmul3(matrix_rows(R0[i]), exp_rows(vec3(work.theta[i]))))
         for x in range(6):
             work.v[i, x] = v0[i, x] + c * work.v_dot[k, i, x]
 
 
-@kernel
+@formula
 def chart_rates(k, work):
     """Θ̇_k = dexp⁻¹_{−Θ}(ω) of every agent at the current stage."""
     for i in range(work.theta.shape[0]):
-        rate = dexpinv(work.theta[i], (work.v[i, 3], work.v[i, 4], work.v[i, 5]))
+        rate = dexpinv(vec3(work.theta[i]), (work.v[i, 3], work.v[i, 4], work.v[i, 5]))
         for x in range(3):
             work.theta_dot[k, i, x] = rate[x]
 
 
-@kernel
+@formula
 def body_chart_rates(v, work):
     """Θ̇_0 = ω: the chart's rate at Θ = 0, the first stage."""
     for i in range(v.shape[0]):
@@ -156,7 +158,7 @@ def body_chart_rates(v, work):
             work.theta_dot[0, i, x] = v[i, 3 + x]
 
 
-@kernel
+@formula
 def rkmk4_combine(h, p, R, v, work):
     """Advance (p, R, v) in place from the four stages' rates (classical weights 1, 2, 2, 1)."""
     w6 = h / 6.0
@@ -167,7 +169,7 @@ def rkmk4_combine(h, p, R, v, work):
             work.theta[i, x] = w6 * (td[0, i, x] + 2 * td[1, i, x] + 2 * td[2, i, x] + td[3, i, x])
         for x in range(6):
             v[i, x] = v[i, x] + w6 * (vd[0, i, x] + 2 * vd[1, i, x] + 2 * vd[2, i, x] + vd[3, i, x])
-        set3x3(R[i], matmul3(R[i], exp_rows(work.theta[i])))
+        set3x3(R[i], matmul3(matrix_rows(R[i]), exp_rows(vec3(work.theta[i]))))
 
 
 @kernel
@@ -244,12 +246,6 @@ class Plant:
         out = np.empty((self.n, 6))
         saturate_into(np.asarray(u, dtype=np.float64), self.params, out)
         return out
-
-    def acceleration(self, t: float, s: PlantState, u: np.ndarray) -> np.ndarray:
-        """v̇ (N,6) = M⁻¹(sat(u) − C(v)v − g(x) − w(x,v,t)), body frame."""
-        p_dot, v_dot = np.empty((self.n, 3)), np.empty((self.n, 6))
-        body_rates(float(t), s.p, s.R, s.v, self.saturate(u), self.params, p_dot, v_dot)
-        return v_dot
 
     def step(self, t: float, s: PlantState, u: np.ndarray, h: float) -> PlantState:
         """One RKMK4 step of length h (s) with the wrenches u (N,6) held; a new state."""

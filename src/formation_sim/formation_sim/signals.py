@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from formation_msgs_py.compiled import kernel
+from formation_msgs_py.compiled import formula
 from formation_msgs_py.spec import SignalModel
 
 NONE, PAPER, CONSTANT, RANDOM = 0, 1, 2, 3
@@ -69,7 +69,7 @@ def signal_params(models: Sequence[SignalModel], rng: np.random.Generator) -> Si
     return SignalParams(kind, paper, constant, amp, freq, phase)
 
 
-@kernel
+@formula
 def random_channel(sig, i, c, t):
     """Channel c of agent i's ``random`` signal at t: Σ_m a_m sin(ω_m t + φ_m)."""
     acc = 0.0
@@ -78,7 +78,7 @@ def random_channel(sig, i, c, t):
     return acc
 
 
-@kernel
+@formula
 def signal_value(sig, i, t, ref_first, ref_self, trace, v):
     """Agent i's signal at t [s], a 6-tuple: ``ref_first``/``ref_self`` are ‖p_1‖₁/‖p_i‖₁, ``trace``
     tr(R_i), ``v`` the agent's twist (6,)."""
@@ -103,13 +103,13 @@ def signal_value(sig, i, t, ref_first, ref_self, trace, v):
     return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-@kernel
+@formula
 def l1_norm(p, i):
     """‖p_i‖₁."""
     return abs(p[i, 0]) + abs(p[i, 1]) + abs(p[i, 2])
 
 
-@kernel
+@formula
 def signals_into(sig, t, p, R, v, out):
     """Add every agent's signal at t to ``out`` (N, 6), for positions p (N,3), rotations R (N,3,3), twists v (N,6)."""
     ref_first = l1_norm(p, 0)

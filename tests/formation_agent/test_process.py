@@ -23,3 +23,29 @@ def test_available_memory_is_positive_and_at_most_the_machine() -> None:
 
     total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     assert 0 < process.available_memory() <= total
+
+
+def test_cache_is_warm_only_for_the_source_and_numba_as_they_are(tmp_path) -> None:
+    """An index written for another controller.py (or another numba) is stale: agents would compile."""
+    import hashlib
+    import importlib.metadata
+    import pickle
+
+    source = tmp_path / "controller.py"
+    source.write_text("def agent_step(): pass\n")
+    (tmp_path / "__pycache__").mkdir()
+    index = tmp_path / "__pycache__" / "controller.agent_step-265.py311.nbi"
+    assert not process.numba_cache_warm(tmp_path)  # no index
+
+    def write_index(version: str, text: bytes) -> None:
+        with index.open("wb") as f:
+            pickle.dump(version, f, protocol=-1)
+            f.write(pickle.dumps((hashlib.sha256(text).digest(), {}), protocol=-1))
+
+    numba_version = importlib.metadata.version("numba")
+    write_index(numba_version, source.read_bytes())
+    assert process.numba_cache_warm(tmp_path)
+    write_index("0.0.1", source.read_bytes())
+    assert not process.numba_cache_warm(tmp_path)
+    write_index(numba_version, b"def agent_step(): return 1\n")
+    assert not process.numba_cache_warm(tmp_path)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Install (on first use) and run a formation through ROS 2: the simulator node and one process per
-# agent, recorded into OUT/bag (by the simulator in lockstep, a recorder in realtime); the default is the paper's scenario (config/paper_5agents.yaml).
+# agent, recorded into OUT/bag by the simulator; the default is the paper's scenario (config/paper_5agents.yaml).
 #
 #   ros2_ws/run.sh [FILE] [--mode lockstep|realtime] [--out DIR] [--duration S] [--control-rate HZ]
 #                  [--no-record] [--animate] [--netns auto|on|off] [--headless] [options below]

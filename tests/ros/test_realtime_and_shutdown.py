@@ -125,8 +125,6 @@ class Run:
         """PID of a child (from its log's owner: the processes mentioning this test's formation)."""
         for pid in processes_mentioning(str(self.formation)):
             cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-            if name == "recorder" and "formation-record" in cmd:
-                return pid
             if name == "sim" and "formation_sim.sim_node" in cmd:
                 return pid
             if name.startswith("agent_") and f"agent_id:='{name[6:]}'" in cmd:
@@ -175,9 +173,8 @@ def assert_clean_end(run: Run, code: int, summary: dict, expected: int, reason: 
     assert "Traceback" not in text + run.logs(), text + run.logs()
     assert processes_mentioning(str(run.formation)) == [], text
     table = json.loads((run.out / "logs" / "processes.json").read_text())
-    # the simulator and 5 agents (a lockstep run's bag is the simulator's), plus the realtime recorder
-    processes = 7 if "realtime" in summary["mode"] else 6
-    assert len(table) == processes and all(row["returncode"] is not None for row in table), (table, text)
+    # the simulator (which writes the bag) and 5 agents
+    assert len(table) == 6 and all(row["returncode"] is not None for row in table), (table, text)
 
 
 def test_ctrl_c_stops_every_process_fast(launched) -> None:
@@ -194,14 +191,10 @@ def test_ctrl_c_stops_every_process_fast(launched) -> None:
     assert stop_s < 10, stop_s
 
 
-@pytest.mark.parametrize("victim", ["agent_3", "sim", "recorder"])
+@pytest.mark.parametrize("victim", ["agent_3", "sim"])
 def test_a_killed_process_is_named(launched, victim: str) -> None:
-    """kill -9 of an agent or the simulator of a lockstep run, or of a realtime run's recorder: exit 3,
-    INCOMPLETE naming it."""
-    if victim == "recorder":  # a lockstep run's bag is the simulator's: no recorder process
-        run = launched("--mode", "realtime", "--duration", "10", "--lag-budget", "30", formation=REALTIME)
-    else:
-        run = launched("--duration", "5")
+    """kill -9 of an agent or the simulator: exit 3, INCOMPLETE naming it."""
+    run = launched("--duration", "5")
     run.wait_stepping()
     left = kill_hard(run.pid_of(victim))
     code, summary = run.finish()
@@ -241,33 +234,40 @@ def test_realtime_slower_than_its_lag_budget(launched) -> None:
     assert processes_mentioning(str(run.formation)) == []
 
 
-def test_realtime_recorder_that_falls_behind_drops_with_an_exact_count(launched) -> None:
-    """Realtime: a recorder stopped (SIGSTOP) for 2 s while the run goes on cannot keep everything; the
-    run does not wait for it, and summary.json's recorder counts say exactly what is not in the bag."""
+def test_realtime_recorder_that_falls_behind_drops_with_an_exact_count(launched, procs, tmp_path: Path) -> None:
+    """formation-record as an observer of a realtime run, stopped (SIGSTOP) for 2 s: the run does not wait
+    for it, and its counts say exactly what is not in its bag (the publishers' sequence numbers)."""
+    bag, stats = tmp_path / "observer_bag", tmp_path / "observer_counts.json"
+    cmd = [str(BIN / "formation-record"), "--out", str(bag), "--formation", str(REALTIME), "--stats", str(stats)]
+    rec = procs.start("recorder", [*cmd, "--quiet"])
+    assert wait_for_line(rec, "formation-record: recording", 60), read_log(rec)
     # physics at the control rate keeps the simulator on the wall clock on a loaded machine
-    args = ("--mode", "realtime", "--duration", "4", "--physics-rate", "100", "--lag-budget", "30")
+    args = ("--mode", "realtime", "--duration", "4", "--physics-rate", "100", "--lag-budget", "30", "--no-record")
     run = launched(*args, formation=REALTIME)
     run.wait_stepping()
-    recorder = run.pid_of("recorder")
-    os.kill(recorder, signal.SIGSTOP)
+    os.kill(rec.pid, signal.SIGSTOP)
     try:
         time.sleep(2.0)
     finally:
-        os.kill(recorder, signal.SIGCONT)
+        os.kill(rec.pid, signal.SIGCONT)
     code, summary = run.finish()
     assert code == summary["exit_status"] == 0, run.text()  # the recorder is no part of the control loop
-    counts = summary["recorder"]
-    assert counts["not_recorded"] > 0, counts
-    assert f"the recorder fell behind: {counts['not_recorded']} published messages are not in the bag" in run.text()
-    with Bag(run.out / "bag") as bag:
-        in_bag = {name: info.count for name, info in bag.topics.items()}
-    assert counts["written"] == sum(in_bag.values())
-    # one velocity per step (k = 0 … steps) was published: what is in the bag plus what the summary
-    # says is missing is exactly that
+    os.killpg(rec.pid, signal.SIGINT)
+    assert rec.wait(timeout=30) == 0, read_log(rec)
+    counts = json.loads(stats.read_text())
+    with Bag(bag) as b:
+        in_bag = {name: info.count for name, info in b.topics.items()}
+    assert sum(counts["written"].values()) == sum(in_bag.values())
+    # one velocity per step (k = 0 … steps) was published: what is in the bag plus what the recorder
+    # counts as published but not written is exactly that, and the pause lost some
+    lost = 0
     for a in load_formation(REALTIME).agent_ids:
         topic = f"/agent_{a}/velocity"
-        assert in_bag[topic] + counts["not_recorded_by_topic"].get(topic, 0) == summary["steps"] + 1, (topic, counts)
-    assert any(t.endswith("/velocity") for t in counts["not_recorded_by_topic"]), counts
+        missing = counts["published_total"][topic] - counts["written"][topic]
+        assert counts["published_total"][topic] == summary["steps"] + 1, (topic, counts)
+        assert in_bag[topic] + missing == summary["steps"] + 1, (topic, counts)
+        lost += missing
+    assert lost > 0, counts
 
 
 def test_full_disk_mid_run(launched, tmp_path: Path) -> None:

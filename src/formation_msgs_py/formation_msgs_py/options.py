@@ -110,11 +110,11 @@ OPTIONS: tuple[Option, ...] = (
            forward=True),
     Option("--settle", "wall s to wait after discovery", frozenset({SIM}), nonnegative, 0.3),
     Option("--resend", "lockstep: re-send an unanswered step after [wall s]", frozenset({SIM}), positive, 0.25),
-    Option("--bag", "lockstep: write the run's bag into DIR (must not exist) in this process: every message the "
-           "simulator publishes, every wrench and /diagnostics it receives, log time = simulation time (what "
-           "formation-launch does when it records a lockstep run)", frozenset({SIM}), Path),
+    Option("--bag", "write the run's bag into DIR (must not exist) in this process: every message the simulator "
+           "publishes, every wrench and /diagnostics it receives; log time = simulation time in lockstep, the wall "
+           "clock in realtime (what formation-launch does when it records)", frozenset({SIM}), Path),
     Option("--wait-recorder", "wait until a bag recorder (formation-record --formation FILE) subscribes before the "
-           "first step (formation-launch: when it records a realtime run)", frozenset({SIM})),
+           "first step", frozenset({SIM})),
     Option("--lag-budget", "realtime: stop INCOMPLETE (exit 4) when a tick lags more than this many wall s behind "
            "the wall clock", ROS, nonnegative, 1.0, forward=True),
     Option("--ground-truth-rate", "ground-truth publication rate [Hz, sim time] (default: the record rate, at "
@@ -132,10 +132,10 @@ OPTIONS: tuple[Option, ...] = (
            frozenset({LAUNCH}), Path),
     Option("--marker-rate", "display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off]; "
            "also the live parameter marker_rate", ROS, nonnegative, 30.0, forward=True),
-    Option("--record", "record a bag into OUT/bag (default: on; --no-record to skip): in lockstep the simulator "
-           "writes it (formation-sim --bag), in realtime formation-record. While recording, ground truth is published "
-           "at every control step unless --ground-truth-rate is given, so that formation-analyze OUT/bag reproduces "
-           "the run's summary", frozenset({LAUNCH}), "bool", True),
+    Option("--record", "record a bag into OUT/bag (default: on; --no-record to skip), written by the simulator "
+           "(formation-sim --bag). While recording, ground truth is published at every control step unless "
+           "--ground-truth-rate is given, so that formation-analyze OUT/bag reproduces the run's summary",
+           frozenset({LAUNCH}), "bool", True),
     Option("--netns", "private network namespace: auto = when more than 30 DDS participants", frozenset({LAUNCH}),
            str, "auto", ("auto", "on", "off")),
     Option("--allow-low-rate", "run even if the control rate is below what the velocity loop needs (warn)",

@@ -3,15 +3,13 @@
 Validates the file (exit 2 before any process starts) and checks OUT (writable, room for the
 expected bag), then starts the simulator node and one agent process per agent through
 :class:`formation_sim.supervisor.Supervisor`, in the DDS environment of :mod:`formation_sim.dds_env`.
-Recording (the default): in lockstep the simulator writes OUT/bag itself (``formation-sim --bag``:
-the recorder is part of the step, nothing crosses DDS twice); in realtime a ``formation-record``
-process records it, and the simulator waits for it before the first step. The simulator's progress
-is relayed from its log. The run stops on completion, Ctrl-C, SIGTERM, SIGHUP or the death of a
-process (in realtime an agent's death is reported and the run goes on: the simulator zeroes that
-agent's wrench); the death is named. After the last step, agents (and recorder) are stopped
-together while the simulator writes OUT, then OUT/summary.json is completed with the verdict of
-the whole run: the simulator's, made INCOMPLETE when a process died, the run was interrupted or
-the realtime bag was not closed cleanly, and with every agent's own fault counts
+Recording (the default): the simulator writes OUT/bag itself (``formation-sim --bag``: nothing
+crosses DDS twice, nothing is lost). The simulator's progress is relayed from its log. The run
+stops on completion, Ctrl-C, SIGTERM, SIGHUP or the death of a process (in realtime an agent's
+death is reported and the run goes on: the simulator zeroes that agent's wrench); the death is
+named. After the last step, the agents are stopped while the simulator writes OUT, then
+OUT/summary.json is completed with the verdict of the whole run: the simulator's, made INCOMPLETE
+when a process died or the run was interrupted, and with every agent's own fault counts
 (``faults_file``: resets, refused measurements, missing poses). ``OUT/logs/processes.json`` lists every
 process with its exit status, CPU time and peak memory.
 """
@@ -118,16 +116,16 @@ def build_parser() -> OptionParser:
         options.LAUNCH,
         "formation-launch",
         "Run a formation through ROS 2: the simulator node and one process per agent "
-        "(unless --no-record, the simulator records the bag in lockstep, a recorder process in realtime). "
+        "(unless --no-record, the simulator records the run's bag). "
         "Writes OUT as docs/outputs.md with one log per process in "
         "OUT/logs. " + EXIT_STATUS_HELP + ".",
     )
 
 
-def _sim_args(args: RunOptions, out: Path, spec: FormationSpec, mode: str) -> list[str]:
+def _sim_args(args: RunOptions, out: Path, spec: FormationSpec) -> list[str]:
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", *args.child_argv(options.SIM)]
     if args.record:
-        cmd += ["--bag", str(out / "bag")] if mode == "lockstep" else ["--wait-recorder"]
+        cmd += ["--bag", str(out / "bag")]
         if args.ground_truth_rate is None:
             # the analysis checks the funnels at the recorded ground-truth samples: all of them
             cmd += ["--ground-truth-rate", repr(spec.simulation.control_rate)]
@@ -151,8 +149,6 @@ class Launcher:
         self.timing: dict[str, float] = {}
         #: children sent SIGINT after the last step (their exit is no death)
         self.interrupted: set[str] = set()
-        #: realtime recording: formation-record (in lockstep the simulator writes the bag)
-        self.recorder_process = args.record and self.mode == "realtime"
 
     def on_signal(self, signum: int, _frame: Any) -> None:
         if self.signalled is None:
@@ -161,29 +157,10 @@ class Launcher:
     def start_all(self) -> Child:
         spec, args = self.spec, self.args
         formation = str(args.file.resolve())
-        if self.recorder_process:
-            self.sup.start(
-                "recorder",
-                "recorder",
-                [
-                    str(_bin("formation-record")),
-                    "--out",
-                    str(self.out / "bag"),
-                    "--formation",
-                    formation,
-                    "--quiet",
-                    "--stats",
-                    str(self.out / "logs" / "recorder_counts.json"),
-                    "--meta",
-                    f"mode={self.mode}",
-                    f"control_rate={spec.simulation.control_rate!r}",
-                    f"duration={spec.simulation.duration!r}",
-                ],
-            )
         sim = self.sup.start(
             "sim",
             "sim",
-            [sys.executable, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec, self.mode)],
+            [sys.executable, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec)],
         )
         self._follow = LogFollower(sim.log)
         # the agents' controller: compiled or interpreted (formation_agent.process), unless the environment says
@@ -244,8 +221,7 @@ class Launcher:
                 print(line, flush=True)
 
     def stop_others(self) -> None:
-        """After the last step: SIGINT to the agents and the recorder (which takes what it holds and
-        closes the bag) while the simulator writes OUT."""
+        """After the last step: SIGINT to the agents while the simulator writes OUT."""
         if self.interrupted or self.stop is not None:
             return  # done already, or stopping every process (interrupted, a process died)
         others = [c for c in self.sup.alive() if c.role != "sim"]
@@ -253,8 +229,7 @@ class Launcher:
             c.signal(signal.SIGINT)
         self.interrupted = {c.name for c in others}
         if not self.args.quiet:
-            what = "agents and recorder, closing the bag" if self.recorder_process else "agents"
-            print(f"formation-launch: stepping done; stopping {what}", flush=True)
+            print("formation-launch: stepping done; stopping the agents", flush=True)
 
     def note(self, text: str) -> None:
         print(f"formation-launch: {text}", file=sys.stderr, flush=True)
@@ -302,10 +277,6 @@ class Launcher:
             self.sup.stop(self.sup.alive(), 1.5, self.note, interrupted=self.interrupted)
         self.relay()
         self.timing["stopped"] = time.monotonic()
-        recorder = next((c for c in self.sup.children if c.role == "recorder"), None)
-        if recorder is not None and recorder.returncode != 0 and self.stop is None:
-            # a bag that was not closed cleanly (I/O error, killed after the grace period) holds less than it says
-            self.stop = Incomplete(ExitCode.INCOMPLETE, recorder.describe_exit() + _last_error(recorder.log))
 
     def summary(self) -> dict[str, Any]:
         """The simulator's summary, completed with what only the launcher knows."""
@@ -335,11 +306,6 @@ class Launcher:
         incomplete = self.stop
         if incomplete is None and self.agent_died:
             incomplete = Incomplete(ExitCode.PROCESS_DIED, "; ".join(self.agent_died))
-        recorder = self._recorder_counts()
-        if recorder is not None:
-            summary["recorder"] = recorder
-            if recorder["not_recorded"]:  # realtime: the recorder may fall behind, by dropping with a count
-                self.note(f"the recorder fell behind: {recorder['not_recorded']} published messages are not in the bag")
         if incomplete is not None:
             result = decide(summary.get("first_violation") is not None, incomplete)
             summary.update(
@@ -357,33 +323,12 @@ class Launcher:
             "processes": len(self.sup.children),
             "wall_start_s": t.get("stepping_from", t["stop_from"]) - t["start"],
             "wall_stepping_s": done - t.get("stepping_from", done),
-            # after the last step: the simulator writes OUT, then agents and recorder stop
+            # after the last step: the simulator writes OUT, then the agents stop
             "wall_stop_s": t["stopped"] - done,
             "wall_sim_outputs_s": t["stop_from"] - done if "stepping_done" in t else None,
             "wall_figures_s": t.get("figures_s"),  # part of wall_stop_s
         }
         return summary
-
-    def _recorder_counts(self) -> dict[str, Any] | None:
-        """The realtime recorder's counts (a lockstep run's bag is the simulator's: its summary has them)."""
-        if not self.recorder_process:
-            return None
-        try:
-            counts = json.loads((self.out / "logs" / "recorder_counts.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            return {"not_recorded": None, "note": "the recorder wrote no counts (killed?)"}
-        missing = {
-            t: n - counts["written"].get(t, 0)
-            for t, n in (counts.get("published_total") or {}).items()
-            if n is not None and n > counts["written"].get(t, 0)
-        }
-        return {
-            "received": sum(counts["received"].values()),
-            "written": sum(counts["written"].values()),
-            "not_recorded": sum(missing.values()),
-            "not_recorded_by_topic": missing,
-            "missed_start": counts.get("missed_start"),
-        }
 
 
 def _last_error(log: Path) -> str:
@@ -411,14 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     mode = args.mode
     for msg in run.warnings:
         print(f"formation-launch: warning: {msg}", file=sys.stderr)
-    if args.record and not _bin("formation-record").exists():
-        print(
-            f"formation-launch: --record needs {_bin('formation-record')} (package formation_bag), which is not "
-            "installed in this environment",
-            file=sys.stderr,
-        )
-        return ExitCode.INVALID
-    participants = len(spec.agents) + 1 + int(args.record and mode == "realtime")
+    participants = len(spec.agents) + 1
     want_netns = args.netns == "on" or (args.netns == "auto" and participants > dds_env.NETNS_THRESHOLD)
     if not dds_env.in_netns() and want_netns:
         reason = dds_env.netns_available()
@@ -455,8 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     transport = f"secure: TLS over TCP ports {secure.describe()['ports']}" if secure else None
     print(
         f"formation-launch: {spec.name}: simulator + {len(spec.agents)} agent processes"
-        f"{' + recorder' if args.record and mode == 'realtime' else ''}, "
-        f"{mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
+        f"{', recorded' if args.record else ''}, {mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
         f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, "
         f"{transport or 'discovery ' + env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
         f"{' in a private network namespace' if dds_env.in_netns() else ''}; logs in {out / 'logs'}/",

@@ -1,10 +1,11 @@
-"""A lockstep run's bag, written by the simulator itself (no ROS import).
+"""A run's bag, written by the simulator itself (no ROS import).
 
-In lockstep the recorder is part of the step (docs/bags.md), so the simulator is the recorder:
-every message it publishes is written as the CDR bytes it sent, and every wrench and
-/diagnostics message it receives as the bytes it received (accepted or refused), with log time =
-simulation time. No second copy of any message crosses DDS and nothing needs acknowledging; a
-message cannot be lost between publication and bag. The bag is what ``formation-record
+The simulator is the run's recorder (docs/bags.md): every message it publishes is written as the
+CDR bytes it sent, and every wrench and /diagnostics message it receives as the bytes it received
+(accepted or refused). Log time: in lockstep simulation time (the message's stamp), in realtime
+the wall clock (system time) when the simulator sent or received it, i.e. the order in which
+wrenches reached the simulator between its ticks. No second copy of any message crosses DDS and
+nothing needs acknowledging; a message cannot be lost between publication and bag. The bag is what ``formation-record
 --formation FILE`` leaves (segmented, metadata.yaml version 9, the formation file and the run's
 settings in custom_data, ``recorder_counts``), so every bag tool reads both alike.
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import json
 import struct
+import time
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +32,11 @@ MIB = 1024 * 1024
 class RunBag:
     """The bag at ``path`` (must not exist); topics are added before their first message."""
 
-    def __init__(self, path: Path, custom_data: dict[str, str], *, segment_mb: float = SEGMENT_MB) -> None:
+    def __init__(
+        self, path: Path, custom_data: dict[str, str], *, wall_log_time: bool = False, segment_mb: float = SEGMENT_MB
+    ) -> None:
         self.path = path
+        self.wall_log_time = wall_log_time
         self.writer = SegmentedBagWriter(
             path, segment_seconds=None, segment_bytes=round(segment_mb * MIB), custom_data=custom_data
         )
@@ -55,9 +60,11 @@ class RunBag:
             self.own.add(name)
 
     def write(self, topic: str, data: bytes | memoryview) -> None:
-        """One message as sent or received; log time: its stamp, else :attr:`now_ns`."""
+        """One message as sent or received; log time: the wall clock, or its stamp, else :attr:`now_ns`."""
         ns = self.now_ns
-        if self.stamped[topic]:
+        if self.wall_log_time:
+            ns = time.time_ns()
+        elif self.stamped[topic]:
             try:
                 ns = stamp_of(data)
             except struct.error:
@@ -75,17 +82,20 @@ class RunBag:
                 return
         self.not_written[topic] = self.not_written.get(topic, 0) + 1
 
+    def write_sent(self, topic: str, data: bytes) -> None:
+        """A publication of the simulator as its subscribers receive it: Fast DDS pads the CDR to a
+        multiple of 4 bytes with zeros (what formation-record stores)."""
+        self.write(topic, data + bytes(-len(data) % 4) if len(data) % 4 else data)
+
     def zero_padded(self, topic: str, data: bytes) -> bytes:
         """The same message with its CDR alignment padding zeroed.
 
         rclpy's ``serialize_message`` leaves the padding uninitialised (the simulator publishes its
         display messages as objects), so a bag would differ from run to run and carry stray memory;
-        rosbags re-serialises with zeros, and rclpy's trailing padding (to 4 bytes) is kept as zeros.
-        ~2 ms for the paper's MarkerArray, published at 30 Hz of simulated time.
+        rosbags re-serialises with zeros. ~2 ms for a MarkerArray of the paper's scene.
         """
         store, msgtype = self.writer.store, self.types[topic]
-        clean = bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype))
-        return clean + bytes(len(data) - len(clean))
+        return bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype))
 
     def counts(self) -> dict[str, Any]:
         """What formation-record stores as ``recorder_counts``: per topic received, written and, for the
@@ -97,7 +107,7 @@ class RunBag:
             "published_seen": published,
             "published_total": published,
             "decimate": {},
-            "log_time": "sim",
+            "log_time": "receive" if self.wall_log_time else "sim",
             "missed_start": None,
             "writer": "simulator",
         }

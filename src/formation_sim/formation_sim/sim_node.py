@@ -24,10 +24,11 @@ outputs (docs/outputs.md) go to ``--out``, also when the run is interrupted (SIG
 summary and trajectory, no figures, so that the stop is fast). The node never needs its stdout
 to finish.
 
-``--bag DIR`` (what formation-launch gives a recorded lockstep run): the simulator is the run's
-recorder (:mod:`formation_sim.run_bag`). Every publisher the node creates writes what it sends
-into the bag, the wrench and /diagnostics subscriptions what they receive; a bag I/O error ends
-the run INCOMPLETE (exit 4). ``--wait-recorder``: wait before the first step until a recorder
+``--bag DIR`` (what formation-launch gives a recorded run): the simulator is the run's recorder
+(:mod:`formation_sim.run_bag`). Every publisher the node creates writes what it sends into the
+bag, the wrench and /diagnostics subscriptions what they receive (log time: simulation time in
+lockstep, the wall clock of sending or receipt in realtime); a bag I/O error ends the run
+INCOMPLETE (exit 4). ``--wait-recorder``: wait before the first step until a recorder
 (``formation-record --formation FILE``) subscribes to the ground truth.
 """
 
@@ -110,9 +111,9 @@ class RecordedPublisher:
     def publish(self, msg: Any) -> None:
         self.publisher.publish(msg)
         if isinstance(msg, bytes):
-            self.bag.write(self.topic, msg)
-        else:  # a message object (the display topics): serialised here, with its padding zeroed
-            self.bag.write(self.topic, self.bag.zero_padded(self.topic, serialize_message(msg)))
+            self.bag.write_sent(self.topic, msg)
+        else:  # a message object: serialised here, with its padding zeroed
+            self.bag.write_sent(self.topic, self.bag.zero_padded(self.topic, serialize_message(msg)))
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.publisher, name)
@@ -361,7 +362,10 @@ class Runner:
             self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.wrenches.value))
 
     def advance(self, u: np.ndarray) -> None:
-        """Integrate one control period (raises RunStoppedError, agents named, if the state blew up)."""
+        """Integrate one control period (raises RunStoppedError, agents named, if the state blew up,
+        or if the run's bag could not be written)."""
+        if self.node.bag is not None and self.node.bag.failed:
+            raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, self.node.bag.failed))
         reason = inputs.advance_checked(self.sim, u)
         if reason:
             raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, reason))
@@ -408,8 +412,6 @@ class Runner:
             timing.expected += 1
             u = np.array(node.wrenches.value)
             rec.set_inputs(u)
-            if node.bag is not None and node.bag.failed:
-                raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, node.bag.failed))
             if final:
                 break
             self.advance(u)
@@ -551,7 +553,7 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
     bag = None
     if args.bag is not None:
         try:
-            bag = RunBag(args.bag, bag_custom_data(spec, args))
+            bag = RunBag(args.bag, bag_custom_data(spec, args), wall_log_time=args.mode == "realtime")
         except (BagError, OSError) as exc:
             print(f"formation-sim: {exc}", file=sys.stderr, flush=True)
             return ExitCode.INVALID

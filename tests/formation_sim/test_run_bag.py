@@ -92,7 +92,8 @@ def test_an_existing_bag_is_not_overwritten(tmp_path: Path) -> None:
 
 def test_display_messages_are_stored_with_zeroed_padding(tmp_path: Path) -> None:
     """rclpy's serialize_message leaves CDR alignment padding uninitialised: the bag gets the same
-    values with zeros there (deterministic bytes), padded to 4 bytes as Fast DDS delivers them."""
+    values with zeros there (deterministic bytes); publications are stored padded to 4 bytes, as
+    Fast DDS delivers them."""
     bag = _bag(tmp_path / "bag")
     store = bag.writer.store
     t = store.types
@@ -107,8 +108,13 @@ def test_display_messages_are_stored_with_zeroed_padding(tmp_path: Path) -> None
     dirty = clean[:pad] + b"\x7f" + clean[pad + 1 :]
     assert clean[pad] == 0 and len(clean) % 4 == 0
     assert bag.zero_padded(FUNNELS, dirty) == clean
-    # a message that ends unaligned (a string): padded to 4 bytes
+    # a publication that ends unaligned (a string) is stored padded to 4 bytes, as DDS delivers it
     bag.add_topic("/text", "std_msgs/msg/String", make_qos(), published=True)
     text = bytes(store.serialize_cdr(t["std_msgs/msg/String"](data="ab"), "std_msgs/msg/String"))
-    assert len(text) == 11 and bag.zero_padded("/text", text) == text + b"\x00"
+    bag.write_sent("/text", text)
+    bag.write_sent(FUNNELS, clean)
     bag.close()
+    with Reader(tmp_path / "bag") as reader:
+        stored = {conn.topic: data for conn, _, data in reader.messages()}
+    assert len(text) == 11 and stored["/text"] == text + b"\x00"
+    assert stored[FUNNELS] == clean

@@ -29,6 +29,7 @@ from typing import Any
 
 from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController, ControlOutput
 from formation_agent.inputs import DROPPED_KINDS, InputCheck, Refusal
+from formation_agent.process import warm_up
 from formation_msgs_py.faults import FaultLog, fault_lines, write_json
 from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.spec import AgentView
@@ -296,9 +297,7 @@ class AgentNode(Node):
             pose_wait=float(pose_wait),
             measurement_timeout_ns=round(view.controller.measurement_timeout * _NS),
         )
-        # load the controller's kernels before subscribing (compiled: numba's cache, ~1 s), not at step 0
-        identity = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-        AgentController(view).compute(0.0, {j: ((1.0, 0.0, 0.0), identity) for j in view.neighbours}, (0.0,) * 6)
+        warm_up(view)  # the controller's kernels before subscribing (compiled: numba's cache, ~1 s), not at step 0
         self.inputs = InputCheck(view.sensing_radius, round(view.controller.measurement_timeout * _NS))
         self.sync.set_gains(**live_gains(self.agent_id, gains))
         self.add_on_set_parameters_callback(self._on_set_parameters)

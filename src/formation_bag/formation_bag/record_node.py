@@ -10,10 +10,10 @@ the subscriptions already hold (no waiting for silence: agents publish /diagnost
 are stopped), close the last segment and write metadata.yaml (exit status 0). A SIGKILL loses at
 most the open segment. A full disk stops the recording with one line and exit status 4.
 
-An observer: no process waits for it (formation-launch records a lockstep run in the simulator
-itself, ``formation-sim --bag``, and uses this recorder in realtime). ``formation-sim
---wait-recorder`` waits for it to subscribe before the first step; a recorder started after the
-simulator reports the steps it missed.
+An observer of any run: nothing waits for it while stepping (formation-launch has the simulator
+write the run's bag itself, ``formation-sim --bag``). ``formation-sim --wait-recorder`` waits for
+it to subscribe before the first step; a recorder started after the simulator reports the steps it
+missed.
 
 Topics: every docs/topics.md topic of ``--formation FILE`` (exact, known before anything runs),
 plus whatever the graph shows that matches (checked every ``--discovery-period`` s); or only

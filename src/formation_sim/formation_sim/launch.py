@@ -164,7 +164,7 @@ class Launcher:
         )
         self._follow = LogFollower(sim.log)
         # the agents' controller: compiled or interpreted (formation_agent.process), unless the environment says
-        compiled = compiled_pays(spec.simulation.control_rate, args.mode)
+        compiled = compiled_pays(spec.simulation.control_rate, args.mode, len(spec.agents))
         jit = self.sup.env.get("NUMBA_DISABLE_JIT") or ("0" if compiled else "1")
         for a in spec.agents:
             cmd = [

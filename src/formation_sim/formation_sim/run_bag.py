@@ -82,18 +82,20 @@ class RunBag:
                 return
         self.not_written[topic] = self.not_written.get(topic, 0) + 1
 
+    def write_sent(self, topic: str, data: bytes) -> None:
+        """A publication of the simulator as its subscribers receive it: Fast DDS pads the CDR to a
+        multiple of 4 bytes with zeros (what formation-record stores)."""
+        self.write(topic, data + bytes(-len(data) % 4) if len(data) % 4 else data)
+
     def zero_padded(self, topic: str, data: bytes) -> bytes:
         """The same message with its CDR alignment padding zeroed.
 
         rclpy's ``serialize_message`` leaves the padding uninitialised (the simulator publishes its
         display messages as objects), so a bag would differ from run to run and carry stray memory;
-        rosbags re-serialises with zeros. Padded with zeros to a multiple of 4 bytes, as a subscriber
-        receives it from Fast DDS: the bytes formation-record stores. ~2 ms for the paper's
-        MarkerArray, published at 30 Hz of simulated time.
+        rosbags re-serialises with zeros. ~2 ms for a MarkerArray of the paper's scene.
         """
         store, msgtype = self.writer.store, self.types[topic]
-        clean = bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype))
-        return clean + bytes(-len(clean) % 4)
+        return bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype))
 
     def counts(self) -> dict[str, Any]:
         """What formation-record stores as ``recorder_counts``: per topic received, written and, for the

@@ -54,6 +54,7 @@ from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
+from formation_agent.process import warm_up
 from formation_msgs_py import conversions, qos, topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, ros_type_name
 from formation_msgs_py.bag.errors import BagError
@@ -62,7 +63,7 @@ from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.options import RunOptions
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
-from formation_msgs_py.spec import FormationSpec, simulator_view
+from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 from formation_sim import inputs
 from formation_sim.commands import sim_preflight
@@ -110,9 +111,9 @@ class RecordedPublisher:
     def publish(self, msg: Any) -> None:
         self.publisher.publish(msg)
         if isinstance(msg, bytes):
-            self.bag.write(self.topic, msg)
-        else:  # a message object (the display topics): serialised here, with its padding zeroed
-            self.bag.write(self.topic, self.bag.zero_padded(self.topic, serialize_message(msg)))
+            self.bag.write_sent(self.topic, msg)
+        else:  # a message object: serialised here, with its padding zeroed
+            self.bag.write_sent(self.topic, self.bag.zero_padded(self.topic, serialize_message(msg)))
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.publisher, name)
@@ -272,6 +273,7 @@ class Runner:
         s = spec.simulation
         self.sim = Simulation(simulator_view(spec))
         self.shadow = AgentTeam(spec)
+        warm_up(agent_view(spec, spec.agent_ids[0]))  # the agents' kernel in numba's cache for the next run
         self.n_steps = round(s.duration * s.control_rate)
         self.period = 1.0 / s.control_rate
         record_every = max(1, round(s.control_rate / s.record_rate))

@@ -73,3 +73,21 @@ def test_a_settled_graph_is_read_in_full_once_per_full_period_and_a_change_at_on
     for _ in range(polls_per_full):
         watch.poll()
     assert [i.topic for i in seen] == ["/agent_2/velocity", "/agent_3/velocity"]
+
+
+def test_refuse_reads_every_topic_at_every_poll_and_sees_a_swap_at_once() -> None:
+    """Under ``refuse`` a publisher swapped with the count unchanged is seen at the next poll (not up to
+    FULL_PERIOD later): its messages would be applied meanwhile."""
+    expected = expected_publishers(["1", "2"], [("1", "2"), ("2", "1")], clock=False)
+    graph = {t: [SIM] for t in expected if not t.endswith("/wrench")}
+    graph.update({f"/agent_{a}/wrench": [Endpoint("formation_agent", f"/agent_{a}", bytes([a]))] for a in (1, 2)})
+    node = GraphNode(graph)
+    seen = []
+    watch = GraphWatch(node, PublisherWatch(expected, "refuse"), on_intruder=seen.append)  # type: ignore[arg-type]
+    for _ in range(3):
+        watch.poll()
+    assert len(node.reads) == 3 * len(expected)
+    graph["/agent_1/velocity"] = [OUTSIDER]
+    watch.poll()
+    assert [i.topic for i in seen] == ["/agent_1/velocity"]
+    assert not watch.watch.accept("/agent_1/velocity", 1)

@@ -11,7 +11,8 @@ simulator's CPU; counting them costs ~7 µs. So each poll counts, and reads in f
 whose count changed or that is not settled (:meth:`PublisherWatch.settled`: its one expected
 publisher pinned, nobody else); every topic is also read in full once per :data:`FULL_PERIOD`, a
 share of them at each poll (a publisher replaced by another between two polls leaves the count
-unchanged).
+unchanged). Under the ``refuse`` policy every topic is read in full at every poll: there, a swap
+seen 1 s late would let an outsider's messages through for up to 1 s, and the user chose security.
 """
 
 from __future__ import annotations
@@ -46,7 +47,8 @@ class GraphWatch:
         self.watch = watch
         self.on_intruder = on_intruder
         self.counts: dict[str, int] = {}
-        self.shares = max(1, round(FULL_PERIOD / period))  # topic k is read in full when polls % shares == k % shares
+        # topic k is read in full when polls % shares == k % shares (refuse: always)
+        self.shares = 1 if watch.policy == "refuse" else max(1, round(FULL_PERIOD / period))
         self.polls = 0
         self.timer = node.create_timer(period, self.poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
 

@@ -1,7 +1,8 @@
 """What the simulator accepts from the agents, and the plant state it can go on with (no ROS).
 
 A wrench (body frame, [fx, fy, fz, tx, ty, tz] in N and N·m) stamped ``ns`` (integer ns of
-sim time) from agent i is refused, counted per agent and kind, and never integrated when:
+sim time) from agent i is refused (the simulator counts it as the fault ``refused_wrench_<kind>``
+of that agent, :mod:`formation_msgs_py.faults`) and never integrated when:
 
 - a value is not finite (``non_finite``);
 - its force or torque norm exceeds the agent's actuator limits, ``dynamics.max_force`` /
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -45,14 +46,12 @@ LIMIT_ROUNDING = 1e-9
 _NS = 1_000_000_000
 
 
-@dataclass
-class RefusalLog:
-    """Refusals of one agent and kind: count, first and last sim time [s], last reason."""
+@dataclass(frozen=True)
+class WrenchRefusal:
+    """Why a wrench was refused: ``kind`` (one of the constants above) and a readable reason."""
 
-    count: int = 0
-    first_t: float = math.nan
-    last_t: float = math.nan
-    reason: str = ""
+    kind: str
+    reason: str
 
 
 @dataclass
@@ -64,15 +63,14 @@ class WrenchCheck:
     max_torque: Sequence[float]
     control_rate: float
     lockstep: bool
-    log: dict[tuple[str, str], RefusalLog] = field(default_factory=dict)
 
     def step_of(self, ns: int) -> int | None:
         """The step k whose stamp is ``ns``, or None if ``ns`` is no step's stamp."""
         k = round(ns * self.control_rate / _NS)
         return k if round(k * _NS / self.control_rate) == ns else None
 
-    def check(self, i: int, ns: int, u: Sequence[float], current_ns: int) -> str | None:
-        """The kind of refusal of agent i's wrench ``u`` stamped ``ns`` (None: accepted).
+    def check(self, i: int, ns: int, u: Sequence[float], current_ns: int) -> WrenchRefusal | None:
+        """Why agent i's wrench ``u`` stamped ``ns`` is refused (None: accepted).
 
         ``current_ns`` is the stamp of the newest published step (lockstep: the step waited for).
         """
@@ -94,34 +92,12 @@ class WrenchCheck:
                     f"force {f:.4g} N / torque {t:.4g} N·m beyond the limits "
                     f"{self.max_force[i]:g} N / {self.max_torque[i]:g} N·m"
                 )
-        if kind is None:
-            return None
-        return self._log(i, kind, reason or "", current_ns)
+        return None if kind is None else WrenchRefusal(kind, reason or "")
 
-    def malformed(self, i: int, current_ns: int) -> str:
-        """Bytes on agent i's wrench topic that do not decode as a WrenchStamped (raw CDR from anyone)."""
-        return self._log(i, MALFORMED, "bytes that are not a well-formed WrenchStamped", current_ns)
-
-    def _log(self, i: int, kind: str, reason: str, current_ns: int) -> str:
-        entry = self.log.setdefault((self.agent_ids[i], kind), RefusalLog())
-        t_now = current_ns / _NS
-        entry.count += 1
-        entry.first_t = t_now if entry.count == 1 else entry.first_t
-        entry.last_t = t_now
-        entry.reason = reason
-        return kind
-
-    def report(self) -> dict[str, dict[str, dict[str, object]]]:
-        """{agent: {kind: {count, first_t, last_t, reason}}} for summary.json (strict JSON)."""
-        out: dict[str, dict[str, dict[str, object]]] = {}
-        for (agent, kind), e in sorted(self.log.items()):
-            out.setdefault(agent, {})[kind] = {
-                "count": e.count,
-                "first_t": e.first_t,
-                "last_t": e.last_t,
-                "reason": e.reason,
-            }
-        return out
+    @staticmethod
+    def malformed() -> WrenchRefusal:
+        """Bytes on a wrench topic that do not decode as a WrenchStamped (raw CDR from anyone)."""
+        return WrenchRefusal(MALFORMED, "bytes that are not a well-formed WrenchStamped")
 
 
 def advance_checked(sim: Any, u: Any) -> str:

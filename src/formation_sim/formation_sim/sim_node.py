@@ -205,7 +205,7 @@ class SimNode(Node):
         try:
             ns, u = self.wrench_codecs[i].decode(data)
         except struct.error:
-            refused = self.wrench_check.malformed(i, self.current_ns)
+            refused = self.wrench_check.malformed()
         else:
             if self.wrenches.repeats(i, ns, u):
                 # the agent answered a resent step twice: the same answer again, not a bad input
@@ -213,10 +213,10 @@ class SimNode(Node):
                 return
             refused = self.wrench_check.check(i, ns, u, self.current_ns)
         if refused is not None:
-            reason = self.wrench_check.log[(self.ids[i], refused)].reason
-            if self.faults.add(self.current_ns / NS, self.ids[i], f"refused_wrench_{refused}", reason):
-                print(f"formation-sim: agent {self.ids[i]}: wrench refused ({refused}): {reason}", flush=True)
-            if refused in inputs.DROPPED_KINDS or ns == self.wrenches.stamp[i]:
+            kind, reason = refused.kind, refused.reason
+            if self.faults.add(self.current_ns / NS, self.ids[i], f"refused_wrench_{kind}", reason):
+                print(f"formation-sim: agent {self.ids[i]}: wrench refused ({kind}): {reason}", flush=True)
+            if kind in inputs.DROPPED_KINDS or ns == self.wrenches.stamp[i]:
                 return  # answers no step, or the step has its answer already: nothing changes
             u = (0.0,) * 6  # a refused value answers its step with zero: never integrated
         if self.wrenches.accept(i, ns, u):
@@ -510,9 +510,6 @@ class Runner:
             "velocity_margins": "shadow controllers on the published measurements",
         }
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
-        refused = self.node.wrench_check.report()
-        if refused:
-            info["refused_wrenches"] = refused
         info["security"] = self.node.watch.watch.report()
         info.update(extra)
         return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)

@@ -62,7 +62,7 @@ def main() -> None:
     check = InputCheck(4.0, 100_000_000)
     pose = (1.0, 2.0, 0.5, 0.0, 0.0, 0.0, 1.0)
     print(f"agent pose check: {cpu(lambda: check.pose('3', 10**9, pose, 10**9), 100_000) * 1e6:.2f} µs")
-    wc = WrenchCheck(("1",), (100.0,), (100.0,), 1000.0, lockstep=True)
+    wc = WrenchCheck((100.0,), (100.0,), 1000.0, lockstep=True)
     u = (1.0, 2.0, 3.0, 0.1, 0.2, 0.3)
     print(f"simulator wrench check: {cpu(lambda: wc.check(0, 10**9, u, 10**9), 100_000) * 1e6:.2f} µs")
 

@@ -17,7 +17,7 @@ GOOD = (1.0, 2.0, 3.0, 0.1, 0.2, 0.3)
 
 
 def check(lockstep: bool = True) -> inputs.WrenchCheck:
-    return inputs.WrenchCheck(("a", "b"), (100.0, 100.0), (50.0, 50.0), RATE, lockstep=lockstep)
+    return inputs.WrenchCheck((100.0, 100.0), (50.0, 50.0), RATE, lockstep=lockstep)
 
 
 @pytest.mark.parametrize(

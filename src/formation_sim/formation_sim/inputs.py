@@ -56,9 +56,8 @@ class WrenchRefusal:
 
 @dataclass
 class WrenchCheck:
-    """The wrench checks of one run: agent ids in formation order, limits, the step grid."""
+    """The wrench checks of one run: limits per agent in formation order [N, N·m], the step grid."""
 
-    agent_ids: Sequence[str]
     max_force: Sequence[float]
     max_torque: Sequence[float]
     control_rate: float

@@ -152,7 +152,6 @@ class SimNode(Node):
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
         self.wrenches = WrenchBook(n)
         self.wrench_check = inputs.WrenchCheck(
-            self.ids,
             [a.dynamics.max_force for a in spec.agents],
             [a.dynamics.max_torque for a in spec.agents],
             spec.simulation.control_rate,

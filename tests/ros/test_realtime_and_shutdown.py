@@ -4,6 +4,7 @@ autouse fixture of tests/conftest.py checks processes and /dev/shm after each te
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -284,7 +285,10 @@ def test_full_disk_mid_run(launched, tmp_path: Path) -> None:
         run = launched("--duration", "1", out=disk / "out")
         run.wait_stepping()
         free = shutil.disk_usage(disk).free
-        (disk / "filler").write_bytes(b"\0" * (free - 200_000))
+        try:
+            (disk / "filler").write_bytes(b"\0" * (free - 200_000))
+        except OSError as exc:  # the run's bag grew by more than 200 kB meanwhile (a busy machine): full all the same
+            assert exc.errno == errno.ENOSPC, exc
         code = run.proc.wait(timeout=120)
         text = run.text()
         assert code == 4, text

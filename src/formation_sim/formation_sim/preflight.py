@@ -76,10 +76,10 @@ def rate_problems(spec: FormationSpec) -> list[str]:
 RUN_OUTPUTS = ("summary.json", "trajectory.npz", "bag", "animation.gif")
 
 
-def earlier_outputs(out: Path) -> list[Path]:
-    """What an earlier run left in ``out``: :data:`RUN_OUTPUTS` and every file its summary.json
-    lists under ``outputs`` (plain names only: a summary cannot name a path outside OUT)."""
-    names = set(RUN_OUTPUTS)
+def earlier_outputs(out: Path, extra: tuple[str, ...] = ()) -> list[Path]:
+    """What an earlier run left in ``out``: :data:`RUN_OUTPUTS`, ``extra`` and every file its
+    summary.json lists under ``outputs`` (plain names only: a summary cannot name a path outside OUT)."""
+    names = {*RUN_OUTPUTS, *extra}
     try:
         listed = json.loads((out / "summary.json").read_text(encoding="utf-8")).get("outputs", [])
     except (OSError, ValueError, AttributeError):
@@ -89,17 +89,17 @@ def earlier_outputs(out: Path) -> list[Path]:
     return sorted(out / n for n in names if os.path.lexists(out / n))
 
 
-def prepare_out_dir(out: Path, force: bool) -> None:
+def prepare_out_dir(out: Path, force: bool, extra: tuple[str, ...] = ()) -> None:
     """Create ``out``; refuse a non-empty one unless ``force``, which removes an earlier run's
-    outputs first (:func:`earlier_outputs`): a run that stops before writing its own summary must
-    not leave the earlier run's to be read as its own. Other files in ``out`` stay. InvalidRunError
-    on failure."""
+    outputs first (:func:`earlier_outputs`, with the command's own ``extra`` names): a run that
+    stops before writing its own summary must not leave the earlier run's to be read as its own.
+    Other files in ``out`` stay. InvalidRunError on failure."""
     try:
         if out.exists() and (not out.is_dir() or any(out.iterdir())):
             if not force:
                 raise InvalidRunError(f"output directory {out} exists and is not empty (use --force to overwrite)")
             if out.is_dir():
-                for path in earlier_outputs(out):
+                for path in earlier_outputs(out, extra):
                     if path.is_dir() and not path.is_symlink():
                         shutil.rmtree(path)
                     else:

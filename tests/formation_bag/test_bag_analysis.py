@@ -92,8 +92,11 @@ def test_analysis_of_a_violating_run(violating_bag, tmp_path: Path) -> None:
     partial = json.loads((tmp_path / "o2" / "summary.json").read_text())
     assert partial["verdict"] == "INCOMPLETE" and partial["first_violation"] is None
     assert partial["incomplete_reason"].startswith("data missing: ground truth: ")
-    # refuses to overwrite
+    # refuses to overwrite; --force replaces the earlier analysis, figures included
     assert analysis.main([str(bag), "--out", str(out)]) == 2
+    assert analysis.main([str(bag), "--out", str(out), "--force", "--no-plots", "--velocity-margins", "none"]) == 4
+    assert not (out / "errors.png").exists() and (out / "ages.csv").exists()
+    assert json.loads((out / "summary.json").read_text())["verdict"] == "INCOMPLETE"
 
 
 def test_analysis_of_a_truncated_bag(violating_bag, tmp_path: Path) -> None:

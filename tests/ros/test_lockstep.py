@@ -68,6 +68,19 @@ def test_every_process_has_a_log_and_outputs(ros_env: dict[str, str], tmp_path: 
     assert "recorder.log" not in logs  # the simulator writes a lockstep run's bag
     assert (out / "bag" / "metadata.yaml").is_file()
 
+    # --force into the same OUT: the earlier run's outputs go first, so nothing of it (its PASS,
+    # its figures, its bag, its agents' fault counts) can be read as the new run's
+    (out / "notes.txt").write_text("mine")
+    r = _launch(ros_env, out, "--force", "--record", "--duration", "0.01")
+    assert r.returncode == 0, r.stdout + r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["duration"] == pytest.approx(0.01)
+    assert not (out / "errors.png").exists() and (out / "notes.txt").read_text() == "mine"
+    with (out / "bag" / "metadata.yaml").open() as f:
+        info = yaml.safe_load(f)["rosbag2_bagfile_information"]
+    gt = next(t for t in info["topics_with_message_count"] if t["topic_metadata"]["name"] == "/formation/ground_truth")
+    assert gt["message_count"] == 101  # this run's 0.01 s at 10 kHz, not the first run's 0.02 s
+
 
 def test_lockstep_names_a_killed_agent(procs, tmp_path: Path) -> None:
     """kill -9 of an agent mid-run: the simulator names it and exits 3 within its step timeout."""

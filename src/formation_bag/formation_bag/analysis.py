@@ -43,8 +43,9 @@ from formation_bag.commands import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.rerun import AgentRerun, rerun_all
 from formation_msgs_py.bag.errors import BagError
-from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.errors import FormationError
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
+from formation_sim.preflight import prepare_out_dir
 from formation_sim.report import RunRecorder, format_summary, report_animation, write_json, write_outputs
 
 
@@ -347,6 +348,10 @@ def message_ages(run: RunData) -> dict[str, Any]:
 
 # -- outputs ------------------------------------------------------------------------------------
 
+#: What formation-analyze writes besides the outputs of every run (formation_sim.report): a
+#: ``--force`` into an earlier analysis removes them first (formation_sim.preflight.prepare_out_dir).
+ANALYSIS_OUTPUTS = ("ages.json", "errors.csv", "inputs.csv", "positions.csv", "ages.csv")
+
 
 def write_csv(out: Path, recorder: RunRecorder, ages: dict[str, Any]) -> list[Path]:
     """errors.csv, inputs.csv, positions.csv (the decimated trajectory) and ages.csv."""
@@ -413,10 +418,9 @@ def main(argv: list[str] | None = None) -> int:
     bag = args.bag.resolve()
     out = args.out or bag.parent / f"{bag.stem if bag.is_file() else bag.name}-analysis"
     try:
-        if out.exists() and any(out.iterdir()) and not args.force:
-            raise FileExistsError(f"output directory {out} exists and is not empty (use --force to overwrite)")
+        prepare_out_dir(out, args.force, ANALYSIS_OUTPUTS)
         run = load_run(args.bag, formation=args.formation, namespace=args.namespace)
-    except (BagError, FormationSpecError, FileExistsError, FileNotFoundError) as exc:
+    except (BagError, FormationError, FileNotFoundError) as exc:
         print(f"formation-analyze: {exc}", file=sys.stderr)
         return 2
     for lost in run.lost:

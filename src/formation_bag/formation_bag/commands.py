@@ -138,7 +138,11 @@ def analyze_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also write OUT/animation.gif: the formation in 3D and its funnel margins (~15 s for a 5 s run)",
     )
-    p.add_argument("--force", action="store_true", help="write into an existing non-empty output directory")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write into an existing non-empty output directory, removing an earlier analysis's outputs first",
+    )
     return p
 
 

@@ -28,7 +28,9 @@ decrement per call: with the runtime, those were most of a control step's time.
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable
+from types import ModuleType
 from typing import TypeVar
 
 F = TypeVar("F", bound=Callable)
@@ -64,15 +66,37 @@ def kernel(fn: F) -> F:
     """
     if INTERPRETED:
         return fn
-    global _numba
-    import numba
-
-    _numba = numba
+    numba = _import_numba()
     _register_pending()
     return numba.njit(cache=True, error_model="numpy", _nrt=False, no_cfunc_wrapper=True)(fn)
 
 
 _numba = None
+
+#: Modules numba imports that no kernel needs, together a few tenths of a second of every compiled
+#: process's start: ``coverage`` (numba's coverage support, when coverage is installed and not
+#: running), scipy (numba checks its version, and ``numba.np.arraymath`` imports scipy.linalg to
+#: check for a BLAS that only its np.convolve/np.correlate would use; np.dot and np.linalg import it
+#: when they compile) and cffi (numba's typing of cffi functions).
+_NOT_NEEDED = ("coverage", "scipy", "cffi")
+
+
+def _import_numba() -> ModuleType:
+    """numba, and the modules of it that import :data:`_NOT_NEEDED` (else imported by its first cache
+    load or compilation), imported while those are hidden; later importers find them as usual."""
+    global _numba
+    if _numba is None:
+        hidden = [name for name in _NOT_NEEDED if name not in sys.modules]
+        sys.modules.update(dict.fromkeys(hidden))  # None in sys.modules: ``import`` fails at once
+        try:
+            import numba
+            import numba.core.typing.cffi_utils
+            import numba.np.arraymath
+        finally:
+            for name in hidden:
+                sys.modules.pop(name, None)
+        _numba = numba
+    return _numba
 
 
 def _register_pending() -> None:

@@ -145,7 +145,8 @@ OPTIONS: tuple[Option, ...] = (
     Option("--no-plots", "skip the figures", RUNNERS, forward=True),
     Option("--animate", "also write OUT/animation.gif: the formation in 3D and its funnel margins (~15 s for 5 s)",
            frozenset({HEADLESS, LAUNCH})),
-    Option("--force", "write into an existing non-empty output directory", RUNNERS),
+    Option("--force", "write into an existing non-empty output directory, removing an earlier run's outputs first "
+           "(summary, trajectory, bag, logs, figures; other files stay)", RUNNERS),
     Option("--quiet", "no progress lines", RUNNERS | {CHECK}),
 )  # fmt: skip
 

@@ -4,11 +4,15 @@ One function, :func:`preflight`, used by formation-headless, formation-sim and
 formation-launch: load the formation file with the command-line overrides, refuse QoS settings
 that cannot work (lockstep needs reliable measurements), refuse a control rate below what the
 velocity loop needs (NOTES.md, "Sampled-data") unless asked to warn, and prepare the output
-directory (never overwrite a non-empty one without ``--force``).
+directory (never overwrite a non-empty one without ``--force``; with it, an earlier run's
+outputs are removed first).
 """
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,11 +72,38 @@ def rate_problems(spec: FormationSpec) -> list[str]:
     ]
 
 
-def prepare_out_dir(out: Path, force: bool) -> None:
-    """Create ``out``; refuse a non-empty one unless ``force`` (InvalidRunError)."""
+#: What a run leaves in OUT whatever its summary lists (the summary itself may be missing).
+RUN_OUTPUTS = ("summary.json", "trajectory.npz", "bag", "animation.gif")
+
+
+def earlier_outputs(out: Path, extra: tuple[str, ...] = ()) -> list[Path]:
+    """What an earlier run left in ``out``: :data:`RUN_OUTPUTS`, ``extra`` and every file its
+    summary.json lists under ``outputs`` (plain names only: a summary cannot name a path outside OUT)."""
+    names = {*RUN_OUTPUTS, *extra}
     try:
-        if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
-            raise InvalidRunError(f"output directory {out} exists and is not empty (use --force to overwrite)")
+        listed = json.loads((out / "summary.json").read_text(encoding="utf-8")).get("outputs", [])
+    except (OSError, ValueError, AttributeError):
+        listed = []
+    if isinstance(listed, list):
+        names.update(n for n in listed if isinstance(n, str) and n not in ("", ".", "..") and Path(n).name == n)
+    return sorted(out / n for n in names if os.path.lexists(out / n))
+
+
+def prepare_out_dir(out: Path, force: bool, extra: tuple[str, ...] = ()) -> None:
+    """Create ``out``; refuse a non-empty one unless ``force``, which removes an earlier run's
+    outputs first (:func:`earlier_outputs`, with the command's own ``extra`` names): a run that
+    stops before writing its own summary must not leave the earlier run's to be read as its own.
+    Other files in ``out`` stay. InvalidRunError on failure."""
+    try:
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            if not force:
+                raise InvalidRunError(f"output directory {out} exists and is not empty (use --force to overwrite)")
+            if out.is_dir():
+                for path in earlier_outputs(out, extra):
+                    if path.is_dir() and not path.is_symlink():
+                        shutil.rmtree(path)
+                    else:
+                        path.unlink()
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InvalidRunError(f"output directory {out}: {exc.strerror or exc}") from None

@@ -242,7 +242,7 @@ from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.experimental import EventsExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from formation_msgs_py import conversions, parameters, qos, topics  # noqa: E402
+from formation_msgs_py import conversions, parameters, qos, stopping, topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
 from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
@@ -409,7 +409,12 @@ class AgentNode(Node):
                 print(f"formation-agent {self.agent_id}: could not write {self.faults_file}: {exc}", flush=True)
 
     def _publish_wrench(self, ns: int, u: Sequence[float]) -> None:
-        self._pub.publish(self._wrench_codec.encode(ns, u))
+        try:
+            self._pub.publish(self._wrench_codec.encode(ns, u))
+        except RCLError:
+            if self.context.ok():
+                raise
+            # SIGINT/SIGTERM shut the context down (rclpy's handler) since this step began: a stop
 
     def _on_jump(self, info: TimeJump) -> None:
         changed = info.clock_change in (ClockChange.ROS_TIME_ACTIVATED, ClockChange.ROS_TIME_DEACTIVATED)
@@ -425,17 +430,22 @@ class AgentNode(Node):
         executor = EventsExecutor(context=self.context)  # one callback per spin_once (BENCHMARKS.md)
         executor.add_node(self)
         ok = self.context.ok
-        while ok():
-            dl = sync.deadline()
-            now = mono()
-            timeout = min(self._next_diag - now, 0.1 if dl is None else dl - now)
-            executor.spin_once(timeout_sec=max(timeout, 0.0))
-            now = mono()
-            if sync.pending is not None and now >= sync.pending[2]:
-                sync.try_compute(now, final=True)
-            if now >= self._next_diag:
-                self._publish_diagnostics(now)
-                self._next_diag = now + self.diag_period
+        try:
+            while ok():
+                dl = sync.deadline()
+                now = mono()
+                timeout = min(self._next_diag - now, 0.1 if dl is None else dl - now)
+                executor.spin_once(timeout_sec=max(timeout, 0.0))
+                now = mono()
+                if sync.pending is not None and now >= sync.pending[2]:
+                    sync.try_compute(now, final=True)
+                if now >= self._next_diag:
+                    self._publish_diagnostics(now)
+                    self._next_diag = now + self.diag_period
+        finally:
+            # the executor holds the node's entities, and node and executor refer to each other: not
+            # shut down, it keeps the node's DDS participant (and /dev/shm segment) past destroy_node
+            executor.shutdown()
 
     def _publish_diagnostics(self, now: float) -> None:
         sync = self.sync
@@ -504,13 +514,15 @@ def resolve_agent_id(argv: Sequence[str], context) -> str:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point of ``formation-agent``; exit 2 on a bad file or parameter."""
+    """Entry point of ``formation-agent``; exit 2 on a bad file or parameter. SIGINT and SIGTERM
+    stop the agent (formation_msgs_py.stopping): it writes its faults, destroys its node and ends
+    the process at once."""
     argv = list(sys.argv if args is None else args)
     if not _cli_sets(argv, "use_sim_time"):
         argv += ["--ros-args", "-p", "use_sim_time:=true"]
-    rclpy.init(args=argv)
     node = None
     try:
+        stopping.init(argv)
         try:
             node = AgentNode(resolve_agent_id(argv, None))
             check_secure_transport()
@@ -519,11 +531,11 @@ def main(args: list[str] | None = None) -> int:
             return 2
         node.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        pass  # stopped before rclpy's handler was in place, or while spinning
     except RCLError:
         if rclpy.ok():
             raise
-        # a publish cut short by SIGINT/SIGTERM (rclpy's handler shut the context down): a stop
+        # a call cut short by SIGINT/SIGTERM (rclpy's handler shut the context down): a stop
     finally:
         if node is not None:
             node.report_faults()
@@ -532,7 +544,9 @@ def main(args: list[str] | None = None) -> int:
             rclpy.try_shutdown()
         except RCLError:
             pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
-    return 0
+    if node is None:
+        return 0  # stopped while starting: a node half made is released by the interpreter's finalization
+    stopping.exit_now(0)
 
 
 if __name__ == "__main__":

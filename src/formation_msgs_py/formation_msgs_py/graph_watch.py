@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.subscription import Subscription
@@ -53,6 +54,14 @@ class GraphWatch:
         self.timer = node.create_timer(period, self.poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def poll(self) -> None:
+        try:
+            self._poll()
+        except RCLError:
+            if self.node.context.ok():
+                raise
+            # SIGINT/SIGTERM shut the context down (rclpy's handler): the node is stopping
+
+    def _poll(self) -> None:
         now = time.monotonic()
         withdrawn = len(self.watch.withdrawn)
         share = self.polls % self.shares

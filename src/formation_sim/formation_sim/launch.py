@@ -56,6 +56,11 @@ def _bin(name: str) -> Path:
     return Path(which) if which and not here.exists() else here
 
 
+#: wall seconds from SIGINT to SIGKILL when the launcher stops its processes: a node process needs
+#: ~10-50 ms of CPU to stop (formation_msgs_py.stopping), the interrupted simulator a little more to
+#: write its summary and trajectory; at load 10 on 2 cores each gets about a fifth of a core
+STOP_GRACE = 2.5
+
 #: bytes kept free on OUT's file system for the final summary.json and processes.json
 RESERVE_BYTES = 2_000_000
 
@@ -268,13 +273,13 @@ class Launcher:
         self.watch(sim)
         self.timing["stop_from"] = time.monotonic()
         if sim.poll() is None:
-            self.sup.stop(self.sup.children, 1.5, self.note)  # the simulator writes OUT on SIGINT
+            self.sup.stop(self.sup.children, STOP_GRACE, self.note)  # the simulator writes OUT on SIGINT
         else:
             if sim.returncode not in tuple(ExitCode) and self.stop is None:
                 self.stop = Incomplete(ExitCode.PROCESS_DIED, sim.describe_exit() + _last_error(sim.log))
                 self.note(f"{sim.describe_exit()} (log: {sim.log})")
             self.stop_others()
-            self.sup.stop(self.sup.alive(), 1.5, self.note, interrupted=self.interrupted)
+            self.sup.stop(self.sup.alive(), STOP_GRACE, self.note, interrupted=self.interrupted)
         self.relay()
         self.timing["stopped"] = time.monotonic()
 

@@ -34,10 +34,8 @@ INCOMPLETE (exit 4). ``--wait-recorder``: wait before the first step until a rec
 
 from __future__ import annotations
 
-import signal
 import struct
 import sys
-import threading
 import time
 from functools import partial
 from pathlib import Path
@@ -55,7 +53,7 @@ from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
 from formation_agent.process import warm_up
-from formation_msgs_py import conversions, qos, topics
+from formation_msgs_py import conversions, qos, stopping, topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, ros_type_name
 from formation_msgs_py.bag.errors import BagError
 from formation_msgs_py.faults import FaultLog
@@ -297,9 +295,11 @@ class Runner:
         return rclpy.ok(context=self.node.context)
 
     def spin(self, timeout: float) -> None:
-        self.executor.spin_once(timeout_sec=max(timeout, 0.0))
+        """Run one callback (or wait ``timeout`` s), unless SIGINT/SIGTERM shut the context down:
+        a callback run on a shut-down context fails."""
         if not self.ok():
             raise StopRequestedError
+        self.executor.spin_once(timeout_sec=max(timeout, 0.0))
 
     def drain(self) -> None:
         """Run every callback that is ready now (the realtime loop may have no time left to wait)."""
@@ -553,12 +553,12 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         except (BagError, OSError) as exc:
             print(f"formation-sim: {exc}", file=sys.stderr, flush=True)
             return ExitCode.INVALID
-    rclpy.init(args=raw)
-    node = runner = None
+    node = executor = runner = None
     incomplete: Incomplete | None = None
     insecure = False
     extra: dict[str, Any] = {}
     try:
+        stopping.init(raw)
         node = SimNode(spec, args.measurement_qos, args.intruder_policy, bag)
         check_secure_transport()
         node.display = declare_simulator_parameters(node, spec, args)
@@ -591,11 +591,9 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             raise
         incomplete = _interrupted(runner)  # a publish or wait cut short by SIGINT/SIGTERM
     finally:
-        # once stepping is over, a second SIGINT (or a KeyboardInterrupt that Python delivers late
-        # for the first) must not cut the summary and trajectory short; the launcher escalates to
-        # SIGTERM/SIGKILL if writing them takes too long
-        previous = _ignore_sigint()
         wall = time.monotonic() - runner.started if runner is not None else 0.0
+        if executor is not None:
+            executor.shutdown()  # else it keeps the node's DDS participant past destroy_node (agent_node.spin)
         if node is not None:
             node.destroy_node()
         try:
@@ -607,14 +605,15 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             if bag.failed is not None and incomplete is None:
                 print(f"formation-sim: ERROR: {bag.failed}", file=sys.stderr, flush=True)
                 incomplete = Incomplete(ExitCode.INCOMPLETE, bag.failed)
-    try:
-        if insecure:
-            return ExitCode.INVALID
-        if runner is None:
-            return ExitCode.INCOMPLETE if incomplete is None else incomplete.code
-        return _write_outputs(runner, out, args, wall, incomplete, extra)
-    finally:
-        _restore_sigint(previous)
+    if insecure:
+        code = ExitCode.INVALID
+    elif runner is None:
+        code = ExitCode.INCOMPLETE if incomplete is None else incomplete.code
+    else:
+        code = _write_outputs(runner, out, args, wall, incomplete, extra)
+    if node is None:
+        return code  # stopped while starting: a node half made is released by the interpreter's finalization
+    stopping.exit_now(code)
 
 
 def _write_outputs(
@@ -638,18 +637,6 @@ def _write_outputs(
     print(f"formation-sim: {out}/ written in {time.monotonic() - t_out:.2f} s{figures_note}", flush=True)
     print(format_summary(summary), flush=True)
     return summary["exit_status"]
-
-
-def _ignore_sigint() -> Any:
-    """SIG_IGN for SIGINT (main thread only); the previous handler, or None."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    return signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _restore_sigint(previous: Any) -> None:
-    if previous is not None:
-        signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

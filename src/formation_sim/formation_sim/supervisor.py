@@ -3,8 +3,9 @@
 Each child runs in its own session and process group, writes to its own log file (never a pipe:
 a child must be able to finish when its supervisor is gone), and gets SIGTERM if the supervisor
 dies (PR_SET_PDEATHSIG), so that a SIGKILLed launcher still leaves its children stopped and the
-simulator's summary written. Stopping sends SIGINT to every child at once, then SIGTERM, and
-SIGKILL only after a grace period.
+simulator's summary written. Stopping sends SIGINT to every child at once and SIGKILL only after
+a grace period. No SIGTERM in between: a node process treats both alike (rclpy's handlers shut its
+context down, formation_msgs_py.stopping), so SIGTERM after SIGINT changes nothing.
 """
 
 from __future__ import annotations
@@ -141,18 +142,18 @@ class Supervisor:
     def stop(
         self, children: list[Child], grace: float, note: Callable[[str], None], interrupted: Iterable[str] = ()
     ) -> None:
-        """SIGINT to every child at once (but those named in ``interrupted``: they had theirs); SIGTERM
-        after ``grace`` s; SIGKILL 1 s later."""
-        for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 1.0), (signal.SIGKILL, 1.0)):
-            left = self.alive(children)
-            if not left:
-                return
-            if sig != signal.SIGINT:
-                note(f"{', '.join(c.name for c in left)} still running: {signal.Signals(sig).name}")
-            for c in left:
-                if sig != signal.SIGINT or c.name not in interrupted:
-                    c.signal(sig)
-            self.wait(left, wait)
+        """SIGINT to every child at once (but those named in ``interrupted``: they had theirs); SIGKILL
+        to those still running ``grace`` s later."""
+        for c in self.alive(children):
+            if c.name not in interrupted:
+                c.signal(signal.SIGINT)
+        if self.wait(children, grace):
+            return
+        left = self.alive(children)
+        note(f"{', '.join(c.name for c in left)} still running after {grace:g} s: SIGKILL")
+        for c in left:
+            c.signal(signal.SIGKILL)
+        self.wait(left, 1.0)
 
     def process_table(self, root: Path) -> list[dict[str, object]]:
         return [

@@ -546,7 +546,7 @@ def main(args: list[str] | None = None) -> int:
             pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
     if node is None:
         return 0  # stopped while starting: a node half made is released by the interpreter's finalization
-    stopping.exit_now(0)
+    stopping.exit_now(0, node.context)
 
 
 if __name__ == "__main__":

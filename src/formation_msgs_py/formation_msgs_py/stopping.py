@@ -23,7 +23,10 @@ import os
 import signal
 import sys
 from collections.abc import Sequence
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
 
 _signalled: list[int] = []
 
@@ -47,10 +50,14 @@ def init(args: Sequence[str]) -> None:
         raise KeyboardInterrupt
 
 
-def exit_now(code: int) -> NoReturn:
+def exit_now(code: int, context: Context) -> NoReturn:
     """End the process with ``code`` without interpreter finalization: only once every node this
-    process created is destroyed (and its executor shut down before) and every output it writes is
-    closed."""
+    process created in ``context`` is destroyed (and its executor shut down before) and every
+    output it writes is closed. rclpy's log files (ROS_LOG_DIR) are closed here: rclpy closes them
+    only when it shuts ``context`` down itself, not after its signal handler did (Context's
+    idempotent ``_logging_fini``, under its lock as rclpy calls it)."""
+    with context._lock:
+        context._logging_fini()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)

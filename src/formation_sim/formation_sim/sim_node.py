@@ -613,7 +613,7 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         code = _write_outputs(runner, out, args, wall, incomplete, extra)
     if node is None:
         return code  # stopped while starting: a node half made is released by the interpreter's finalization
-    stopping.exit_now(code)
+    stopping.exit_now(code, node.context)
 
 
 def _write_outputs(

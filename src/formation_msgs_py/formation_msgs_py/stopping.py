@@ -56,8 +56,11 @@ def exit_now(code: int, context: Context) -> NoReturn:
     output it writes is closed. rclpy's log files (ROS_LOG_DIR) are closed here: rclpy closes them
     only when it shuts ``context`` down itself, not after its signal handler did (Context's
     idempotent ``_logging_fini``, under its lock as rclpy calls it)."""
-    with context._lock:
-        context._logging_fini()
+    try:
+        with context._lock:
+            context._logging_fini()
+    except AttributeError:  # an rclpy other than Jazzy's 7.1: its log files may end unflushed, the run does not
+        pass
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)

@@ -377,8 +377,6 @@ def main(argv: list[str] | None = None) -> int:
             argv += ["--out", str(out)]
         dds_env.reexec_in_netns("formation_sim.launch", argv)
     out = out.resolve()
-    if args.force:  # an earlier run's logs: its agents' fault counts must not be merged into this run's
-        shutil.rmtree(out / "logs", ignore_errors=True)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     problem = check_space(out, spec, args.record)
     if problem is not None:

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from formation_msgs_py.errors import FormationError
-from formation_msgs_py.options import HEADLESS, RunOptions
+from formation_msgs_py.options import HEADLESS, LAUNCH, RunOptions
 
 if TYPE_CHECKING:
     from formation_msgs_py.spec import FormationSpec
@@ -137,6 +137,8 @@ def preflight(
         warnings.append("spanning tree: dropped edges " + ", ".join(f"({a}, {b})" for a, b in spec.dropped_edges))
     out = options.out or (default_out(spec, options) if default_out is not None else None)
     if out is not None:
-        prepare_out_dir(out, options.force)
+        # the launcher's logs too: an earlier run's agent fault files must not be merged into this
+        # run's summary (the simulator it starts, with --force, must leave them)
+        prepare_out_dir(out, options.force, ("logs",) if options.command == LAUNCH else ())
         options = options.replace(out=out)
     return Prepared(spec, options, out, tuple(warnings))

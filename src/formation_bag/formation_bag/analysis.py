@@ -135,7 +135,7 @@ def analyze_run(
                 recorder.peak_torque[i] = max(recorder.peak_torque[i], math.sqrt(sum(x * x for x in w[3:])))
                 if _count_fault(recorder, t_s, a, out, fault):
                     margin_v[i] = out.margin_v
-            recorder.judge.update_velocity(t_s, margin_v)
+            recorder.update_velocity(t_s, margin_v)
 
     lockstep_checks = not realtime
     for kk, (stamp, (p_list, R_list)) in enumerate(zip(gt.stamps, gt.values)):

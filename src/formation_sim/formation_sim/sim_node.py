@@ -19,7 +19,9 @@ ROS-free policy of :mod:`formation_sim.stepping`; this module is the thin node a
 
 Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
 ``formation/ground_truth`` are published at ``--clock-rate`` / ``--ground-truth-rate`` (default:
-the record rate, at most the control rate; ``/clock`` at most 10 Hz in realtime). The run's
+the record rate, at most the control rate; ``/clock`` at most 10 Hz in realtime); the ground truth
+goes over DDS only while someone subscribes to it (asked once a wall second), and into the bag
+always. The run's
 outputs (docs/outputs.md) go to ``--out``, also when the run is interrupted (SIGINT/SIGTERM:
 summary and trajectory, no figures, so that the stop is fast). The node never needs its stdout
 to finish.
@@ -34,6 +36,7 @@ INCOMPLETE (exit 4). ``--wait-recorder``: wait before the first step until a rec
 
 from __future__ import annotations
 
+import math
 import struct
 import sys
 import time
@@ -84,6 +87,8 @@ from formation_sim.team import AgentTeam
 
 #: default /clock rate in realtime [Hz]: the agents' measurement-age checks need no more
 REALTIME_CLOCK_RATE = 10.0
+#: how often [wall s] the simulator asks whether anyone subscribes to the ground truth
+GT_CHECK_PERIOD = 1.0
 
 
 class StopRequestedError(Exception):
@@ -108,6 +113,10 @@ class RecordedPublisher:
 
     def publish(self, msg: Any) -> None:
         self.publisher.publish(msg)
+        self.record(msg)
+
+    def record(self, msg: Any) -> None:
+        """Write ``msg`` to the bag as if it had been published (the ground truth nobody subscribes to)."""
         if isinstance(msg, bytes):
             self.bag.write_sent(self.topic, msg)
         else:  # a message object: serialised here, with its padding zeroed
@@ -138,6 +147,7 @@ class SimNode(Node):
         n = len(self.ids)
         self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         self.gt_pub = self.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
+        self._gt_checked, self._gt_listened = -math.inf, False
         self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), meas_qos) for a in self.ids]
         # hot path: messages are published and taken as CDR bytes (formation_msgs_py.conversions)
         self.vel_codecs = [conversions.twist_codec(a) for a in self.ids]
@@ -241,7 +251,20 @@ class SimNode(Node):
         self.clock_pub.publish(conversions.clock_bytes(ns))
 
     def publish_ground_truth(self, ns: int, sim: Simulation) -> None:
-        self.gt_pub.publish(conversions.ground_truth_bytes(ns, sim.state.p.tolist(), sim.state.R.tolist()))
+        """Ground truth over DDS while someone subscribes (checked once a wall second), always into the bag.
+
+        In a recorded lockstep run it goes out at every step for the bag, and usually nobody listens:
+        a publication with no reader still costs its history entry in Fast DDS."""
+        now = time.monotonic()
+        if now >= self._gt_checked + GT_CHECK_PERIOD:
+            self._gt_checked, self._gt_listened = now, self.gt_pub.get_subscription_count() > 0
+        if not self._gt_listened and self.bag is None:
+            return
+        data = conversions.ground_truth_bytes(ns, sim.state.p.tolist(), sim.state.R.tolist())
+        if self._gt_listened:
+            self.gt_pub.publish(data)
+        else:
+            self.gt_pub.record(data)
 
     # discovery -------------------------------------------------------------------------------
     def unmatched_agents(self) -> list[str]:

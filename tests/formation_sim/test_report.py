@@ -247,3 +247,49 @@ def test_rate_need_matches_the_closed_form(spec: FormationSpec) -> None:
         assert need.at_start == pytest.approx(max(2 * gamma / (m_ll * need.rho_v0**2)), rel=1e-12)
         # ρ_v decreases monotonically: the need is largest at the end (rate_needs samples 401 times)
         assert need.at_end == pytest.approx(max(2 * gamma / (m_ll * rho_end**2)), rel=1e-12)
+
+
+def test_recorder_queue_equals_one_check_per_sample(spec: FormationSpec) -> None:
+    """RunRecorder.add queues samples and checks CHECK_BATCH at a time: across batch boundaries, with
+    wrenches given late (set_inputs) and results read mid-run, every figure equals a per-sample check
+    (exactly: the same numpy operations on the same numbers)."""
+    from formation_sim.report import CHECK_BATCH
+
+    rng = np.random.default_rng(7)
+    n_agents, steps = len(spec.agents), 2 * CHECK_BATCH + 9
+    t = np.arange(steps) * 1e-3
+    p0, R0 = trajectory(spec)
+    p = p0[0] + rng.normal(scale=0.3, size=(steps, n_agents, 3))  # some samples leave a funnel
+    R = np.repeat(R0[:1], steps, axis=0)
+    v = rng.normal(size=(steps, n_agents, 6))
+    u = rng.normal(scale=50.0, size=(steps, n_agents, 6))
+    margin_v = rng.uniform(-0.2, 1.0, size=(steps, n_agents, 6))
+    rec = RunRecorder(spec, record_every=10, control_rate=1000.0)
+    stream = Judge(spec)
+    for k in range(steps):
+        rec.add(float(t[k]), p[k], R[k], v[k], None, margin_v[k])
+        rec.set_inputs(u[k])
+        stream.update(float(t[k]), p[k], R[k], margin_v[k])
+        if k == CHECK_BATCH + 3:  # a result read mid-run flushes a partial batch
+            assert rec.worst_margin() == stream.worst_margin()
+    assert rec.samples == steps and rec.t_last == t[-1]
+    assert rec.first_violation == stream.first_violation and stream.first_violation is not None
+    for name in ("min_margin_e", "min_margin_psi", "min_margin_v"):
+        np.testing.assert_array_equal(getattr(rec.judge, name), getattr(stream, name))
+    assert rec.judge.settle_e == stream.settle_e and rec.judge.settle_psi == stream.settle_psi
+    np.testing.assert_array_equal(rec.peak_force, np.linalg.norm(u[..., :3], axis=2).max(axis=0))
+    np.testing.assert_array_equal(rec.peak_torque, np.linalg.norm(u[..., 3:], axis=2).max(axis=0))
+    rows = rec.arrays()
+    kept = np.arange(0, steps, 10)
+    np.testing.assert_array_equal(rows["t"], t[kept])
+    np.testing.assert_array_equal(rows["p"], p[kept])
+    np.testing.assert_array_equal(rows["u"], u[kept])
+    e, psi = stream.edges.errors(p[kept], R[kept])
+    np.testing.assert_array_equal(rows["e"], e)
+    np.testing.assert_array_equal(rows["psi"], psi)
+
+
+def test_set_inputs_needs_a_sample(spec: FormationSpec) -> None:
+    rec = RunRecorder(spec)
+    with pytest.raises(RuntimeError, match="set_inputs"):
+        rec.set_inputs(np.zeros((len(spec.agents), 6)))

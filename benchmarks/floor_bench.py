@@ -39,7 +39,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_FORMATION = REPO / "config" / "paper_5agents.yaml"
 #: an agent that hears no step for this long (wall s) ends: its simulator is gone
-IDLE_TIMEOUT_S = 150.0
+IDLE_TIMEOUT_S = 300.0
 
 
 def cpu_s() -> float:
@@ -253,7 +253,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 p.wait(timeout=30)
                 results[n] = {"cpu_s": marks[1][n] - marks[0][n]}
             procs = {"sim": procs["sim"]}
-        for name, p in procs.items():
+        for name, p in sorted(procs.items(), key=lambda item: item[0] != "sim"):  # the simulator's error first
             stdout, stderr = p.communicate(timeout=3600)
             if p.returncode != 0:
                 raise RuntimeError(f"{name}: exit {p.returncode}: {stderr[-800:]}")

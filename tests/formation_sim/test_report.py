@@ -251,12 +251,13 @@ def test_rate_need_matches_the_closed_form(spec: FormationSpec) -> None:
 
 def test_recorder_queue_equals_one_check_per_sample(spec: FormationSpec) -> None:
     """RunRecorder.add queues samples and checks CHECK_BATCH at a time: across batch boundaries, with
-    wrenches given late (set_inputs) and results read mid-run, every figure equals a per-sample check
-    (exactly: the same numpy operations on the same numbers)."""
+    wrenches given late (set_inputs), results read mid-run (also between a sample and its wrenches),
+    every figure equals a per-sample check (exactly: the same numpy operations on the same numbers)."""
     from formation_sim.report import CHECK_BATCH
 
     rng = np.random.default_rng(7)
     n_agents, steps = len(spec.agents), 2 * CHECK_BATCH + 9
+    assert CHECK_BATCH + 3 < 90 < steps
     t = np.arange(steps) * 1e-3
     p0, R0 = trajectory(spec)
     p = p0[0] + rng.normal(scale=0.3, size=(steps, n_agents, 3))  # some samples leave a funnel
@@ -267,6 +268,12 @@ def test_recorder_queue_equals_one_check_per_sample(spec: FormationSpec) -> None
     rec = RunRecorder(spec, record_every=10, control_rate=1000.0)
     stream = Judge(spec)
     for k in range(steps):
+        if k == 90:  # a result read between a sample (a kept row: record_every 10) and its wrenches
+            rec.add(float(t[k]), p[k], R[k], v[k], None, margin_v[k])
+            stream.update(float(t[k]), p[k], R[k], margin_v[k])
+            assert rec.first_violation == stream.first_violation
+            rec.set_inputs(u[k])
+            continue
         rec.add(float(t[k]), p[k], R[k], v[k], None, margin_v[k])
         rec.set_inputs(u[k])
         stream.update(float(t[k]), p[k], R[k], margin_v[k])
@@ -291,5 +298,5 @@ def test_recorder_queue_equals_one_check_per_sample(spec: FormationSpec) -> None
 
 def test_set_inputs_needs_a_sample(spec: FormationSpec) -> None:
     rec = RunRecorder(spec)
-    with pytest.raises(RuntimeError, match="set_inputs"):
+    with pytest.raises(RuntimeError, match="no sample added yet"):
         rec.set_inputs(np.zeros((len(spec.agents), 6)))

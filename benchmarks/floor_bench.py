@@ -20,7 +20,7 @@ wrench once all of its step's messages are in. No dynamics, no controller, no ch
 Each process measures its own CPU (``getrusage``, every thread) over ``--steps`` steps after
 ``--warmup``; the figure is their sum per step, which is what the acceptance of issue 13 measures
 for a whole run (``OUT/logs/processes.json``), minus everything a run computes. Nothing is
-asserted; results in benchmarks/RESULTS_ros.md ("The floor of a step").
+asserted; results in benchmarks/RESULTS_ros.md ("Fourth session: the floor of a step").
 """
 
 from __future__ import annotations
@@ -168,6 +168,8 @@ def simulator(
             tick = t0 + k * period
             while (now := time.monotonic()) < tick:
                 executor.spin_once(timeout_sec=tick - now)
+                if not node.context.ok():
+                    raise RuntimeError("simulator: stopped")
             if k > warmup and answered.get(ns - dt_ns, 0) == n and now - tick < period / 2:
                 on_time += 1
         if k == warmup:
@@ -185,8 +187,8 @@ def simulator(
         if not period:
             while answered.get(ns, 0) < n:
                 executor.spin_once(timeout_sec=1.0)
-                if time.monotonic() > deadline + 600.0:
-                    raise RuntimeError(f"simulator: step {k} unanswered")
+                if not node.context.ok() or time.monotonic() > deadline + 600.0:
+                    raise RuntimeError(f"simulator: stopped, or step {k} unanswered")
         answered.pop(ns - 2 * dt_ns, None)
     cpu, wall = cpu_s() - cpu0, time.monotonic() - wall0
     time.sleep(0.5)
@@ -201,6 +203,7 @@ def simulator(
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from formation_msgs_py.spec import load_formation
     from formation_sim.dds_env import run_environment
+    from formation_sim.supervisor import die_with_parent
 
     spec = load_formation(args.formation)
     log_dir = Path(os.environ.get("ROS_LOG_DIR") or "/tmp/floor_bench_logs")
@@ -230,13 +233,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 stderr=subprocess.PIPE if not args.real_agents else subprocess.DEVNULL,
                 text=True,
                 start_new_session=True,
+                preexec_fn=die_with_parent,
             )
         cmd = [*common, "--child", "sim", "--rate", str(args.rate), "--clock-every", str(args.clock_every)]
         cmd += ["--control-rate", str(args.rate or spec.simulation.control_rate)]
         if args.ground_truth:
             cmd.append("--ground-truth")
         procs["sim"] = subprocess.Popen(
-            cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+            cmd,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+            preexec_fn=die_with_parent,
         )
         results: dict[str, Any] = {}
         if args.real_agents:
@@ -258,9 +268,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if p.returncode != 0:
                 raise RuntimeError(f"{name}: exit {p.returncode}: {stderr[-800:]}")
             results[name] = json.loads(stdout.strip().splitlines()[-1])
-    finally:
-        for p in procs.values():  # only ours, by PID
+    finally:  # only ours, by PID: SIGINT (a clean stop frees Fast DDS's /dev/shm segments), then SIGKILL
+        for p in procs.values():
             if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs.values():
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
     total = sum(r["cpu_s"] for r in results.values())

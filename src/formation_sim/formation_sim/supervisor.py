@@ -22,7 +22,8 @@ from pathlib import Path
 _PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec
+def die_with_parent() -> None:
+    """A child started with this as ``preexec_fn`` gets SIGTERM when its parent dies (Linux)."""
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
     except OSError:
@@ -112,7 +113,7 @@ class Supervisor:
                 stderr=subprocess.STDOUT,
                 env=self.process_env.get(self.key_names.get(name, name), self.env),
                 start_new_session=True,
-                preexec_fn=_die_with_parent,
+                preexec_fn=die_with_parent,
             )
         child = Child(name, role, proc, log)
         self.children.append(child)

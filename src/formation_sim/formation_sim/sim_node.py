@@ -19,8 +19,7 @@ ROS-free policy of :mod:`formation_sim.stepping`; this module is the thin node a
 
 Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
 ``formation/ground_truth`` are published at ``--clock-rate`` / ``--ground-truth-rate`` (default:
-the record rate, at most the control rate; ``/clock`` at most 10 Hz in realtime); the ground truth
-goes over DDS only while a subscription is matched to it, and into the bag always. The run's
+the record rate, at most the control rate; ``/clock`` at most 10 Hz in realtime). The run's
 outputs (docs/outputs.md) go to ``--out``, also when the run is interrupted (SIGINT/SIGTERM:
 summary and trajectory, no figures, so that the stop is fast). The node never needs its stdout
 to finish.
@@ -47,7 +46,6 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
 from rclpy._rclpy_pybind11 import RCLError
-from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
@@ -110,10 +108,6 @@ class RecordedPublisher:
 
     def publish(self, msg: Any) -> None:
         self.publisher.publish(msg)
-        self.record(msg)
-
-    def record(self, msg: Any) -> None:
-        """Write ``msg`` to the bag as if it had been published (the ground truth nobody subscribes to)."""
         if isinstance(msg, bytes):
             self.bag.write_sent(self.topic, msg)
         else:  # a message object: serialised here, with its padding zeroed
@@ -143,14 +137,7 @@ class SimNode(Node):
         self.ids = spec.agent_ids
         n = len(self.ids)
         self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
-        #: subscriptions matched to the ground truth (its publisher's matched event, at the next spin)
-        self.gt_readers = 0
-        self.gt_pub = self.create_publisher(
-            PoseArray,
-            topics.GROUND_TRUTH,
-            qos.GROUND_TRUTH,
-            event_callbacks=PublisherEventCallbacks(matched=self._on_gt_matched),
-        )
+        self.gt_pub = self.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
         self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), meas_qos) for a in self.ids]
         # hot path: messages are published and taken as CDR bytes (formation_msgs_py.conversions)
         self.vel_codecs = [conversions.twist_codec(a) for a in self.ids]
@@ -254,20 +241,7 @@ class SimNode(Node):
         self.clock_pub.publish(conversions.clock_bytes(ns))
 
     def publish_ground_truth(self, ns: int, sim: Simulation) -> None:
-        """Ground truth over DDS while a subscription is matched, always into the bag.
-
-        In a recorded lockstep run it goes out at every step for the bag, and usually nobody listens:
-        a publication with no reader still costs its history entry in Fast DDS."""
-        if not self.gt_readers and self.bag is None:
-            return
-        data = conversions.ground_truth_bytes(ns, sim.state.p.tolist(), sim.state.R.tolist())
-        if self.gt_readers:
-            self.gt_pub.publish(data)
-        else:
-            self.gt_pub.record(data)
-
-    def _on_gt_matched(self, info: Any) -> None:
-        self.gt_readers = info.current_count
+        self.gt_pub.publish(conversions.ground_truth_bytes(ns, sim.state.p.tolist(), sim.state.R.tolist()))
 
     # discovery -------------------------------------------------------------------------------
     def unmatched_agents(self) -> list[str]:

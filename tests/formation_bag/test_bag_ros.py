@@ -202,15 +202,17 @@ def test_recorder_started_after_the_run_says_what_it_missed(ros_procs, tmp_path:
             [*script("formation-agent"), "--ros-args", "-p", f"formation_file:={PAPER}", "-p", f"agent_id:='{a.id}'"]
         )
     out = tmp_path / "run"
+    # long enough (~10-30 s of stepping) for record.sh to start and match on a busy machine: at 0.2 s the
+    # run sometimes ended before the recorder had heard anything
     sim = ros_procs.start(
-        [*script("formation-sim"), str(PAPER), "--out", str(out), "--no-plots", "--duration", "0.2",
+        [*script("formation-sim"), str(PAPER), "--out", str(out), "--no-plots", "--duration", "0.6",
          "--ground-truth-rate", "10000", "--progress-period", "0.1"]
     )  # fmt: skip
     ros_procs.wait_line(sim, "progress t=", 120)
     bag = tmp_path / "bag"
     rec = ros_procs.start(
         [str(REPO / "ros2_ws" / "record.sh"), "--out", str(bag), "--formation", str(PAPER), "--quiet",
-         "--meta", "mode=lockstep", "control_rate=10000.0", "duration=0.2"]
+         "--meta", "mode=lockstep", "control_rate=10000.0", "duration=0.6"]
     )  # fmt: skip
     ros_procs.wait_line(rec, "recording", 60)
     ros_procs.finish(sim, timeout=240)

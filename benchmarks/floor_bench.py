@@ -68,6 +68,7 @@ def agent(formation: Path, agent_id: str, steps: int, warmup: int, clock: bool) 
 
     from formation_msgs_py import conversions, qos, topics
     from formation_msgs_py.spec import agent_view, load_formation
+    from formation_msgs_py.wire import stamp_of
 
     view = agent_view(load_formation(formation), agent_id)
     node = _node(f"floor_agent_{agent_id}", sim_time=clock)
@@ -78,7 +79,7 @@ def agent(formation: Path, agent_id: str, steps: int, warmup: int, clock: bool) 
     zero = (0.0,) * 6
 
     def on_message(data: bytes) -> None:
-        ns = int.from_bytes(data[4:8], "little", signed=True) * 1_000_000_000 + int.from_bytes(data[8:12], "little")
+        ns = stamp_of(data)
         if ns != state["ns"]:
             state["ns"], state["got"] = ns, 0
         state["got"] += 1
@@ -122,6 +123,7 @@ def simulator(
 
     from formation_msgs_py import conversions, qos, topics
     from formation_msgs_py.spec import agent_view, load_formation
+    from formation_msgs_py.wire import stamp_of
 
     spec = load_formation(formation)
     node = _node("floor_sim")
@@ -144,7 +146,7 @@ def simulator(
     answered: dict[int, int] = {}
 
     def on_wrench(data: bytes) -> None:
-        ns = int.from_bytes(data[4:8], "little", signed=True) * 1_000_000_000 + int.from_bytes(data[8:12], "little")
+        ns = stamp_of(data)
         answered[ns] = answered.get(ns, 0) + 1
 
     for i in ids:

@@ -298,10 +298,10 @@ class RunRecorder:
     mode: str = "headless"
     control_rate: float = 0.0
     _rows: dict[str, list[np.ndarray]] = field(default_factory=dict)
-    _batch: _Batch | None = None
 
     def __post_init__(self) -> None:
         self.judge = Judge(self.spec)
+        self._batch = _Batch.empty(len(self.spec.agents))
         self.faults = FaultLog()
         self.peak_force = np.zeros(len(self.spec.agents))
         self.peak_torque = np.zeros(len(self.spec.agents))
@@ -326,10 +326,7 @@ class RunRecorder:
         sample, and one sample's check cost a simulator ~0.2 ms per step. Every result flushes first.
         """
         b = self._batch
-        if b is None:
-            n = len(self.spec.agents)
-            b = self._batch = _Batch.empty(n)
-        elif b.n == CHECK_BATCH:
+        if b.n == CHECK_BATCH:
             self.flush()
         k = b.n
         b.t[k] = t
@@ -346,30 +343,32 @@ class RunRecorder:
         Lets a simulator check the funnels of step k while the agents compute, then record u_k.
         """
         b = self._batch
-        if b is not None and b.n > 0:
+        if b.n > 0:
             b.u[b.n - 1] = u
             return
         if self.judge.samples == 0:
             raise RuntimeError("RunRecorder.set_inputs: no sample added yet")
         # a result was read since that sample was added, so it is checked already: complete it in place
         u = np.array(u, dtype=np.float64)
-        np.maximum(self.peak_force, np.linalg.norm(u[:, :3], axis=1), out=self.peak_force)
-        np.maximum(self.peak_torque, np.linalg.norm(u[:, 3:], axis=1), out=self.peak_torque)
+        self._peaks(u[None])
         if (self.judge.samples - 1) % self.record_every == 0:
             self._rows["u"][-1] = u
 
     def flush(self) -> None:
         """Check the queued samples: margins, first violation, settling, peaks, decimated rows."""
         b = self._batch
-        if b is None or b.n == 0:
+        if b.n == 0:
             return
         n, b.n = b.n, 0
         start = self.judge.samples
         sample = self.judge.update(b.t[:n], b.p[:n], b.R[:n], b.margin_v[:n])
-        u = b.u[:n]
+        self._peaks(b.u[:n])
+        self._keep(start, b.t[:n], b.p[:n], b.R[:n], b.v[:n], b.u[:n], sample)
+
+    def _peaks(self, u: np.ndarray) -> None:
+        """Peak force and torque per agent over wrenches u (T,N,6)."""
         np.maximum(self.peak_force, np.linalg.norm(u[..., :3], axis=2).max(axis=0), out=self.peak_force)
         np.maximum(self.peak_torque, np.linalg.norm(u[..., 3:], axis=2).max(axis=0), out=self.peak_torque)
-        self._keep(start, b.t[:n], b.p[:n], b.R[:n], b.v[:n], u, sample)
 
     def add_checked(
         self,

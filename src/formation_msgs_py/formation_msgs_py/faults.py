@@ -13,8 +13,7 @@ Who counts what (kinds):
 - each agent (formation_agent.agent_node, written to its ``faults_file`` when it stops and merged by
   formation-launch): ``reset`` (clock jumped back: controller and watchdogs reset),
   ``refused_<kind>`` (formation_agent.inputs), ``missing_pose`` (answered without a neighbour's
-  relative pose after ``pose_wait``: out of range or lost), ``stale_measurement`` and
-  ``non_finite_measurement`` (answered with a zero wrench);
+  relative pose after ``pose_wait``: out of range or lost; answered with a zero wrench);
 - the recorder: messages published but not in the bag, per topic (summary.json ``recorder``).
 
 Times are simulation seconds. None of these is a funnel violation.

@@ -152,7 +152,7 @@ AGENT_FIELDS: tuple[Field, ...] = (
                 "measurement_timeout",
                 "float",
                 0.1,
-                "older measurements (sim time) are rejected: zero wrench and ERROR",
+                "older measurements (behind /clock, sim time) are refused and dropped: counted, ERROR on /diagnostics",
                 "s",
                 sign="positive",
             ),

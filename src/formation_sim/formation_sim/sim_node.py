@@ -385,12 +385,13 @@ class Runner:
             meas = sim.sense()
             ns = self.stamp_ns(k)
             node.current_ns = ns
-            self._publish_aux(k, meas.t, ns)
             sent = mono()
             node.pub_wall = {ns: sent}
             wait.begin(ns, sent)
             node.publish_step(meas, ns)
-            # while the agents compute: shadow controllers and the funnel check of step k
+            # while the agents compute: /clock, ground truth, display, shadow controllers and the
+            # funnel check of step k (an agent's stamp checks allow /clock to come a little later)
+            self._publish_aux(k, meas.t, ns)
             _, margin_v, outputs = self.shadow.evaluate(meas, rec)
             s = sim.state
             rec.add(meas.t, s.p, s.R, s.v, None, margin_v)

@@ -65,6 +65,36 @@ def test_round_trip(tmp_path: Path, storage: str) -> None:
         assert report.counts_mcap == {"/clock": 50, "/agent_1/velocity": 50}
 
 
+def test_mcap_files_are_byte_for_byte_those_of_rosbags_own_writer(tmp_path: Path) -> None:
+    """Our MCAP message write (one struct pack) leaves the file rosbags' McapWriter.write leaves:
+    the same bytes for a segment of several chunks (messages of different topics and sizes)."""
+    from rosbags.rosbag2.storage_mcap import McapWriter
+
+    from formation_msgs_py.bag import writer as bag_writer
+
+    def segment(path: Path) -> bytes:
+        enc = m.Encoder()
+        rng = np.random.default_rng(3)
+        with SegmentedBagWriter(path, segment_seconds=None) as w:
+            w.add_topic("/clock", m.CLOCK)
+            w.add_topic("/agent_1/velocity", m.TWIST_STAMPED)
+            for k in range(30_000):  # ~3.3 MB: four chunks
+                ns = k * 100_000
+                w.write("/clock", START + ns, enc.clock(ns))
+                w.write("/agent_1/velocity", START + ns + 7, enc.twist(ns, "1", rng.standard_normal(6).tolist()))
+        return (path / "bag_0.mcap").read_bytes()
+
+    ours = segment(tmp_path / "ours" / "bag")  # the same name: the embedded metadata names the file
+    plugins = bag_writer._SegmentFileWriter.STORAGE_PLUGINS
+    try:
+        bag_writer._SegmentFileWriter.STORAGE_PLUGINS = {**plugins, bag_writer.StoragePlugin.MCAP: McapWriter}
+        theirs = segment(tmp_path / "theirs" / "bag")
+    finally:
+        bag_writer._SegmentFileWriter.STORAGE_PLUGINS = plugins
+    assert ours.count(b"\x06") > 0 and len(ours) > 3 * bag_writer.CHUNK_BYTES
+    assert ours == theirs
+
+
 def test_segments_by_size(tmp_path: Path) -> None:
     """A size limit closes segments too."""
     _write(tmp_path / "bag", "mcap", 40, segment_seconds=None, segment_bytes=1000)

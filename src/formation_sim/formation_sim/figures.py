@@ -161,11 +161,15 @@ def velocity_errors(spec: FormationSpec, arrays: dict[str, np.ndarray]) -> tuple
         i = index[a.id]
         vf = ctrl.view.controller.velocity_funnel
         others = [index[j] for j in ctrl.view.neighbours]
+        # every sample's relative poses at once: p_i_j_in_i = R_iᵀ(p_j − p_i), R_i_j = R_iᵀ R_j
+        p_rel = np.einsum("tba,tnb->tna", R[:, i], p[:, others] - p[:, i : i + 1])
+        R_rel = np.einsum("tba,tnbc->tnac", R[:, i], R[:, others])
+        xi_v = np.zeros((len(t), 6))
         for s in range(len(t)):
-            R_i = R[s, i]
-            rel = {j: (R_i.T @ (p[s, n] - p[s, i]), R_i.T @ R[s, n]) for j, n in zip(ctrl.view.neighbours, others)}
-            out = ctrl.compute(float(t[s]), rel, v[s, i])
-            rho = funnels.rho(t[s] - ctrl.t0, np.array(ctrl.rho_v0), np.array(vf.rho_inf), np.array(vf.decay))
-            rho_v[s, i] = rho
-            e_v[s, i] = np.array(out.xi_v) * rho
+            rel = dict(zip(ctrl.view.neighbours, zip(p_rel[s], R_rel[s])))
+            xi_v[s] = ctrl.compute(float(t[s]), rel, v[s, i]).xi_v
+        # ρ_v0 and t0 are set at the first step and kept (no reset offline)
+        rho = funnels.rho((t - ctrl.t0)[:, None], np.array(ctrl.rho_v0), np.array(vf.rho_inf), np.array(vf.decay))
+        rho_v[:, i] = rho
+        e_v[:, i] = xi_v * rho
     return e_v, rho_v

@@ -239,12 +239,14 @@ class SimNode(Node):
                 continue
             for j, (p, R) in rel[a].items():
                 pub, codec = self.links[(a, j)]
-                sent.append((pub, codec.encode(ns, values(p, R))))
-                _send(*sent[-1])
+                data = codec.encode(ns, values(p, R))
+                _send(pub, data)
+                sent.append((pub, data))
             # its velocity after its poses: an agent computes when its velocity is in, and the first
             # agents compute while the simulator publishes for the others
-            sent.append((self.vel_pubs[i], self.vel_codecs[i].encode(ns, vel[i])))
-            _send(*sent[-1])
+            data = self.vel_codecs[i].encode(ns, vel[i])
+            _send(self.vel_pubs[i], data)
+            sent.append((self.vel_pubs[i], data))
         if self.bag is not None:
             for pub, data in sent:
                 self.bag.write_sent(pub.topic, data)

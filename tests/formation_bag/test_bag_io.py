@@ -65,7 +65,7 @@ def test_round_trip(tmp_path: Path, storage: str) -> None:
         assert report.counts_mcap == {"/clock": 50, "/agent_1/velocity": 50}
 
 
-def test_mcap_files_are_byte_for_byte_those_of_rosbags_own_writer(tmp_path: Path) -> None:
+def test_mcap_files_are_byte_for_byte_those_of_rosbags_own_writer(tmp_path: Path, monkeypatch) -> None:
     """Our MCAP message write (one struct pack) leaves the file rosbags' McapWriter.write leaves:
     the same bytes for a segment of several chunks (messages of different topics and sizes)."""
     from rosbags.rosbag2.storage_mcap import McapWriter
@@ -85,13 +85,10 @@ def test_mcap_files_are_byte_for_byte_those_of_rosbags_own_writer(tmp_path: Path
         return (path / "bag_0.mcap").read_bytes()
 
     ours = segment(tmp_path / "ours" / "bag")  # the same name: the embedded metadata names the file
-    plugins = bag_writer._SegmentFileWriter.STORAGE_PLUGINS
-    try:
-        bag_writer._SegmentFileWriter.STORAGE_PLUGINS = {**plugins, bag_writer.StoragePlugin.MCAP: McapWriter}
-        theirs = segment(tmp_path / "theirs" / "bag")
-    finally:
-        bag_writer._SegmentFileWriter.STORAGE_PLUGINS = plugins
-    assert ours.count(b"\x06") > 0 and len(ours) > 3 * bag_writer.CHUNK_BYTES
+    plugins = {**bag_writer._SegmentFileWriter.STORAGE_PLUGINS, bag_writer.StoragePlugin.MCAP: McapWriter}
+    monkeypatch.setattr(bag_writer._SegmentFileWriter, "STORAGE_PLUGINS", plugins)
+    theirs = segment(tmp_path / "theirs" / "bag")
+    assert len(ours) > 3 * bag_writer.CHUNK_BYTES  # a chunk closes past CHUNK_BYTES: four at least
     assert ours == theirs
 
 

@@ -92,8 +92,9 @@ _MCAP_MESSAGE_FIELDS = 2 + 4 + 8 + 8
 class _McapWriter(McapWriter):
     """rosbags' MCAP writer with a message write of one ``struct`` pack instead of ~12 calls.
 
-    Every message of a run passes here (~20 per lockstep step): 7 µs a message became ~2 µs. The
-    bytes are rosbags' own (tests/formation_msgs_py/test_bag_writer.py compares them).
+    Every message of a run passes here (~20 per lockstep step): a whole write took 7 µs, now 3.5 µs
+    (benchmarks/RESULTS_ros.md). The bytes are rosbags' own (tests/formation_bag/test_bag_io.py
+    compares the files).
     """
 
     def write(self, connection: Connection, timestamp: int, data: bytes | memoryview) -> None:

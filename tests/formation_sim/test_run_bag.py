@@ -118,3 +118,21 @@ def test_display_messages_are_stored_with_zeroed_padding(tmp_path: Path) -> None
         stored = {conn.topic: data for conn, _, data in reader.messages()}
     assert len(text) == 11 and stored["/text"] == text + b"\x00"
     assert stored[FUNNELS] == clean
+
+
+def test_publications_held_are_written_in_order_when_the_hold_ends(tmp_path: Path) -> None:
+    """RunBag.held: nothing is written inside, everything in order after (also when it raises)."""
+    bag = _bag(tmp_path / "bag")
+    with bag.held():
+        for k in range(3):
+            bag.write_sent(CLOCK, wire.clock_bytes(k * STEP_NS))
+        assert bag.written[CLOCK] == 0
+    assert bag.written[CLOCK] == 3
+    with pytest.raises(RuntimeError), bag.held():
+        bag.write_sent(CLOCK, wire.clock_bytes(3 * STEP_NS))
+        raise RuntimeError("a publish failed")
+    assert bag.written[CLOCK] == 4
+    bag.write_sent(CLOCK, wire.clock_bytes(4 * STEP_NS))  # not held: at once
+    assert bag.written[CLOCK] == 5
+    bag.close()
+    assert _log_times(tmp_path / "bag")[CLOCK] == [k * STEP_NS for k in range(5)]

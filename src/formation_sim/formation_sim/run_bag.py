@@ -18,6 +18,8 @@ from __future__ import annotations
 import json
 import struct
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +51,7 @@ class RunBag:
         self.stamped: dict[str, bool] = {}
         self.not_written: dict[str, int] = {}
         self.failed: str | None = None
+        self._held: list[tuple[str, bytes]] | None = None  # publications to write when held() ends
 
     def add_topic(self, name: str, msgtype: str, qos: Any, *, published: bool) -> None:
         """Register a topic (absolute name, ``pkg/msg/Name``, rosbags Qos); ``published``: by the simulator."""
@@ -85,7 +88,22 @@ class RunBag:
     def write_sent(self, topic: str, data: bytes) -> None:
         """A publication of the simulator as its subscribers receive it: Fast DDS pads the CDR to a
         multiple of 4 bytes with zeros (what formation-record stores)."""
+        if self._held is not None:
+            self._held.append((topic, data))
+            return
         self.write(topic, data + bytes(-len(data) % 4) if len(data) % 4 else data)
+
+    @contextmanager
+    def held(self) -> Iterator[None]:
+        """Publications made inside are written, in order, when it ends: the simulator sends every
+        agent its measurements of a step before it spends time on the bag (lockstep's critical path)."""
+        self._held = []
+        try:
+            yield
+        finally:
+            held, self._held = self._held, None
+            for topic, data in held:
+                self.write_sent(topic, data)
 
     def zero_padded(self, topic: str, data: bytes) -> bytes:
         """The same message with its CDR alignment padding zeroed.

@@ -37,6 +37,7 @@ from __future__ import annotations
 import struct
 import sys
 import time
+from contextlib import nullcontext
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -115,11 +116,6 @@ class RecordedPublisher:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.publisher, name)
-
-
-def _send(publisher: Any, data: bytes) -> None:
-    """Publish CDR bytes without writing them to the bag (the caller writes them)."""
-    (publisher.publisher if isinstance(publisher, RecordedPublisher) else publisher).publish(data)
 
 
 class SimNode(Node):
@@ -229,27 +225,20 @@ class SimNode(Node):
     # publishing ------------------------------------------------------------------------------
     def publish_step(self, meas: Measurements, ns: int, only: list[int] | None = None) -> None:
         """Relative poses (pairs in range) and velocities of one step, stamped ``ns``; the bag gets
-        them once all are out (the last agent's leave ~50 µs sooner: lockstep's critical path)."""
+        them once all are out (RunBag.held: the last agent's leave ~50 µs sooner)."""
         rel = meas.relative_poses
         vel = meas.velocities.tolist()
         values = conversions.relative_pose_values
-        sent: list[tuple[Any, bytes]] = []
-        for i, a in enumerate(self.ids):
-            if only is not None and i not in only:
-                continue
-            for j, (p, R) in rel[a].items():
-                pub, codec = self.links[(a, j)]
-                data = codec.encode(ns, values(p, R))
-                _send(pub, data)
-                sent.append((pub, data))
-            # its velocity after its poses: an agent computes when its velocity is in, and the first
-            # agents compute while the simulator publishes for the others
-            data = self.vel_codecs[i].encode(ns, vel[i])
-            _send(self.vel_pubs[i], data)
-            sent.append((self.vel_pubs[i], data))
-        if self.bag is not None:
-            for pub, data in sent:
-                self.bag.write_sent(pub.topic, data)
+        with nullcontext() if self.bag is None else self.bag.held():
+            for i, a in enumerate(self.ids):
+                if only is not None and i not in only:
+                    continue
+                for j, (p, R) in rel[a].items():
+                    pub, codec = self.links[(a, j)]
+                    pub.publish(codec.encode(ns, values(p, R)))
+                # its velocity after its poses: an agent computes when its velocity is in, and the
+                # first agents compute while the simulator publishes for the others
+                self.vel_pubs[i].publish(self.vel_codecs[i].encode(ns, vel[i]))
 
     def publish_clock(self, ns: int) -> None:
         self.clock_pub.publish(conversions.clock_bytes(ns))

@@ -12,6 +12,7 @@ from formation_msgs_py.spec import SignalModel, formation_from_dict, load_format
 from formation_sim.measurement import MeasurementModel
 from formation_sim.plant import Plant, PlantState
 from formation_sim.signals import signal_params, signals_at
+from formation_sim.simulation import Measurements
 
 
 def tumbling_body(gravity=(0.0, 0.0, 0.0)):
@@ -126,12 +127,15 @@ def test_measurements_respect_the_sensing_radius(paper_path: Path) -> None:
     model = MeasurementModel(view, np.random.default_rng(0))
     p = np.array([a.position for a in spec.agents])
     R = np.array([a.R_world_body for a in spec.agents])
-    meas = model.measure(p, R)
+    def measure() -> dict:  # by agent and neighbour, the ends in range
+        return Measurements(0.0, 0, *model.measure(p, R), np.zeros((len(p), 6)), model.ends).relative_poses
+
+    meas = measure()
     assert set(meas["3"]) == {"1", "4", "5"}
     np.testing.assert_allclose(meas["2"]["1"][0], R[1].T @ (p[0] - p[1]), atol=1e-15)
     np.testing.assert_allclose(meas["2"]["1"][1], R[1].T @ R[0], atol=1e-15)
     p[3] = p[2] + [4.5, 0, 0]  # agent 4 leaves the 4 m sensing radius of agent 3
-    meas = model.measure(p, R)
+    meas = measure()
     assert set(meas["3"]) == {"1", "5"} and "3" not in meas["4"]
 
 

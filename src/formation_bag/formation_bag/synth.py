@@ -20,8 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from formation_bag import messages as m
 from formation_msgs_py import topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
@@ -110,11 +108,11 @@ def write_run_bag(
                 put(m.absolute(topics.velocity(a)), data)
                 vels.append(m.decode_twist(m.deserialize(data, m.TWIST_STAMPED)))
             t = m.seconds(stamp)
-            u, margin_v, outs = team.evaluate(Measurements(t, k, received, np.array(vels)), recorder)
-            for a, out in zip(ids, outs):
-                put(m.absolute(topics.wrench(a)), enc.wrench(stamp, a, out.wrench))
+            u, margin_v, errors = team.evaluate(Measurements.from_poses(t, k, received, vels, meas.ends), recorder)
+            for a, wrench in zip(ids, u.tolist()):
+                put(m.absolute(topics.wrench(a)), enc.wrench(stamp, a, wrench))
             recorder.add(t, s.p, s.R, s.v, u, margin_v)
-            team.note_errors(t, outs, recorder)
+            team.note_errors(t, errors, recorder)
             if k == n_steps or (stop_on_violation and recorder.first_violation is not None):
                 break
             sim.advance(u)

@@ -33,7 +33,6 @@ from formation_agent.controller import (
     LEVEL,
     MARGIN_V,
     REASON,
-    REASON_MESSAGES,
     U,
     gains,
     new_funnel_start,
@@ -60,7 +59,7 @@ from formation_sim.plant import (
 from formation_sim.rates import rate_needs
 from formation_sim.report import CheckedSteps, EdgeSample, Judge, RunRecorder
 from formation_sim.simulation import Simulation
-from formation_sim.team import note_errors, note_missing, team_step
+from formation_sim.team import note_errors, note_missing, step_faults, team_step
 
 #: why a chunk ended early (run_sampled, run_continuous)
 EVENT_NONE, EVENT_NON_FINITE = 0, 1
@@ -455,17 +454,11 @@ def run_closed_loop(
         recorder.add_checked(
             buf.t[rows], buf.p[rows], buf.R[rows], buf.v[rows], buf.u[rows], edges, watch.checked, violation
         )
-        first = loop.first_end
         for j in np.flatnonzero(buf.level[:done].max(axis=1) == ERROR):  # the fault policy's record
             t = float(buf.t[j])
-            missing = {
-                i: [neighbours[e] for e in range(first[i], first[i + 1]) if not buf.in_range[j, e]]
-                for i in range(len(ids))
-                if not buf.in_range[j, first[i] : first[i + 1]].all()
-            }
+            missing, errors = step_faults(loop.first_end, neighbours, buf.in_range[j], buf.level[j], buf.reason[j])
             note_missing(recorder, t, ids, missing)
-            errors = [i not in missing and buf.level[j, i] == ERROR for i in range(len(ids))]
-            note_errors(recorder, t, ids, errors, [REASON_MESSAGES[r] for r in buf.reason[j]])
+            note_errors(recorder, t, ids, errors)
         k += done
         if event == EVENT_NON_FINITE:  # the run stops; the non-finite state is never recorded
             bad = ", ".join(non_finite_agents(ids, p, R, v))

@@ -29,6 +29,14 @@ from formation_msgs_py.spec import SimulatorView
 RelativePoses = dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]
 
 
+class Ends(NamedTuple):
+    """The edge ends by id, in the controllers' order: end k is ``observer[k]``'s view of ``target[k]``."""
+
+    agent_ids: tuple[str, ...]  # every agent, in formation-file order
+    observer: tuple[str, ...]
+    target: tuple[str, ...]
+
+
 class Sensing(NamedTuple):
     """Per edge end: who observes whom, the link whose noise it takes, range and noise constants."""
 
@@ -59,6 +67,13 @@ def sensing(view: SimulatorView) -> Sensing:
         np.array(cols[4], dtype=np.float64),
         np.array(cols[5], dtype=np.float64),
     )
+
+
+def measurement_ends(view: SimulatorView) -> Ends:
+    """The edge ends of ``view``'s formation by id, in :func:`sensing`'s order."""
+    ids = tuple(a.id for a in view.agents)
+    s = sensing(view)
+    return Ends(ids, tuple(ids[i] for i in s.observer), tuple(ids[j] for j in s.target))
 
 
 @formula
@@ -96,6 +111,7 @@ class MeasurementModel:
     def __init__(self, view: SimulatorView, rng: np.random.Generator) -> None:
         self.sensing = sensing(view)
         self.agent_ids = tuple(a.id for a in view.agents)
+        self.ends = measurement_ends(view)
         self.n_links = 2 * len(view.edges)
         self.noisy = bool(np.any(self.sensing.position_std > 0) or np.any(self.sensing.rotation_std > 0))
         self.rng = rng
@@ -110,15 +126,9 @@ class MeasurementModel:
             return np.zeros((count, 0, 0, 3))
         return self.rng.standard_normal((count, 2, self.n_links, 3))
 
-    def measure(self, p: np.ndarray, R: np.ndarray) -> RelativePoses:
-        """Relative poses every agent receives now, from world poses p (N,3), R (N,3,3)."""
+    def measure(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p_rel (n_ends,3) [m, observer's frame], R_rel (n_ends,3,3), in_range (n_ends,)) by edge end
+        (:attr:`ends`), from world poses p (N,3), R (N,3,3); new arrays at every call. Every end is
+        computed; an observer receives only the ends in range."""
         relative_poses(p, R, self.sensing, self.draw_noise(1)[0], self.p_rel, self.R_rel, self.in_range)
-        out: RelativePoses = {aid: {} for aid in self.agent_ids}
-        s = self.sensing
-        for k in range(len(s.observer)):
-            if self.in_range[k]:
-                out[self.agent_ids[s.observer[k]]][self.agent_ids[s.target[k]]] = (
-                    self.p_rel[k].copy(),
-                    self.R_rel[k].copy(),
-                )
-        return out
+        return self.p_rel.copy(), self.R_rel.copy(), self.in_range.copy()

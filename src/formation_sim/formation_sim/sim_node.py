@@ -68,6 +68,7 @@ from formation_sim import inputs
 from formation_sim.commands import sim_preflight
 from formation_sim.deployment import Timing
 from formation_sim.display import DisplayPublisher, declare_simulator_parameters
+from formation_sim.measurement import measurement_ends
 from formation_sim.preflight import Prepared
 from formation_sim.report import RunRecorder, format_summary, write_outputs
 from formation_sim.run_bag import RunBag
@@ -142,12 +143,16 @@ class SimNode(Node):
         self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), meas_qos) for a in self.ids]
         # hot path: messages are published and taken as CDR bytes (formation_msgs_py.conversions)
         self.vel_codecs = [conversions.twist_codec(a) for a in self.ids]
-        # one publisher per directed tree link, in the measurement model's order
+        # one publisher per directed tree link; each agent's by edge end (Measurements' order)
         self.links: dict[tuple[str, str], tuple[Any, conversions.StampedCodec]] = {}
         for e in spec.edges:
             for obs, tgt in ((e.tail, e.head), (e.head, e.tail)):
                 pub = self.create_publisher(TransformStamped, topics.relative_pose(obs, tgt), meas_qos)
                 self.links[(obs, tgt)] = (pub, conversions.relative_pose_codec(obs, tgt))
+        ends = measurement_ends(simulator_view(spec))
+        self.agent_ends: list[list[tuple[int, Any, conversions.StampedCodec]]] = [[] for _ in self.ids]
+        for k, (obs, tgt) in enumerate(zip(ends.observer, ends.target)):
+            self.agent_ends[self.ids.index(obs)].append((k, *self.links[(obs, tgt)]))
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
         self.wrenches = WrenchBook(n)
         self.wrench_check = inputs.WrenchCheck(
@@ -226,16 +231,16 @@ class SimNode(Node):
     def publish_step(self, meas: Measurements, ns: int, only: list[int] | None = None) -> None:
         """Relative poses (pairs in range) and velocities of one step, stamped ``ns``; the bag gets
         them once all are out (RunBag.held: the last agent's leave ~50 µs sooner)."""
-        rel = meas.relative_poses
+        p_rel, R_rel, in_range = meas.p_rel.tolist(), meas.R_rel.tolist(), meas.in_range.tolist()
         vel = meas.velocities.tolist()
         values = conversions.relative_pose_values
         with nullcontext() if self.bag is None else self.bag.held():
-            for i, a in enumerate(self.ids):
+            for i, ends in enumerate(self.agent_ends):
                 if only is not None and i not in only:
                     continue
-                for j, (p, R) in rel[a].items():
-                    pub, codec = self.links[(a, j)]
-                    pub.publish(codec.encode(ns, values(p, R)))
+                for k, pub, codec in ends:
+                    if in_range[k]:
+                        pub.publish(codec.encode(ns, values(p_rel[k], R_rel[k])))
                 # its velocity after its poses: an agent computes when its velocity is in, and the
                 # first agents compute while the simulator publishes for the others
                 self.vel_pubs[i].publish(self.vel_codecs[i].encode(ns, vel[i]))
@@ -395,10 +400,10 @@ class Runner:
             # while the agents compute: /clock, ground truth, display, shadow controllers and the
             # funnel check of step k (an agent's stamp checks allow /clock to come a little later)
             self._publish_aux(k, meas.t, ns)
-            _, margin_v, outputs = self.shadow.evaluate(meas, rec)
+            _, margin_v, errors = self.shadow.evaluate(meas, rec)
             s = sim.state
             rec.add(meas.t, s.p, s.R, s.v, None, margin_v)
-            self.shadow.note_errors(meas.t, outputs, rec)
+            self.shadow.note_errors(meas.t, errors, rec)
             while True:
                 if wait.done(node.wrenches):
                     break
@@ -469,8 +474,8 @@ class Runner:
             if done is not None:
                 self._close_step(done, u, faults, late_tick)
             self._publish_aux(k, meas.t, ns)
-            _, margin_v, outputs = self.shadow.evaluate(meas, rec)
-            prev = (meas, sim.state, margin_v, outputs)
+            _, margin_v, errors = self.shadow.evaluate(meas, rec)
+            prev = (meas, sim.state, margin_v, errors)
             self.progress(meas.t)
         if prev is not None:  # the last sample, with the wrenches held at the end
             pmeas, pstate, pmargin, _ = prev
@@ -482,13 +487,14 @@ class Runner:
     ) -> None:
         """Realtime: count and record step k-1 (measurements, state, margins, shadow outputs) once
         its wrenches ``u`` were applied; ``faults`` (agent index, kind, detail) lists who had not answered.
+        ``step`` is (measurements, state, margin_v, errors) of its shadow evaluation.
 
         An agent's step is *answered* if its wrench was in when the next tick applied it, and *on
         time* if, besides, that tick came within half a period of its wall-clock time: a simulator
         running late gives the agents more time, and a step closed late is not a real-time step.
         """
         node, rec, timing = self.node, self.recorder, self.node.timing
-        meas, state, margin_v, outputs = step
+        meas, state, margin_v, errors = step
         late = {i for i, _, _ in faults}
         for i in range(len(node.ids)):
             answered = i not in late
@@ -501,7 +507,7 @@ class Runner:
         timing.expected += 1
         rec.add(meas.t, state.p, state.R, state.v, None, margin_v)
         rec.set_inputs(u)
-        self.shadow.note_errors(meas.t, outputs, rec)
+        self.shadow.note_errors(meas.t, errors, rec)
 
     def summary(self, wall: float, incomplete: Incomplete | None, extra: dict[str, Any]) -> dict[str, Any]:
         s = self.spec.simulation

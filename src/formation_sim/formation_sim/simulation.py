@@ -9,23 +9,53 @@ with the wrenches held (zero-order hold) and moves to t_{k+1}. The run core
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from formation_msgs_py.spec import SimulatorView
-from formation_sim.measurement import MeasurementModel, RelativePoses, relative_poses
+from formation_sim.measurement import Ends, MeasurementModel, RelativePoses, relative_poses
 from formation_sim.plant import Plant, PlantState
 
 
 @dataclass(frozen=True)
 class Measurements:
-    """Everything the agents receive at one step: relative poses and noisy twists (N,6)."""
+    """Everything the agents receive at one step, by edge end (:class:`Ends`, the controllers'
+    order): relative poses p_rel (n_ends,3) [m, observer's frame] and R_rel (n_ends,3,3), which
+    ends are in range (only those are received), and the noisy body twists (N,6)."""
 
     t: float
     step: int
-    relative_poses: RelativePoses
+    p_rel: np.ndarray
+    R_rel: np.ndarray
+    in_range: np.ndarray
     velocities: np.ndarray
+    ends: Ends
+
+    @property
+    def relative_poses(self) -> RelativePoses:
+        """{agent_id: {neighbour_id: (p_i_j_in_i, R_i_j)}} of the ends in range (views of the arrays)."""
+        out: RelativePoses = {a: {} for a in self.ends.agent_ids}
+        for k, (i, j) in enumerate(zip(self.ends.observer, self.ends.target)):
+            if self.in_range[k]:
+                out[i][j] = (self.p_rel[k], self.R_rel[k])
+        return out
+
+    @classmethod
+    def from_poses(
+        cls, t: float, step: int, poses: Mapping[str, Mapping[str, Any]], velocities: Any, ends: Ends
+    ) -> Measurements:
+        """The measurements of ``poses`` ({agent_id: {neighbour_id: (p, R)}}, the ends received)."""
+        n = len(ends.observer)
+        p_rel, R_rel, in_range = np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros(n, dtype=np.bool_)
+        for k, (i, j) in enumerate(zip(ends.observer, ends.target)):
+            pose = poses.get(i, {}).get(j)
+            if pose is not None:
+                p_rel[k], R_rel[k] = pose
+                in_range[k] = True
+        return cls(t, step, p_rel, R_rel, in_range, np.asarray(velocities, dtype=np.float64), ends)
 
 
 class Simulation:
@@ -83,9 +113,9 @@ class Simulation:
 
     def sense(self) -> Measurements:
         s = self.state
-        return Measurements(
-            self.t, self.step_index, self.sensors.measure(s.p, s.R), self.plant.measured_velocity(self.t, s)
-        )
+        p_rel, R_rel, in_range = self.sensors.measure(s.p, s.R)
+        v = self.plant.measured_velocity(self.t, s)
+        return Measurements(self.t, self.step_index, p_rel, R_rel, in_range, v, self.sensors.ends)
 
     def advance(self, wrench: np.ndarray) -> None:
         """Integrate one control period with ``wrench`` (N,6) held (zero-order hold)."""

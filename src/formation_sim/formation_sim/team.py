@@ -4,10 +4,10 @@
 calls it compiled on its measurement arrays; :class:`AgentTeam` calls it on the measurements the
 simulator node published (its *shadow* of the agents: in lockstep these are what the agents
 answer, so the velocity-funnel margins and faults it records are the agents' own) and on the
-decoded messages of a synthesised bag. The fault policy is the same everywhere: an agent missing
-a neighbour's pose answers a zero wrench at ERROR (:func:`fault_wrench`) and is a ``measurement``
-fault (:func:`note_missing`); every other agent at ERROR (saturated: outside a funnel) is a
-``controller`` fault (:func:`note_errors`), counted per agent and step.
+decoded messages of a synthesised bag. The fault policy is the same everywhere (:func:`step_faults`):
+an agent missing a neighbour's pose answers a zero wrench at ERROR (:func:`fault_wrench`) and is a
+``measurement`` fault (:func:`note_missing`); every other agent at ERROR (saturated: outside a
+funnel) is a ``controller`` fault (:func:`note_errors`), counted per agent and step.
 """
 
 from __future__ import annotations
@@ -20,12 +20,13 @@ from formation_agent.controller import (
     AGENT_COLUMNS,
     END_COLUMNS,
     ERROR,
+    LEVEL,
     MARGIN_V,
+    REASON,
+    REASON_MESSAGES,
     REASON_MISSING,
-    ControlOutput,
     U,
     agent_step,
-    control_output,
     fault_wrench,
     gains,
     new_funnel_start,
@@ -33,6 +34,7 @@ from formation_agent.controller import (
 )
 from formation_msgs_py.compiled import kernel
 from formation_msgs_py.spec import FormationSpec, agent_view
+from formation_sim.measurement import Ends
 from formation_sim.report import RunRecorder
 from formation_sim.simulation import Measurements
 
@@ -60,6 +62,23 @@ def load_team_step() -> None:
     team_step(0.0, p_rel, R_rel, in_range, np.zeros((1, 6)), first_end, agents, ends, *outputs)
 
 
+def step_faults(
+    first_end: Sequence[int], neighbours: Sequence[str], in_range: Sequence[bool], level: Sequence[float],
+    reason: Sequence[float],
+) -> tuple[dict[int, list[str]], list[tuple[int, str]]]:
+    """The fault policy of one step from the kernels' outputs: ({agent index: neighbours whose pose
+    is missing}, [(agent index, reason) of every other agent at ERROR]); ``neighbours`` by end."""
+    missing: dict[int, list[str]] = {}
+    for i in range(len(first_end) - 1):
+        gone = [neighbours[k] for k in range(first_end[i], first_end[i + 1]) if not in_range[k]]
+        if gone:
+            missing[i] = gone
+    errors = [
+        (i, REASON_MESSAGES[int(reason[i])]) for i in range(len(level)) if level[i] == ERROR and i not in missing
+    ]
+    return missing, errors
+
+
 def note_missing(
     recorder: RunRecorder, t: float, agent_ids: Sequence[str], missing: Mapping[int, Sequence[str]]
 ) -> None:
@@ -71,14 +90,11 @@ def note_missing(
         recorder.fault(t, "measurement", agent_ids[i], ",".join(neighbours))
 
 
-def note_errors(
-    recorder: RunRecorder, t: float, agent_ids: Sequence[str], errors: Sequence[bool], messages: Sequence[str]
-) -> None:
+def note_errors(recorder: RunRecorder, t: float, agent_ids: Sequence[str], errors: Sequence[tuple[int, str]]) -> None:
     """Every agent at ERROR for its controller (saturated: outside a funnel, or a non-finite wrench)
-    is a ``controller`` fault; ``errors`` excludes agents already recorded by :func:`note_missing`."""
-    for aid, error, message in zip(agent_ids, errors, messages):
-        if error:
-            recorder.fault(t, "controller", aid, message)
+    is a ``controller`` fault: ``errors`` (agent index, reason) excludes agents missing a pose."""
+    for i, message in errors:
+        recorder.fault(t, "controller", agent_ids[i], message)
 
 
 class AgentTeam:
@@ -89,49 +105,41 @@ class AgentTeam:
         views = [agent_view(spec, a) for a in self.ids]
         self.first_end, self.agents, self.ends = gains(views)
         self.end_neighbours = [ie.neighbour for v in views for ie in v.edges]
+        self._pairs = [(v.agent_id, ie.neighbour) for v in views for ie in v.edges]
+        self._checked: Ends | None = None
         self.start = new_funnel_start(len(self.ids))
         n = len(self.end_neighbours)
         self.out, self.edge_out = new_outputs(len(self.ids), n)
-        self._p = np.zeros((n, 3))
-        self._R = np.tile(np.eye(3), (n, 1, 1))
-        self._in_range = np.zeros(n, dtype=np.bool_)
         # load (or compile) the kernels now, on scratch outputs: not at a realtime run's first step
-        v = np.zeros((len(self.ids), 6))
+        p, R, v = np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros((len(self.ids), 6))
         everyone = np.ones(n, dtype=np.bool_)  # every agent steps (a missing pose would skip agent_step)
         scratch = (new_funnel_start(len(self.ids)), *new_outputs(len(self.ids), n))
-        team_step(0.0, self._p, self._R, everyone, v, self.first_end, self.agents, self.ends, *scratch)
+        team_step(0.0, p, R, everyone, v, self.first_end, self.agents, self.ends, *scratch)
 
     def evaluate(
         self, meas: Measurements, recorder: RunRecorder | None
-    ) -> tuple[np.ndarray, np.ndarray, list[ControlOutput]]:
-        """(u (N,6), margin_v (N,6), outputs) at ``meas.t``; with a recorder, its ``measurement`` faults."""
-        missing: dict[int, list[str]] = {}
-        first = self.first_end
-        for i, aid in enumerate(self.ids):
-            poses = meas.relative_poses[aid]
-            for k in range(first[i], first[i + 1]):
-                pose = poses.get(self.end_neighbours[k])
-                self._in_range[k] = pose is not None
-                if pose is None:
-                    missing.setdefault(i, []).append(self.end_neighbours[k])
-                else:
-                    self._p[k], self._R[k] = pose
-        v = np.asarray(meas.velocities, dtype=np.float64)
+    ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
+        """(u (N,6), margin_v (N,6), errors) at ``meas.t``; ``errors`` lists (agent index, reason) of
+        the agents at ERROR for their controller (:meth:`note_errors` records them). With a recorder,
+        the agents missing a pose are recorded now (``measurement`` faults)."""
+        if meas.ends is not self._checked:  # the measurements' end order must be the kernels'
+            if list(zip(meas.ends.observer, meas.ends.target)) != self._pairs:
+                raise ValueError("measurements by edge end in another order than the team's controllers")
+            self._checked = meas.ends
+        out, in_range = self.out, meas.in_range
         team_step(
-            meas.t, self._p, self._R, self._in_range, v,
-            first, self.agents, self.ends, self.start, self.out, self.edge_out,
+            meas.t, meas.p_rel, meas.R_rel, in_range, meas.velocities,
+            self.first_end, self.agents, self.ends, self.start, out, self.edge_out,
         )  # fmt: skip
-        if recorder is not None:
-            note_missing(recorder, meas.t, self.ids, missing)
-        outputs = []
-        for i, aid in enumerate(self.ids):
-            msg = None
-            if i in missing:
-                msg = f"agent {aid}: no relative pose of neighbour(s) {', '.join(missing[i])}"
-            outputs.append(control_output(meas.t, i, first[i], first[i + 1], self.out, self.edge_out, msg))
-        return self.out[:, U : U + 6].copy(), self.out[:, MARGIN_V : MARGIN_V + 6].copy(), outputs
+        errors: list[tuple[int, str]] = []
+        if not in_range.all() or out[:, LEVEL].max() == ERROR:
+            missing, errors = step_faults(
+                self.first_end, self.end_neighbours, in_range, out[:, LEVEL], out[:, REASON]
+            )
+            if recorder is not None:
+                note_missing(recorder, meas.t, self.ids, missing)
+        return out[:, U : U + 6].copy(), out[:, MARGIN_V : MARGIN_V + 6].copy(), errors
 
-    def note_errors(self, t: float, outputs: list[ControlOutput], recorder: RunRecorder) -> None:
-        """Every agent at ERROR (not for a missing pose: :meth:`evaluate` recorded those) is a ``controller`` fault."""
-        errors = [o.level == ERROR and "no relative pose" not in o.message for o in outputs]
-        note_errors(recorder, t, self.ids, errors, [o.message for o in outputs])
+    def note_errors(self, t: float, errors: Sequence[tuple[int, str]], recorder: RunRecorder) -> None:
+        """Record :meth:`evaluate`'s ``errors`` (``controller`` faults)."""
+        note_errors(recorder, t, self.ids, errors)

@@ -249,7 +249,16 @@ class SimNode(Node):
         self.clock_pub.publish(conversions.clock_bytes(ns))
 
     def publish_ground_truth(self, ns: int, sim: Simulation) -> None:
-        self.gt_pub.publish(conversions.ground_truth_bytes(ns, sim.state.p.tolist(), sim.state.R.tolist()))
+        """The ground truth at ``ns``: into the bag always, over DDS only while a reader is matched (with
+        none it reaches nobody, and cost a lockstep step ~0.1-0.2 ms of CPU in all: BENCHMARKS.md)."""
+        subscribed = self.gt_pub.get_subscription_count() > 0
+        if not subscribed and self.bag is None:
+            return
+        data = conversions.ground_truth_bytes(ns, sim.state.p.tolist(), sim.state.R.tolist())
+        if subscribed:
+            self.gt_pub.publish(data)  # and into the bag (RecordedPublisher)
+        elif self.bag is not None:
+            self.bag.write_sent(self.gt_pub.topic, data)
 
     # discovery -------------------------------------------------------------------------------
     def unmatched_agents(self) -> list[str]:

@@ -110,7 +110,6 @@ class MeasurementModel:
 
     def __init__(self, view: SimulatorView, rng: np.random.Generator) -> None:
         self.sensing = sensing(view)
-        self.agent_ids = tuple(a.id for a in view.agents)
         self.ends = measurement_ends(view)
         self.n_links = 2 * len(view.edges)
         self.noisy = bool(np.any(self.sensing.position_std > 0) or np.any(self.sensing.rotation_std > 0))

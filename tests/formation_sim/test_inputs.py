@@ -125,3 +125,37 @@ def test_bytes_that_are_no_wrench_are_refused() -> None:
     with pytest.raises(struct.error):
         wire.wrench_codec("b").decode(b"\x00\x01\x00\x00garbage")
     assert c.malformed().kind == inputs.MALFORMED and inputs.MALFORMED in inputs.DROPPED_KINDS
+
+
+class _Sim:
+    """What advance_checked needs of a Simulation: advance() moves to the given state."""
+
+    agent_ids = ("1", "2", "3")
+    t = 0.001
+
+    def __init__(self, p: np.ndarray, R: np.ndarray, v: np.ndarray) -> None:
+        self._next = (p, R, v)
+
+    def advance(self, u: np.ndarray) -> None:
+        from formation_sim.plant import PlantState
+
+        self.state = PlantState(*self._next)
+
+
+@pytest.mark.parametrize(
+    ("agent", "field", "value", "reason"),
+    [
+        (None, None, None, ""),
+        (1, "v", math.nan, "non-finite plant state of agent(s) 2"),
+        (2, "R", -math.inf, "non-finite plant state of agent(s) 3"),
+        # finite values whose sum overflows: no agent is non-finite, nothing to report
+        (0, "p", 1e308, ""),
+    ],
+)
+def test_advance_checked_names_non_finite_agents_only(agent, field, value, reason) -> None:
+    state = {"p": np.zeros((3, 3)), "R": np.tile(np.eye(3), (3, 1, 1)), "v": np.zeros((3, 6))}
+    if agent is not None:
+        state[field][agent].flat[:2] = value  # two entries: 1e308 + 1e308 overflows the sum
+    sim = _Sim(state["p"], state["R"], state["v"])
+    got = inputs.advance_checked(sim, np.zeros((3, 6)))
+    assert got == (f"t=0.001000 s: {reason}" if reason else "")

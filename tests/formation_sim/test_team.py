@@ -1,0 +1,84 @@
+"""The simulator's shadow of the agents (formation_sim.team.AgentTeam) on measurements by edge end."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formation_agent.controller import AgentController
+from formation_msgs_py.spec import agent_view, load_formation, simulator_view
+from formation_sim.measurement import Ends
+from formation_sim.simulation import Measurements, Simulation
+from formation_sim.team import AgentTeam
+
+PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
+
+
+class Faults:
+    """The recorder's fault() calls, in order."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, str, str]] = []
+
+    def fault(self, t: float, kind: str, agent: str, detail: str = "") -> bool:
+        self.calls.append((kind, agent, detail))
+        return True
+
+
+def test_team_answers_what_each_agent_answers() -> None:
+    """Every agent's wrench from the end-indexed arrays equals its own controller's on the same poses
+    (the same kernel on the same doubles: exactly)."""
+    spec = load_formation(PAPER)
+    meas = Simulation(simulator_view(spec)).sense()
+    u, margin_v, errors = AgentTeam(spec).evaluate(meas, None)
+    for i, a in enumerate(spec.agent_ids):
+        own = AgentController(agent_view(spec, a)).compute(meas.t, meas.relative_poses[a], meas.velocities[i])
+        np.testing.assert_array_equal(u[i], own.wrench)
+        np.testing.assert_array_equal(margin_v[i], own.margin_v)
+    assert errors == []
+
+
+def test_a_missing_pose_is_a_measurement_fault_and_a_zero_wrench() -> None:
+    """Agent 3 without its pose of agent 4: a ``measurement`` fault naming 4, zero wrench, and no
+    ``controller`` error for it; the other agents answer as before."""
+    spec = load_formation(PAPER)
+    meas = Simulation(simulator_view(spec)).sense()
+    full, _, _ = AgentTeam(spec).evaluate(meas, None)
+    k = next(k for k, (i, j) in enumerate(zip(meas.ends.observer, meas.ends.target)) if (i, j) == ("3", "4"))
+    in_range = meas.in_range.copy()
+    in_range[k] = False
+    partial = Measurements(meas.t, meas.step, meas.p_rel, meas.R_rel, in_range, meas.velocities, meas.ends)
+    faults = Faults()
+    u, _, errors = AgentTeam(spec).evaluate(partial, faults)  # type: ignore[arg-type]
+    three = spec.agent_ids.index("3")
+    assert faults.calls == [("measurement", "3", "4")]
+    assert all(i != three for i, _ in errors)
+    np.testing.assert_array_equal(u[three], np.zeros(6))
+    others = [i for i in range(len(spec.agent_ids)) if i != three]
+    np.testing.assert_array_equal(u[others], full[others])
+
+
+def test_measurements_in_another_end_order_are_refused() -> None:
+    spec = load_formation(PAPER)
+    meas = Simulation(simulator_view(spec)).sense()
+    ends = Ends(meas.ends.agent_ids, meas.ends.observer[::-1], meas.ends.target[::-1])
+    shuffled = Measurements(meas.t, meas.step, meas.p_rel, meas.R_rel, meas.in_range, meas.velocities, ends)
+    with pytest.raises(ValueError, match="order"):
+        AgentTeam(spec).evaluate(shuffled, None)
+
+
+def test_measurements_from_poses_round_trip() -> None:
+    """Measurements.from_poses of a step's relative_poses gives back its arrays (ends not received: out of range)."""
+    spec = load_formation(PAPER)
+    meas = Simulation(simulator_view(spec)).sense()
+    poses = meas.relative_poses
+    del poses["1"]["2"]
+    back = Measurements.from_poses(meas.t, meas.step, poses, meas.velocities, meas.ends)
+    expected = meas.in_range.copy()
+    expected[list(zip(meas.ends.observer, meas.ends.target)).index(("1", "2"))] = False
+    np.testing.assert_array_equal(back.in_range, expected)
+    np.testing.assert_array_equal(back.p_rel[expected], meas.p_rel[expected])
+    np.testing.assert_array_equal(back.R_rel[expected], meas.R_rel[expected])
+    np.testing.assert_array_equal(back.velocities, meas.velocities)

@@ -145,7 +145,7 @@ class Launcher:
         self.args = args
         self.out = out
         self.mode = args.mode or spec.simulation.mode
-        self.sup = Supervisor(env, out / "logs", key_names=_KEY_NAMES)
+        self.sup = Supervisor(env, out / "logs", key_names=_KEY_NAMES, batch=args.scheduling == "batch")
         self.stop: Incomplete | None = None
         self.signalled: int | None = None
         self.agent_died: list[str] = []
@@ -326,6 +326,7 @@ class Launcher:
             "discovery_range": self.sup.env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
             "network_namespace": dds_env.in_netns(),
             "processes": len(self.sup.children),
+            "scheduling": self.args.scheduling,
             "wall_start_s": t.get("stepping_from", t["stop_from"]) - t["start"],
             "wall_stepping_s": done - t.get("stepping_from", done),
             # after the last step: the simulator writes OUT, then the agents stop

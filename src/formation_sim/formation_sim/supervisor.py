@@ -6,6 +6,12 @@ dies (PR_SET_PDEATHSIG), so that a SIGKILLed launcher still leaves its children 
 simulator's summary written. Stopping sends SIGINT to every child at once and SIGKILL only after
 a grace period. No SIGTERM in between: a node process treats both alike (rclpy's handlers shut its
 context down, formation_msgs_py.stopping), so SIGTERM after SIGINT changes nothing.
+
+The children may run under Linux's ``SCHED_BATCH`` policy (``Supervisor.batch``): a process woken
+by a message then waits for a free core or the next scheduler tick instead of preempting the one
+running. A run's processes hand each other ~20 messages a step, and with the default policy every
+hand-off could preempt the sender (~36 preemptions of the simulator per lockstep step of the paper
+formation): BENCHMARKS.md, issue 13.
 """
 
 from __future__ import annotations
@@ -27,6 +33,18 @@ def die_with_parent() -> None:
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
     except OSError:
+        pass
+
+
+def batch_child() -> None:
+    """:func:`die_with_parent`, and the child (every thread it will start) under ``SCHED_BATCH``.
+
+    Any user may choose this policy; where it does not exist (not Linux) the child keeps its own.
+    """
+    die_with_parent()
+    try:
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
+    except (AttributeError, OSError):
         pass
 
 
@@ -102,6 +120,8 @@ class Supervisor:
     #: per-process environments (secure mode: each its own certificate and port), by key name
     process_env: dict[str, dict[str, str]] = field(default_factory=dict)
     children: list[Child] = field(default_factory=list)
+    #: children under SCHED_BATCH (:func:`batch_child`)
+    batch: bool = False
 
     def start(self, name: str, role: str, cmd: list[str]) -> Child:
         log = self.logs / f"{name}.log"
@@ -113,7 +133,7 @@ class Supervisor:
                 stderr=subprocess.STDOUT,
                 env=self.process_env.get(self.key_names.get(name, name), self.env),
                 start_new_session=True,
-                preexec_fn=die_with_parent,
+                preexec_fn=batch_child if self.batch else die_with_parent,
             )
         child = Child(name, role, proc, log)
         self.children.append(child)

@@ -31,12 +31,35 @@ COMPONENT_COLOURS = ("C0", "C1", "C2")
 ZOOM_FROM = 0.5  # the insets show the second half of the run, over which they sit
 
 
+def _grid(plt, rows: int, cols: int, width: float, height: float, **kwargs):
+    """``plt.subplots`` of rows x cols panels, each cell ``width`` x ``height`` inches, with fixed margins.
+
+    Margins and gaps are set in inches (room for a title above each panel, tick labels and an axis
+    label left and below), not computed by ``tight_layout``: that costs a second drawing of every
+    text, about half the CPU of a run's figures (BENCHMARKS.md, issue 13).
+    """
+    left, right, top, bottom, gap_w, gap_h = 0.75, 0.15, 0.35, 0.5, 0.75, 0.7
+    fig_w, fig_h = width * cols, height * rows
+    axes_w = (fig_w - left - right - gap_w * (cols - 1)) / cols
+    axes_h = (fig_h - top - bottom - gap_h * (rows - 1)) / rows
+    fig, axes = plt.subplots(rows, cols, figsize=(fig_w, fig_h), squeeze=False, **kwargs)
+    fig.subplots_adjust(
+        left=left / fig_w,
+        right=1 - right / fig_w,
+        top=1 - top / fig_h,
+        bottom=bottom / fig_h,
+        wspace=gap_w / axes_w,
+        hspace=gap_h / axes_h,
+    )
+    return fig, axes
+
+
 def _panels(plt, n: int, *, stacked: int = 1, max_cols: int = 4, width: float = 4.2, height: float = 3.0):
     """A grid of n cells (at most ``max_cols`` per row), each a column of ``stacked`` panels sharing t;
     returns the figure and, per cell, its list of panels."""
     cols = min(n, max_cols)
     rows = math.ceil(n / cols) * stacked
-    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False)
+    fig, axes = _grid(plt, rows, cols, width, height)
     cells = [[axes[(k // cols) * stacked + j][k % cols] for j in range(stacked)] for k in range(n)]
     for k in range(n, rows // stacked * cols):
         for j in range(stacked):
@@ -63,7 +86,6 @@ def _zoom_inset(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> Non
 
 
 def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
     fig.savefig(path, dpi=110)
     return path
 
@@ -131,7 +153,7 @@ def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) 
 
     e_v, rho_v = velocity_errors(spec, arrays)
     n = len(spec.agents)
-    fig, axes = plt.subplots(n, 2, figsize=(9.0, 2.3 * n), squeeze=False, sharex=True)
+    fig, axes = _grid(plt, n, 2, 4.5, 2.3, sharex=True)
     for i, a in enumerate(spec.agents):
         for half, (ax, unit) in enumerate(zip(axes[i], ("m/s", "rad/s"))):
             for c in range(3 * half, 3 * half + 3):

@@ -52,6 +52,18 @@ def test_good_options_become_a_frozen_run_options() -> None:
         opts.seed = 3  # type: ignore[misc]
 
 
+def test_scheduling_is_batch_unless_normal_is_asked_and_nothing_else(capsys) -> None:
+    """formation-launch --scheduling: batch by default, normal on request, any other word exit 2."""
+    parse = lambda *argv: options.parse(options.LAUNCH, _parser(options.LAUNCH), [str(PAPER), *argv])  # noqa: E731
+    assert parse().scheduling == "batch"
+    assert parse("--scheduling", "normal").scheduling == "normal"
+    assert "--scheduling" not in parse("--scheduling", "normal").child_argv(options.SIM)  # the launcher's only
+    with pytest.raises(SystemExit) as exc:
+        parse("--scheduling", "fifo")
+    assert exc.value.code == 2
+    assert "argument --scheduling: invalid choice: 'fifo'" in capsys.readouterr().err
+
+
 def test_launch_passes_its_options_to_the_simulator_unchanged() -> None:
     """formation-launch's child command line parses, in formation-sim, to the same values."""
     argv = [str(PAPER), "--mode", "realtime", "--control-rate", "100", "--duration", "0.1", "--seed", "3",

@@ -97,6 +97,14 @@ def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    # titles at the top of their axes: matplotlib's default (axes.titley None) places each one
+    # clear of top decorations that these figures do not have, at the price of laying out every
+    # tick label once more (~1/6 of the figures' time)
+    with plt.rc_context({"axes.titley": 1.0}):
+        return _plot_all(plt, out_dir, spec, arrays)
+
+
+def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> list[Path]:
     t = arrays["t"]
     paths = []
     upper = {"color": "C3", "ls": "--", "lw": 1.0}

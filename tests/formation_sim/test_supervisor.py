@@ -34,3 +34,5 @@ def test_children_run_under_the_chosen_policy_with_every_thread(tmp_path: Path, 
     # the launcher's own policy is what a child without batch keeps (SCHED_OTHER unless run under chrt)
     want = os.SCHED_BATCH if batch else os.sched_getscheduler(0)
     assert (main, thread) == (want, want)
+    assert child.policy == ("SCHED_BATCH" if batch else child.policy)  # what processes.json shows
+    assert sup.process_table(tmp_path)[0]["policy"] == child.policy

@@ -140,7 +140,8 @@ OPTIONS: tuple[Option, ...] = (
            str, "auto", ("auto", "on", "off")),
     Option("--scheduling", "Linux scheduling policy of the run's processes: batch (a process woken by a message "
            "waits for a free core instead of preempting the one running: fewer context switches, less CPU per "
-           "step) or normal (the default policy)", frozenset({LAUNCH}), str, "batch", ("batch", "normal")),
+           "step) or normal (Linux's default policy); each process's is in OUT/logs/processes.json",
+           frozenset({LAUNCH}), str, "batch", ("batch", "normal")),
     Option("--allow-low-rate", "run even if the control rate is below what the velocity loop needs (warn)",
            RUNNERS, forward=True),
     Option("--stop-on-violation", "stop at the first funnel violation", frozenset({HEADLESS})),

@@ -48,6 +48,18 @@ def batch_child() -> None:
         pass
 
 
+def _policy_name(pid: int) -> str | None:
+    """The scheduling policy of process ``pid`` by name (Popen returns after the exec, so after
+    :func:`batch_child`); None where the kernel does not say."""
+    try:
+        policy = os.sched_getscheduler(pid)
+    except (AttributeError, OSError):
+        return None
+    kinds = ("SCHED_OTHER", "SCHED_BATCH", "SCHED_IDLE", "SCHED_FIFO", "SCHED_RR")
+    names = {getattr(os, n): n for n in kinds if hasattr(os, n)}
+    return names.get(policy, str(policy))
+
+
 @dataclass
 class Child:
     """One started process: its name, role, log file and (once reaped) its accounting."""
@@ -59,6 +71,8 @@ class Child:
     returncode: int | None = None
     rusage: dict[str, float] = field(default_factory=dict)
     reported: bool = False
+    #: its scheduling policy once started (``SCHED_BATCH``, ``SCHED_OTHER``, …), as the kernel reports it
+    policy: str | None = None
 
     def poll(self) -> int | None:
         if self.returncode is None:
@@ -135,7 +149,7 @@ class Supervisor:
                 start_new_session=True,
                 preexec_fn=batch_child if self.batch else die_with_parent,
             )
-        child = Child(name, role, proc, log)
+        child = Child(name, role, proc, log, policy=_policy_name(proc.pid))
         self.children.append(child)
         return child
 
@@ -185,6 +199,7 @@ class Supervisor:
                 "executable": str(c.proc.args[0]),
                 "returncode": c.returncode,
                 "log": str(c.log.relative_to(root)),
+                "policy": c.policy,
                 **c.rusage,
             }
             for c in self.children

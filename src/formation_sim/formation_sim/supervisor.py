@@ -7,11 +7,12 @@ simulator's summary written. Stopping sends SIGINT to every child at once and SI
 a grace period. No SIGTERM in between: a node process treats both alike (rclpy's handlers shut its
 context down, formation_msgs_py.stopping), so SIGTERM after SIGINT changes nothing.
 
-The children may run under Linux's ``SCHED_BATCH`` policy (``Supervisor.batch``): a process woken
-by a message then waits for a free core or the next scheduler tick instead of preempting the one
-running. A run's processes hand each other ~20 messages a step, and with the default policy every
-hand-off could preempt the sender (~36 preemptions of the simulator per lockstep step of the paper
-formation): BENCHMARKS.md, issue 13.
+The children may run under Linux's ``SCHED_BATCH`` policy (``Supervisor.batch``, formation-launch
+``--scheduling batch``): a process woken by a message then waits for a free core or the next
+scheduler tick instead of preempting the one running. A run's processes hand each other ~20
+messages a step, and with the default policy every hand-off may preempt the sender (~36
+preemptions of the simulator per lockstep step of the paper formation). Batch pays on an idle
+machine and halves a run's speed beside other busy processes: docs/ros2.md, BENCHMARKS.md.
 """
 
 from __future__ import annotations

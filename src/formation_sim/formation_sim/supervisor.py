@@ -49,16 +49,19 @@ def batch_child() -> None:
         pass
 
 
-def _policy_name(pid: int) -> str | None:
+_POLICY_NAMES = {
+    getattr(os, n): n for n in ("SCHED_OTHER", "SCHED_BATCH", "SCHED_IDLE", "SCHED_FIFO", "SCHED_RR") if hasattr(os, n)
+}
+
+
+def policy_name(pid: int) -> str | None:
     """The scheduling policy of process ``pid`` by name (Popen returns after the exec, so after
     :func:`batch_child`); None where the kernel does not say."""
     try:
         policy = os.sched_getscheduler(pid)
     except (AttributeError, OSError):
         return None
-    kinds = ("SCHED_OTHER", "SCHED_BATCH", "SCHED_IDLE", "SCHED_FIFO", "SCHED_RR")
-    names = {getattr(os, n): n for n in kinds if hasattr(os, n)}
-    return names.get(policy, str(policy))
+    return _POLICY_NAMES.get(policy, str(policy))
 
 
 @dataclass
@@ -150,7 +153,7 @@ class Supervisor:
                 start_new_session=True,
                 preexec_fn=batch_child if self.batch else die_with_parent,
             )
-        child = Child(name, role, proc, log, policy=_policy_name(proc.pid))
+        child = Child(name, role, proc, log, policy=policy_name(proc.pid))
         self.children.append(child)
         return child
 

@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from formation_sim.stepping import NS, CommandHold, LagBudget, LockstepWait, ParticipantMissingError, WrenchBook
+from formation_sim.stepping import (
+    LAST_CALL,
+    NS,
+    CommandHold,
+    LagBudget,
+    LockstepWait,
+    ParticipantMissingError,
+    WrenchBook,
+)
 
 IDS = ("1", "2", "3")
 PERIOD_NS = 100_000  # 10 kHz
@@ -53,14 +61,35 @@ def test_lockstep_waits_for_every_agent() -> None:
 
 
 def test_lockstep_names_who_stopped_answering() -> None:
-    """After step_timeout wall seconds the missing agents are named."""
+    """At the step timeout the late agents get a last resend; LAST_CALL s later those still late are named."""
     w, book = wait(), WrenchBook(3)
     w.begin(5 * PERIOD_NS, now=0.0)
     book.accept(1, 5 * PERIOD_NS, (0.0,) * 6)
     assert w.poll(book, now=1.99) == [0, 2]  # a resend, not yet the timeout
+    assert w.poll(book, now=2.0) == [0, 2]  # the timeout: the last resend
+    assert w.wake_at() == 2.25  # resends go on meanwhile
+    assert w.poll(book, now=2.0 + LAST_CALL - 0.01) == [0, 2]
+    assert w.wake_at() == 2.0 + LAST_CALL
     with pytest.raises(ParticipantMissingError, match=r"agent 1, agent 3 .* t=0\.000500 s") as err:
-        w.poll(book, now=2.0)
+        w.poll(book, now=2.0 + LAST_CALL)
     assert err.value.names == ["1", "3"]
+
+
+def test_lockstep_takes_answers_sent_while_the_simulator_was_held_up() -> None:
+    """The timeout counts wall time, also while the simulator was stopped: the first look after it
+    resends to whoever is still late instead of naming them, and their answers complete the step."""
+    w, book = wait(), WrenchBook(3)
+    w.begin(0, now=0.0)
+    book.accept(0, 0, (0.0,) * 6)
+    assert w.poll(book, now=5.0) == [1, 2]  # held up 5 s: a last resend, nobody named
+    book.accept(1, 0, (0.0,) * 6)
+    book.accept(2, 0, (0.0,) * 6)
+    assert w.done(book) and w.poll(book, now=9.0) == []
+    assert w.resends == [0, 1, 1]
+    w.begin(PERIOD_NS, now=10.0)  # the next step has a whole timeout and a last call of its own
+    assert w.poll(book, now=12.0) == [0, 1, 2]
+    with pytest.raises(ParticipantMissingError):
+        w.poll(book, now=12.0 + LAST_CALL)
 
 
 def test_command_hold_counts_stale_and_zeroed_wrenches() -> None:

@@ -99,6 +99,28 @@ def test_lockstep_names_a_killed_agent(procs, tmp_path: Path) -> None:
     assert (tmp_path / "out" / "summary.json").is_file()
 
 
+def test_lockstep_blames_no_agent_for_a_stopped_simulator(procs, tmp_path: Path) -> None:
+    """A simulator stopped for longer than its step timeout (SIGSTOP here; a debugger, a stalled disk)
+    names no agent: the answers sent meanwhile count, and the run equals the headless one (≤ 1e-9)."""
+    for a in load_formation(PAPER).agents:
+        procs.agent(PAPER, a.id)
+    out = tmp_path / "out"
+    extra = ("--duration", "0.2", "--record-rate", "10000", "--step-timeout", "1")
+    sim = procs.sim(PAPER, out, *extra, "--progress-period", "0.2")
+    assert wait_for_line(sim, "progress t=", 90), read_log(sim)
+    os.kill(sim.pid, signal.SIGSTOP)
+    time.sleep(2.5)
+    os.kill(sim.pid, signal.SIGCONT)
+    assert sim.wait(timeout=120) == 0, read_log(sim)
+    assert "no answer" not in read_log(sim)
+    ros = np.load(out / "trajectory.npz")
+    spec = load_formation(PAPER, overrides={"duration": 0.2, "record_rate": 10000.0})
+    ref = run_headless(spec, controller_mode="sampled").recorder.arrays()
+    np.testing.assert_array_equal(ros["t"], ref["t"])
+    assert np.max(np.abs(ros["e"] - ref["e"])) <= 1e-9
+    assert np.max(np.abs(ros["psi"] - ref["psi"])) <= 1e-9
+
+
 def test_launcher_stops_everything_when_an_agent_dies(ros_env: dict[str, str], tmp_path: Path) -> None:
     """The launcher notices a dead agent at once, stops the rest and exits 3."""
     out = tmp_path / "out"

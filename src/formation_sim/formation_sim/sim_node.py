@@ -9,7 +9,8 @@ ROS-free policy of :mod:`formation_sim.stepping`; this module is the thin node a
 - **lockstep**: waits for every agent's WrenchStamped whose stamp equals step k's (integer ns),
   then ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps not
   answered within ``--resend`` wall seconds are published again to the missing agents; an agent
-  silent for ``simulation.step_timeout`` wall seconds is named: INCOMPLETE, exit 3.
+  silent for ``simulation.step_timeout`` wall seconds gets a last resend and, still silent
+  ``stepping.LAST_CALL`` s later, is named: INCOMPLETE, exit 3.
 - **realtime**: ticks at the control rate on the wall clock; each tick integrates the previous
   period with the latest wrench of each agent held (zero-order hold), then publishes the new
   measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by

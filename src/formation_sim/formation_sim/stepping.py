@@ -2,7 +2,8 @@
 
 - :class:`LockstepWait`: who must answer step k before the world advances: every agent (its
   wrench stamped k). Resends an unanswered step to the agents that have not answered after
-  ``resend`` wall seconds; gives up after ``step_timeout`` and names who stopped answering.
+  ``resend`` wall seconds; after ``step_timeout`` sends it a last time, and names who has still not
+  answered :data:`LAST_CALL` s later.
 - :class:`CommandHold`: realtime zero-order hold of each agent's latest wrench, replaced by zero
   once older than ``command_timeout`` (sim time); every tick without the agent's answer to the
   previous step is a counted fault (a held, stale command or a zeroed wrench).
@@ -21,6 +22,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 NS = 1_000_000_000
+#: wall s between a lockstep step's last resend, at its timeout, and naming the agents still silent.
+#: The timeout counts wall time, also while the simulator itself was held up (stopped, a stalled
+#: disk, a busy machine): answers sent meanwhile wait in its queues, and a lost one is sent again.
+LAST_CALL = 0.5
 
 
 class ParticipantMissingError(RuntimeError):
@@ -69,14 +74,16 @@ class LockstepWait:
     def __post_init__(self) -> None:
         self.resends = [0] * len(self.ids)
         self.ns = -1
-        self.sent = 0.0
         self.next_resend = 0.0
+        self.deadline = 0.0
+        self.last_call = False
 
     def begin(self, ns: int, now: float) -> None:
         """Step ``ns`` was published at wall time ``now``."""
         self.ns = ns
-        self.sent = now
         self.next_resend = now + self.resend
+        self.deadline = now + self.step_timeout
+        self.last_call = False
 
     def late_agents(self, wrenches: WrenchBook) -> list[int]:
         return [i for i, s in enumerate(wrenches.stamp) if s != self.ns]
@@ -87,27 +94,33 @@ class LockstepWait:
     def poll(self, wrenches: WrenchBook, now: float) -> list[int]:
         """Agents to send the step again now (empty: keep waiting until :meth:`wake_at`).
 
-        Raises ParticipantMissingError once the step timeout has passed.
+        At the step timeout the late agents get a last resend; raises ParticipantMissingError
+        naming those still late :data:`LAST_CALL` s after it.
         """
         late = self.late_agents(wrenches)
-        if now >= self.sent + self.step_timeout:
-            names = [self.ids[i] for i in late]
-            who = ", ".join(f"agent {n}" for n in names)
-            raise ParticipantMissingError(
-                names,
-                f"lockstep: no answer from {who} for the step at t={self.ns / NS:.6f} s within "
-                f"step_timeout={self.step_timeout:g} s",
-            )
-        if late and now >= self.next_resend:
-            self.next_resend = now + self.resend
-            for i in late:
-                self.resends[i] += 1
-            return late
-        return []
+        if not late:
+            return []
+        if now >= self.deadline:
+            if self.last_call:
+                names = [self.ids[i] for i in late]
+                who = ", ".join(f"agent {n}" for n in names)
+                raise ParticipantMissingError(
+                    names,
+                    f"lockstep: no answer from {who} for the step at t={self.ns / NS:.6f} s within "
+                    f"step_timeout={self.step_timeout:g} s and {LAST_CALL:g} s after a last resend",
+                )
+            self.last_call = True
+            self.deadline = now + LAST_CALL
+        elif now < self.next_resend:
+            return []
+        self.next_resend = now + self.resend
+        for i in late:
+            self.resends[i] += 1
+        return late
 
     def wake_at(self) -> float:
         """Wall time of the next resend or timeout."""
-        return min(self.sent + self.step_timeout, self.next_resend)
+        return min(self.deadline, self.next_resend)
 
 
 #: realtime fault kinds (formation_msgs_py.faults): an older wrench held, or zero applied instead

@@ -39,7 +39,6 @@ import struct
 import sys
 import time
 from contextlib import nullcontext
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -168,7 +167,7 @@ class SimNode(Node):
         )
         self.faults = FaultLog()  # refused wrenches; the Runner's RunRecorder shares it
         self.current_ns = -1  # the lockstep step being answered (the wrench check's reference)
-        self.received = 0
+        self.received = 0  # messages its subscriptions took (wrenches, /diagnostics)
         self.pub_wall: dict[int, float] = {}
         self.timing = Timing(n)
         self.wrench_subs = [
@@ -190,7 +189,7 @@ class SimNode(Node):
             diagnostics = ros_type_name(DiagnosticArray)
             bag.add_topic(topics.DIAGNOSTICS, diagnostics, qos.bag_qos(qos.DIAGNOSTICS), published=False)
             self.diagnostics_sub = self.create_subscription(
-                DiagnosticArray, topics.DIAGNOSTICS, partial(bag.write, topics.DIAGNOSTICS), qos.DIAGNOSTICS, raw=True
+                DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, qos.DIAGNOSTICS, raw=True
             )
 
     def create_publisher(self, msg_type: Any, topic: str, qos_profile: Any, **kwargs: Any) -> Any:
@@ -203,13 +202,21 @@ class SimNode(Node):
         )
         return RecordedPublisher(publisher, self.bag)
 
+    def taken(self) -> int:
+        """How many messages and graph polls this node's callbacks have run (Runner.drain's progress)."""
+        return self.received + self.watch.polls
+
+    def _on_diagnostics(self, data: bytes) -> None:
+        self.received += 1
+        self.bag.write(topics.DIAGNOSTICS, data)  # type: ignore[union-attr]  (subscribed only with a bag)
+
     def accept_wrench(self, i: int, data: bytes) -> None:
         """Every wrench agent i publishes comes here (the one place wrenches are accepted)."""
+        self.received += 1
         if self.bag is not None:
             self.bag.write(self.wrench_topics[i], data)
         if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
             return
-        self.received += 1
         try:
             ns, u = self.wrench_codecs[i].decode(data)
         except struct.error:
@@ -324,12 +331,14 @@ class Runner:
         self.executor.spin_once(timeout_sec=max(timeout, 0.0))
 
     def drain(self) -> None:
-        """Run every callback that is ready now (the realtime loop may have no time left to wait)."""
+        """Run every callback that is ready now (the realtime loop may have no time left to wait):
+        until a spin runs none, counting /diagnostics and the graph poll too (stopping at the first
+        of those left a wrench that had come in time behind at one realtime tick in five)."""
         node = self.node
-        for _ in range(4 * len(node.ids) + 4):
-            before = node.received
+        for _ in range(6 * len(node.ids) + 4):
+            before = node.taken()
             self.spin(0.0)
-            if node.received == before:
+            if node.taken() == before:
                 break
 
     def stamp_ns(self, k: int) -> int:

@@ -11,10 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_helpers import BIN, PAPER, REPO
+from ros_helpers import BIN, PAPER, REPO, assert_equals_headless
 
 from formation_msgs_py.spec import load_formation
-from formation_sim.headless import run_headless
 
 
 def test_secure_lockstep_equals_headless(ros_env: dict[str, str], tmp_path: Path) -> None:
@@ -27,13 +26,7 @@ def test_secure_lockstep_equals_headless(ros_env: dict[str, str], tmp_path: Path
     summary = json.loads((out / "summary.json").read_text())
     assert summary["launch"]["secure"]["transport"] == "TCPv4+TLS (mutual)"
     assert summary["launch"]["discovery_range"] == "SYSTEM_DEFAULT"
-    ros = np.load(out / "trajectory.npz")
-    spec = load_formation(PAPER, overrides={"duration": 0.08, "record_rate": 10000.0})
-    ref = run_headless(spec, controller_mode="sampled").recorder.arrays()
-    np.testing.assert_array_equal(ros["t"], ref["t"])
-    # the same bound as the unsecured lockstep test (tests/ros/test_lockstep.py): float round-off only
-    assert np.max(np.abs(ros["e"] - ref["e"])) <= 1e-9
-    assert np.max(np.abs(ros["psi"] - ref["psi"])) <= 1e-9
+    assert_equals_headless(out / "trajectory.npz", 0.08)  # the unsecured lockstep test's bound
 
 
 def test_outsiders_neither_see_nor_command_a_secure_run(ros_domain_id: int, tmp_path: Path) -> None:

@@ -317,7 +317,7 @@ SIMULATION_FIELDS: tuple[Field, ...] = (
         "step_timeout",
         "float",
         5.0,
-        "lockstep: wall time to wait for every wrench before reporting the missing agents",
+        "lockstep: wall time to wait for every wrench before a last resend; 3 s later the silent agents are reported",
         "s",
         sign="positive",
     ),

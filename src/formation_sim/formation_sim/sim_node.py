@@ -208,7 +208,7 @@ class SimNode(Node):
 
     def _on_diagnostics(self, data: bytes) -> None:
         self.received += 1
-        self.bag.write(topics.DIAGNOSTICS, data)  # type: ignore[union-attr]  (subscribed only with a bag)
+        self.bag.write(topics.DIAGNOSTICS, data)  # type: ignore[union-attr]  # subscribed only with a bag
 
     def accept_wrench(self, i: int, data: bytes) -> None:
         """Every wrench agent i publishes comes here (the one place wrenches are accepted)."""

@@ -36,9 +36,10 @@ def main() -> None:
     import rclpy
 
     from formation_agent.agent_node import AgentNode
-    from formation_msgs_py import conversions, topics
+    from formation_msgs_py import topics
+    from formation_msgs_py.ros import conversions
     from formation_msgs_py.spec import load_formation, simulator_view
-    from formation_sim.simulation import Simulation
+    from formation_sim.core.simulation import Simulation
 
     path = args.formation.resolve()
     rclpy.init(args=["bench", "--ros-args", "-p", f"formation_file:={path}", "-p", "use_sim_time:=true"])

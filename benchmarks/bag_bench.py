@@ -47,7 +47,7 @@ BLASTER = textwrap.dedent(
     from rclpy.duration import Duration
     from geometry_msgs.msg import TransformStamped
     from rclpy.serialization import serialize_message
-    from formation_msgs_py import qos
+    from formation_msgs_py.ros import qos
     n, topics, rate = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
     rclpy.init()
     node = rclpy.create_node("bag_bench_blaster")

@@ -71,7 +71,7 @@ print({"start_s": round(start, 2), "compute_us": round(per_call, 1), "rss_mb": r
 HEADLESS_PROBE = r"""
 import sys, time
 from formation_msgs_py.spec import load_formation
-from formation_sim.headless import run_headless
+from formation_sim.cli.headless import run_headless
 spec = load_formation(sys.argv[1], overrides={"duration": float(sys.argv[2])})
 mode = sys.argv[3]
 run_headless(spec.with_simulation(duration=0.002), controller_mode=mode)  # compile / load outside the timing
@@ -102,12 +102,12 @@ KERNEL_PROBE = (
     + r"""
 import sys, time, numba, numpy as np
 from formation_msgs_py.spec import load_formation, simulator_view
-from formation_sim.simulation import Simulation
-from formation_sim.loop import closed_loop, new_buffers, new_watch, record_step, check_step, sense_and_control
-from formation_sim.measurement import relative_poses
-from formation_sim.plant import measured_velocity_into, new_workspace, rkmk4_step
-from formation_sim.report import Judge
-from formation_sim.team import team_step
+from formation_sim.core.simulation import Simulation
+from formation_sim.core.loop import closed_loop, new_buffers, new_watch, record_step, check_step, sense_and_control
+from formation_sim.core.measurement import relative_poses
+from formation_sim.core.plant import measured_velocity_into, new_workspace, rkmk4_step
+from formation_msgs_py.judge import Judge
+from formation_sim.core.team import team_step
 from formation_agent.controller import U, agent_step
 spec = load_formation(sys.argv[1])
 sim = Simulation(simulator_view(spec), warm_up=False)
@@ -167,11 +167,11 @@ BEFORE_KERNEL_PROBE = (
     + r"""
 import sys, time, numba, numpy as np
 from formation_msgs_py.spec import load_formation, simulator_view
-from formation_sim.simulation import Simulation
-from formation_sim.loop import closed_loop, sense_and_control
-from formation_sim.measurement import relative_poses
-from formation_sim.plant import measured_velocity_into, new_workspace, rkmk4_step
-from formation_sim.team import team_step
+from formation_sim.core.simulation import Simulation
+from formation_sim.core.loop import closed_loop, sense_and_control
+from formation_sim.core.measurement import relative_poses
+from formation_sim.core.plant import measured_velocity_into, new_workspace, rkmk4_step
+from formation_sim.core.team import team_step
 from formation_agent.controller import agent_step
 spec = load_formation(sys.argv[1])
 sim = Simulation(simulator_view(spec))
@@ -275,7 +275,7 @@ def side(name: str, src: Path | None, tmp: Path, duration: float, show) -> None:
         show(f"{name}: controller called from Python [us]", probe(CALL_PROBE, PAPER))
     show(f"{name}: paper {duration:g} s sampled 10 kHz", probe(HEADLESS_PROBE, PAPER, duration, "sampled", src=src))
     show(f"{name}: paper {duration:g} s continuous", probe(HEADLESS_PROBE, PAPER, duration, "continuous", src=src))
-    code = "import sys; from formation_sim.headless import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from formation_sim.cli.headless import main; sys.exit(main(sys.argv[1:]))"
     cli = [PY, "-c", code, str(PAPER), "--no-plots", "--force", "--quiet", "--duration", str(duration)]
     cold = tmp / f"numba_cache_{name}"
     _, wall = run([*cli, "--out", str(tmp / f"cli_cold_{name}")], env_for(src, NUMBA_CACHE_DIR=str(cold)))

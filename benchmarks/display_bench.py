@@ -4,7 +4,7 @@
 
 "before": each Shape built as an rclpy Marker (display.marker_message), the MarkerArray serialized
 by rclpy (what ``publish`` of a message object does); "after": the scene of the instant
-(FormationScene.frame) written into the CDR templates of formation_sim.display_wire, funnels
+(FormationScene.frame) written into the CDR templates of formation_sim.views.display_wire, funnels
 included. CPU time (``time.process_time``) per frame, averaged; no DDS. Results in BENCHMARKS.md.
 """
 
@@ -21,10 +21,10 @@ from visualization_msgs.msg import MarkerArray
 
 from formation_msgs_py import topics
 from formation_msgs_py.spec import load_formation, simulator_view
-from formation_sim.display import FUNNEL_FIELDS, marker_message
-from formation_sim.display_wire import FunnelsWire, MarkerArrayWire
-from formation_sim.markers import FormationScene
-from formation_sim.simulation import Simulation
+from formation_sim.core.simulation import Simulation
+from formation_sim.node.display import FUNNEL_FIELDS, marker_message
+from formation_sim.views.display_wire import FunnelsWire, MarkerArrayWire
+from formation_sim.views.markers import FormationScene
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = ("paper_5agents.yaml", "realtime_20agents_100hz.yaml", "realtime_50agents_50hz.yaml")

@@ -66,7 +66,8 @@ def agent(formation: Path, agent_id: str, steps: int, warmup: int, clock: bool) 
     from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
     from rclpy.experimental import EventsExecutor
 
-    from formation_msgs_py import conversions, qos, topics
+    from formation_msgs_py import topics
+    from formation_msgs_py.ros import conversions, qos
     from formation_msgs_py.spec import agent_view, load_formation
     from formation_msgs_py.wire import stamp_of
 
@@ -121,7 +122,8 @@ def simulator(
     from rclpy.experimental import EventsExecutor
     from rosgraph_msgs.msg import Clock
 
-    from formation_msgs_py import conversions, qos, topics
+    from formation_msgs_py import topics
+    from formation_msgs_py.ros import conversions, qos
     from formation_msgs_py.spec import agent_view, load_formation
     from formation_msgs_py.wire import stamp_of
 
@@ -204,8 +206,8 @@ def simulator(
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from formation_msgs_py.spec import load_formation
-    from formation_sim.dds_env import run_environment
-    from formation_sim.supervisor import die_with_parent
+    from formation_sim.launch.dds_env import run_environment
+    from formation_sim.launch.supervisor import die_with_parent
 
     spec = load_formation(args.formation)
     log_dir = Path(os.environ.get("ROS_LOG_DIR") or "/tmp/floor_bench_logs")

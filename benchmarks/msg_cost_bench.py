@@ -89,7 +89,7 @@ def child(role: str, loop: str, reliability: str, m: int, rounds: int, warmup: i
     import rclpy
     from geometry_msgs.msg import TransformStamped, WrenchStamped
 
-    from formation_msgs_py import conversions, qos
+    from formation_msgs_py.ros import conversions, qos
 
     rclpy.init()
     node = rclpy.create_node(f"bench_{role}")
@@ -254,7 +254,7 @@ def main() -> int:
     if args.child:
         print(json.dumps(child(args.child, args.loop, args.reliability, args.m, args.rounds, args.warmup)))
         return 0
-    from formation_sim.launch import pick_domain_id
+    from formation_sim.launch.launcher import pick_domain_id
 
     domain = int(os.environ.get("ROS_DOMAIN_ID") or pick_domain_id())
     names = args.only.split(",") if args.only else list(CONFIGS)

@@ -29,13 +29,13 @@ def paper_doc() -> dict[str, Any]:
 
 # --- ROS 2 isolation ------------------------------------------------------------------------
 # Every test run that starts ROS processes takes a ROS_DOMAIN_ID no other live run holds: the
-# allocator formation-launch uses (formation_sim.dds_env: free port block and an exclusive flock,
+# allocator formation-launch uses (formation_sim.launch.dds_env: free port block and an exclusive flock,
 # held until the pytest process exits).
 
 
 def allocate_ros_domain_id() -> int:
     """A ROS_DOMAIN_ID reserved for this process (the same one on every call)."""
-    from formation_sim.dds_env import reserve_domain_id
+    from formation_sim.launch.dds_env import reserve_domain_id
 
     return reserve_domain_id()
 

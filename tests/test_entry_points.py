@@ -72,9 +72,13 @@ def test_help_imports_nothing_heavy(script: str) -> None:
     assert heavy == [], f"{script} --help imported {heavy}"
 
 
-ALIAS_BOMB = "a: &a [" + ", ".join(['"lol"'] * 10) + "]\n" + "".join(
-    f"{n}: &{n} [" + ", ".join([f"*{p}"] * 10) + "]\n" for p, n in zip("abcdefghi", "bcdefghij")
-) + "agents: *j\nedges: *j\n"
+ALIAS_BOMB = (
+    "a: &a ["
+    + ", ".join(['"lol"'] * 10)
+    + "]\n"
+    + "".join(f"{n}: &{n} [" + ", ".join([f"*{p}"] * 10) + "]\n" for p, n in zip("abcdefghi", "bcdefghij"))
+    + "agents: *j\nedges: *j\n"
+)
 
 
 #: every command that reads a formation file, with its arguments around the file (F) and OUT (O)

@@ -29,10 +29,10 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "formation-record = formation_bag.commands:record",
-            "formation-replay = formation_bag.commands:replay",
-            "formation-analyze = formation_bag.commands:analyze",
-            "formation-rerun = formation_bag.commands:rerun",
+            "formation-record = formation_bag.parsers:record",
+            "formation-replay = formation_bag.parsers:replay",
+            "formation-analyze = formation_bag.parsers:analyze",
+            "formation-rerun = formation_bag.parsers:rerun",
             "formation-bag = formation_bag.cli:main",
         ],
     },

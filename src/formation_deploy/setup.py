@@ -20,7 +20,7 @@ setup(
     entry_points={
         "console_scripts": [
             "formation-compose = formation_deploy.compose:main",
-            "formation-keys = formation_deploy.keys:main",
+            "formation-keys = formation_deploy.keys_cli:main",
         ],
     },
 )

@@ -31,12 +31,12 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "formation-check = formation_sim.check:main",
-            "formation-headless = formation_sim.headless:main",
-            "formation-sim = formation_sim.commands:sim",
-            "formation-launch = formation_sim.launch:main",
-            "formation-generate = formation_sim.generate:main",
-            "formation-campaign = formation_sim.campaign:main",
+            "formation-check = formation_sim.cli.check:main",
+            "formation-headless = formation_sim.cli.headless:main",
+            "formation-sim = formation_sim.cli.sim:sim",
+            "formation-launch = formation_sim.launch.launcher:main",
+            "formation-generate = formation_sim.cli.generate:main",
+            "formation-campaign = formation_sim.cli.campaign:main",
         ],
     },
 )

@@ -16,11 +16,11 @@ from bag_helpers import PAPER, VIOLATING, paper_spec
 from formation_bag import analysis, rerun
 from formation_bag.analysis import analyze_run, message_ages
 from formation_bag.dataset import apply_overrides, load_run
-from formation_bag.errors import BagFormatError, OverrideError
 from formation_bag.reader import Bag
 from formation_bag.rerun import rerun_all
 from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_sim.headless import run_headless
+from formation_msgs_py.errors import BagFormatError, OverrideError
+from formation_sim.cli.headless import run_headless
 
 IGNORED = {"wall_time", "real_time_factor", "bag", "source", "controller", "physics_rate", "mode", "samples"}
 

@@ -16,11 +16,10 @@ import pytest
 import yaml
 
 from formation_bag import messages as m
-from formation_bag.errors import BagNotFoundError
 from formation_bag.interop import JAZZY_KEYS, check_bag
 from formation_bag.reader import Bag, repair
-from formation_msgs_py.bag.errors import BagExistsError, BagWriterError
 from formation_msgs_py.bag.writer import SegmentedBagWriter
+from formation_msgs_py.errors import BagExistsError, BagNotFoundError, BagWriterError
 
 START = 1_700_000_000 * m.NS_PER_S
 

@@ -178,8 +178,8 @@ def test_replay_window_and_rate(ros_procs, tmp_path: Path) -> None:
 
 def test_decimation_option() -> None:
     """--decimate TOPIC=N parses globs and refuses malformed entries, naming them."""
-    from formation_bag.errors import BagTopicError
     from formation_bag.record_node import parse_decimation, parse_meta
+    from formation_msgs_py.errors import BagTopicError
 
     assert parse_decimation(["/agent_*/relative_pose/*=10", "/diagnostics=2"]) == [
         ("/agent_*/relative_pose/*", 10),

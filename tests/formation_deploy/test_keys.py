@@ -15,9 +15,9 @@ from formation_deploy.keys import (
     KeysError,
     check_keys,
     init_keys,
-    main,
     process_names,
 )
+from formation_deploy.keys_cli import main
 
 PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
 NAMES = ["simulator", "agent_1", "recorder"]

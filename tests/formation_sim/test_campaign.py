@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from formation_sim import campaign
-from formation_sim.campaign import load_campaign, run_campaign
+from formation_sim.cli import campaign
+from formation_sim.cli.campaign import load_campaign, run_campaign
 
 #: two samples of the paper's formation, 30 ms each, at two rates: 4 runs of ~0.1 s
 SMALL = {

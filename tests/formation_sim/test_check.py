@@ -8,8 +8,9 @@ from pathlib import Path
 import yaml
 
 from formation_msgs_py.spec import load_formation
-from formation_sim import check
-from formation_sim.rates import rate_needs
+from formation_sim.cli import check
+from formation_sim.core.loop import initial_rho_v0
+from formation_sim.core.rates import rate_needs
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -20,7 +21,8 @@ def test_paper_preset_is_valid_at_10khz(paper_path, capsys) -> None:
     assert "5 agents, 4 edges" in out and "VALID" in out
     # agent 1 needs ~3 kHz by t = 5 s (NOTES.md): the printed need is the closed form's
     # (rate_needs, checked against NOTES.md "Sampled-data" in test_report.py), not a golden number
-    need = next(n for n in rate_needs(load_formation(paper_path)) if n.agent_id == "1")
+    spec = load_formation(paper_path)
+    need = next(n for n in rate_needs(spec, initial_rho_v0(spec)) if n.agent_id == "1")
     assert 2900 < need.at_end < 3100 and f"{need.at_end:.0f}" in out
 
 

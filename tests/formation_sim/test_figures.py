@@ -10,11 +10,11 @@ import pytest
 from PIL import Image
 
 from formation_msgs_py.spec import load_formation, simulator_view
-from formation_sim.animation import write_animation, write_frame
-from formation_sim.figures import velocity_errors
-from formation_sim.report import RunRecorder
-from formation_sim.simulation import Simulation
-from formation_sim.team import AgentTeam
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.simulation import Simulation
+from formation_sim.core.team import AgentTeam
+from formation_sim.views.animation import write_animation, write_frame
+from formation_sim.views.figures import velocity_errors
 
 
 @pytest.fixture(scope="module")

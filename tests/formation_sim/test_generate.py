@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from formation_msgs_py.spec import formation_from_dict, load_formation
-from formation_sim import generate
+from formation_sim.cli import generate
 
 
 @pytest.mark.parametrize("topology", ["chain", "star", "random"])
@@ -64,12 +64,13 @@ def test_presets_match_their_generator(paper_path) -> None:
 def test_realtime_preset_needs_a_fraction_of_its_rate(n: int, rate: float) -> None:
     """--preset realtime: realtime mode at the asked rate, every agent's rate need over the run
     at most rate / REALTIME_MARGIN (γ chosen from the need; 1e-9 relative for the rounding of γ)."""
-    from formation_sim.rates import rate_needs
+    from formation_sim.core.loop import initial_rho_v0
+    from formation_sim.core.rates import rate_needs
 
     spec = formation_from_dict(generate.generate(n, seed=n, control_rate=rate, duration=10.0, preset="realtime"))
     s = spec.simulation
     assert (s.mode, s.control_rate, s.physics_rate, s.record_rate) == ("realtime", rate, rate, rate)
-    needs = rate_needs(spec)
+    needs = rate_needs(spec, initial_rho_v0(spec))
     assert len(needs) == n
     worst = max(r.at_end for r in needs)
     assert worst <= rate / generate.REALTIME_MARGIN * (1 + 1e-9)

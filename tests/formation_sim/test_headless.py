@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from formation_msgs_py.spec import load_formation
-from formation_sim import headless
-from formation_sim.headless import run_headless
+from formation_sim.cli import headless
+from formation_sim.cli.headless import run_headless
 
 
 @pytest.fixture(scope="module")
@@ -159,8 +159,8 @@ def test_continuous_mode_substeps_to_rk4_stability_on_a_stiff_plant(paper_path) 
     import yaml
 
     from formation_msgs_py.spec import formation_from_dict
-    from formation_sim.loop import continuous_substeps, run_closed_loop
-    from formation_sim.report import RunRecorder
+    from formation_sim.core.loop import continuous_substeps, run_closed_loop
+    from formation_sim.core.recorder import RunRecorder
 
     doc = yaml.safe_load(paper_path.read_text())
     doc["agents"][4]["dynamics"]["inertia"] = [0.493023, 0.676689, 1e-3]

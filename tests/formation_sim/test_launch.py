@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from formation_msgs_py.faults import FaultLog, write_json
-from formation_sim.launch import agent_faults_file, merge_agent_faults
+from formation_sim.launch.launcher import agent_faults_file, merge_agent_faults
 
 
 def test_agent_fault_files_are_merged_and_missing_ones_named(tmp_path: Path) -> None:

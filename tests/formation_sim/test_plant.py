@@ -9,10 +9,10 @@ import pytest
 
 from formation_msgs_py.rotations import orthonormality_error
 from formation_msgs_py.spec import SignalModel, formation_from_dict, load_formation, simulator_view
-from formation_sim.measurement import MeasurementModel
-from formation_sim.plant import Plant, PlantState
-from formation_sim.signals import signal_params, signals_at
-from formation_sim.simulation import Measurements
+from formation_sim.core.measurement import MeasurementModel
+from formation_sim.core.plant import Plant, PlantState
+from formation_sim.core.signals import signal_params, signals_at
+from formation_sim.core.simulation import Measurements
 
 
 def tumbling_body(gravity=(0.0, 0.0, 0.0)):
@@ -127,6 +127,7 @@ def test_measurements_respect_the_sensing_radius(paper_path: Path) -> None:
     model = MeasurementModel(view, np.random.default_rng(0))
     p = np.array([a.position for a in spec.agents])
     R = np.array([a.R_world_body for a in spec.agents])
+
     def measure() -> dict:  # by agent and neighbour, the ends in range
         return Measurements(0.0, 0, *model.measure(p, R), np.zeros((len(p), 6)), model.ends).relative_poses
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from formation_sim.preflight import InvalidRunError, prepare_out_dir
+from formation_sim.core.preflight import InvalidRunError, prepare_out_dir
 
 
 def _earlier_run(out: Path) -> None:

@@ -7,7 +7,8 @@ import pytest
 
 from formation_msgs_py import funnels
 from formation_msgs_py.spec import load_formation
-from formation_sim.rates import initial_rho_v0, mass_matrix, rate_need, rate_needs
+from formation_sim.core.loop import initial_rho_v0
+from formation_sim.core.rates import mass_matrix, rate_need, rate_needs
 
 RNG = np.random.default_rng(11)
 
@@ -40,11 +41,12 @@ def test_paper_needs_are_the_closed_form_at_both_ends(paper_path) -> None:
     """formation-check's numbers for the paper preset: the closed form on ρ_v(0) and ρ_v(T)."""
     spec = load_formation(paper_path)
     T = spec.simulation.duration
-    for a, rho_v0, need in zip(spec.agents, initial_rho_v0(spec), rate_needs(spec)):
+    rho_v0s = initial_rho_v0(spec)
+    for a, rho_v0, need in zip(spec.agents, rho_v0s, rate_needs(spec, rho_v0s)):
         vf = a.controller.velocity_funnel
         M_diag = np.array([a.dynamics.mass] * 3 + list(np.diag(a.dynamics.inertia)))
         for t, value in ((0.0, need.at_start), (T, need.at_end)):
             rho = funnels.rho(t, rho_v0, np.array(vf.rho_inf), np.array(vf.decay))
             assert value == pytest.approx(np.max(2 * a.controller.gamma / (M_diag * rho**2)), rel=1e-12)
-    needs = rate_needs(spec)  # NOTES.md: about 0.5 kHz at t = 0 and 3 kHz at t = 5 s
+    needs = rate_needs(spec, initial_rho_v0(spec))  # NOTES.md: about 0.5 kHz at t = 0 and 3 kHz at t = 5 s
     assert 400 < max(n.at_start for n in needs) < 700 and 2500 < max(n.at_end for n in needs) < 3500

@@ -1,4 +1,4 @@
-"""The simulator's own bag (formation_sim.run_bag), without ROS: log times, counts, an I/O error."""
+"""The simulator's own bag (formation_sim.node.run_bag), without ROS: log times, counts, an I/O error."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from rosbags.rosbag2 import Reader
 
 from formation_msgs_py import wire
 from formation_msgs_py.bag.writer import make_qos
-from formation_sim.run_bag import RunBag
+from formation_sim.node.run_bag import RunBag
 
 CLOCK, WRENCH, FUNNELS = "/clock", "/agent_1/wrench", "/formation/funnels"
 STEP_NS = 100_000  # 10 kHz

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from formation_sim.stepping import (
+from formation_sim.node.stepping import (
     LAST_CALL,
     NS,
     CommandHold,

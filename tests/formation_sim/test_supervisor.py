@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from formation_sim.supervisor import Supervisor, policy_name
+from formation_sim.launch.supervisor import Supervisor, policy_name
 
 #: prints the policy of its main thread and of a thread it starts afterwards (Fast DDS's, in a node)
 _POLICIES = """

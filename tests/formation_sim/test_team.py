@@ -1,4 +1,4 @@
-"""The simulator's shadow of the agents (formation_sim.team.AgentTeam) on measurements by edge end."""
+"""The simulator's shadow of the agents (formation_sim.core.team.AgentTeam) on measurements by edge end."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 
 from formation_agent.controller import AgentController
 from formation_msgs_py.spec import agent_view, load_formation, simulator_view
-from formation_sim.measurement import Ends
-from formation_sim.simulation import Measurements, Simulation
-from formation_sim.team import AgentTeam
+from formation_sim.core.measurement import Ends
+from formation_sim.core.simulation import Measurements, Simulation
+from formation_sim.core.team import AgentTeam
 
 PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from formation_msgs_py.spec import load_formation, simulator_view
-from formation_sim.simulation import Simulation
-from formation_sim.team import AgentTeam
+from formation_sim.core.simulation import Simulation
+from formation_sim.core.team import AgentTeam
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"
@@ -24,10 +24,10 @@ PAPER = REPO / "config" / "paper_5agents.yaml"
 STEPS_AFTER_CONSTRUCTION = r"""
 import json, sys
 import numpy as np
-from formation_sim import measurement, plant, team
+from formation_sim.core import measurement, plant, team
 from formation_msgs_py.spec import load_formation, simulator_view
-from formation_sim.report import RunRecorder
-from formation_sim.simulation import Simulation
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.simulation import Simulation
 spec = load_formation(sys.argv[1])
 sim, shadow = Simulation(simulator_view(spec)), team.AgentTeam(spec)
 kernels = {"team_step": team.team_step, "rkmk4_step": plant.rkmk4_step,

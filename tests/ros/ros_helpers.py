@@ -27,7 +27,7 @@ def assert_equals_headless(trajectory: Path, duration: float) -> dict:
     import numpy as np
 
     from formation_msgs_py.spec import load_formation
-    from formation_sim.headless import run_headless
+    from formation_sim.cli.headless import run_headless
 
     ros = np.load(trajectory)
     spec = load_formation(PAPER, overrides={"duration": duration, "record_rate": 10000.0})

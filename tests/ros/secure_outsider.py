@@ -16,7 +16,7 @@ import rclpy
 from geometry_msgs.msg import TwistStamped, WrenchStamped
 from rclpy.node import Node
 
-from formation_msgs_py import qos
+from formation_msgs_py.ros import qos
 
 
 def main() -> None:

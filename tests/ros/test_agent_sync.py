@@ -7,7 +7,7 @@ from ros_helpers import PAPER
 from formation_agent.agent_node import StepSynchroniser
 from formation_agent.controller import ERROR, AgentController
 from formation_msgs_py.spec import agent_view, load_formation, simulator_view
-from formation_sim.simulation import Simulation
+from formation_sim.core.simulation import Simulation
 
 
 def _setup(agent: str = "1"):

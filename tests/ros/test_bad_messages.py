@@ -19,9 +19,10 @@ from rclpy.node import Node
 from ros_helpers import PAPER, REALTIME, read_log, ros_context, wait_for_line
 from rosgraph_msgs.msg import Clock
 
-from formation_msgs_py import conversions, qos, topics
+from formation_msgs_py import topics
+from formation_msgs_py.ros import conversions, qos
 from formation_msgs_py.spec import load_formation, simulator_view
-from formation_sim.simulation import Simulation
+from formation_sim.core.simulation import Simulation
 
 NS = 1_000_000_000
 #: what the first test sends agent 5 that it must refuse, by fault kind (the future step is a pose and a velocity)

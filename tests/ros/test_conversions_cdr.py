@@ -1,4 +1,4 @@
-"""The CDR codecs of formation_msgs_py.conversions agree with rclpy's own serialization."""
+"""The CDR codecs of formation_msgs_py.ros.conversions agree with rclpy's own serialization."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchS
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 
-from formation_msgs_py import conversions as cv
+from formation_msgs_py.ros import conversions as cv
 
 STAMPS = [0, 1, 999_999_999, 1_000_000_000, 12_345_678_901_234, 2**31 * 1_000_000_000 - 1]
 

@@ -1,4 +1,4 @@
-"""The display topics' CDR templates (formation_sim.display_wire) read back as rclpy's messages."""
+"""The display topics' CDR templates (formation_sim.views.display_wire) read back as rclpy's messages."""
 
 from __future__ import annotations
 
@@ -8,12 +8,13 @@ from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import MarkerArray
 
-from formation_msgs_py import conversions, topics
+from formation_msgs_py import topics
+from formation_msgs_py.ros import conversions
 from formation_msgs_py.so3 import exp_so3
 from formation_msgs_py.spec import load_formation
-from formation_sim.display import FUNNEL_FIELDS, marker_message
-from formation_sim.display_wire import FunnelsWire, MarkerArrayWire
-from formation_sim.markers import FormationScene
+from formation_sim.node.display import FUNNEL_FIELDS, marker_message
+from formation_sim.views.display_wire import FunnelsWire, MarkerArrayWire
+from formation_sim.views.markers import FormationScene
 
 
 @pytest.mark.parametrize("name", ["paper_5agents.yaml", "realtime_20agents_100hz.yaml"])

@@ -20,9 +20,10 @@ from rclpy.node import Node
 from ros_helpers import BIN, PAPER, REALTIME, read_log, ros_context
 from rosgraph_msgs.msg import Clock
 
-from formation_msgs_py import conversions, qos, topics
+from formation_msgs_py import topics
+from formation_msgs_py.ros import conversions, qos
 from formation_msgs_py.spec import load_formation, simulator_view
-from formation_sim.simulation import Simulation
+from formation_sim.core.simulation import Simulation
 
 NS = 1_000_000_000
 #: DESIGN §10 / issue 10: an intruder is reported within this many wall seconds of its publisher's creation

@@ -188,7 +188,7 @@ def test_help_of_every_script() -> None:
 @pytest.mark.skipif(shutil.which("unshare") is None, reason="unshare (util-linux) is not installed")
 def test_private_network_namespace(ros_env: dict[str, str], tmp_path: Path) -> None:
     """--netns on runs the formation inside its own network namespace (how 50 agents run)."""
-    from formation_sim.dds_env import netns_available
+    from formation_sim.launch.dds_env import netns_available
 
     reason = netns_available()
     if reason is not None:

@@ -14,15 +14,17 @@ from ros_helpers import PAPER, REPO, ros_context
 from formation_agent.agent_node import AgentNode
 from formation_agent.process import USAGE
 from formation_msgs_py import options
-from formation_sim.commands import sim_parser, sim_preflight
-from formation_sim.display import declare_simulator_parameters
+from formation_sim.node.display import declare_simulator_parameters
+from formation_sim.node.sim_options import sim_parser, sim_preflight
 
 OPTION = {o.dest: o for o in options.OPTIONS}
 ROS_OWN = {"use_sim_time", "start_type_description_service"}  # declared by rclpy itself
 _DOC = (REPO / "docs" / "ros2.md").read_text(encoding="utf-8")
 PARAMETERS_DOC = _DOC[_DOC.index("## Parameters") : _DOC.index("\n## ", _DOC.index("## Parameters") + 1)]
 #: agent parameters formation-launch sets from its own options (``-p NAME:=VALUE``)
-LAUNCHED = set(re.findall(r'f"(\w+):=\{args\.\1\}"', (REPO / "src/formation_sim/formation_sim/launch.py").read_text()))
+LAUNCHED = set(
+    re.findall(r'f"(\w+):=\{args\.\1\}"', (REPO / "src/formation_sim/formation_sim/launch/launcher.py").read_text())
+)
 
 
 def declared(node: Node) -> dict[str, tuple[object, str]]:

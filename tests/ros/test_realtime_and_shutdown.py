@@ -126,7 +126,7 @@ class Run:
         """PID of a child (from its log's owner: the processes mentioning this test's formation)."""
         for pid in processes_mentioning(str(self.formation)):
             cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-            if name == "sim" and "formation_sim.sim_node" in cmd:
+            if name == "sim" and "formation_sim.node.sim_node" in cmd:
                 return pid
             if name.startswith("agent_") and f"agent_id:='{name[6:]}'" in cmd:
                 return pid

@@ -1,4 +1,4 @@
-"""formation_msgs_py.stopping in a process of its own: SIGINT shuts the rclpy context down without a
+"""formation_msgs_py.ros.stopping in a process of its own: SIGINT shuts the rclpy context down without a
 KeyboardInterrupt, and exit_now ends the process with its code, skipping interpreter finalization
 but not the closing of rclpy's log file."""
 
@@ -13,7 +13,7 @@ PROBE = """
 import atexit, os, signal, time
 import rclpy
 import rclpy.logging
-from formation_msgs_py import stopping
+from formation_msgs_py.ros import stopping
 
 stopping.init(["probe"])
 context = rclpy.get_default_context()

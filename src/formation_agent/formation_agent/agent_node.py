@@ -12,7 +12,7 @@ stamp; a neighbour out of sensing range sends nothing, so after ``pose_wait`` wa
 answers anyway with a zero wrench and ERROR (as the headless runner does), and a lockstep
 simulator never waits for it. A repeated stamp (the simulator re-sends a step it has no answer
 for) is answered with the same wrench; an earlier stamp (clock jumped back) resets the
-controller and the watchdogs. The node checks every message first (:mod:`formation_agent.inputs`):
+controller and the watchdogs. The node checks every message first (:mod:`formation_agent.measurement_checks`):
 a refused value (non-finite, not a rotation, out of range) answers its step with a zero wrench and
 ERROR; a refused stamp (from the future, or older than ``measurement_timeout`` by the /clock, sim
 time) or malformed bytes name no step and are dropped.
@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController, ControlOutput
-from formation_agent.inputs import DROPPED_KINDS, InputCheck, Refusal
-from formation_agent.process import warm_up
+from formation_agent.kernel_cache import warm_up
+from formation_agent.measurement_checks import DROPPED_KINDS, InputCheck, Refusal
 from formation_msgs_py.faults import FaultLog, fault_lines, write_json
 from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.spec import AgentView
@@ -80,7 +80,7 @@ class StepSynchroniser:
 
     ``publish(stamp_ns, wrench)`` is called once per answered stamp (and again for a re-sent
     stamp). Times: stamps in integer ns of sim time; ``now`` in wall seconds (monotonic). What
-    comes in has passed the node's input check (:mod:`formation_agent.inputs`); a refused
+    comes in has passed the node's input check (:mod:`formation_agent.measurement_checks`); a refused
     measurement comes through :meth:`refuse` and its step is answered with zero and ERROR.
     """
 
@@ -97,7 +97,7 @@ class StepSynchroniser:
     #: every fault of this agent by kind (formation_msgs_py.faults): resets, refusals, zero answers
     faults: FaultLog = field(default_factory=FaultLog)
     last_measurement_wall: float | None = None
-    #: reasons of refused measurements (formation_agent.inputs) by stamp: that step answers zero
+    #: reasons of refused measurements (formation_agent.measurement_checks) by stamp: that step answers zero
     refused: dict[int, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -233,10 +233,11 @@ from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.experimental import EventsExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from formation_msgs_py import conversions, parameters, qos, stopping, topics  # noqa: E402
+from formation_msgs_py import topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
-from formation_msgs_py.graph_watch import GraphWatch  # noqa: E402
 from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
+from formation_msgs_py.ros import conversions, parameters, qos, stopping  # noqa: E402
+from formation_msgs_py.ros.graph_watch import GraphWatch  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport  # noqa: E402
 
@@ -291,7 +292,7 @@ class AgentNode(Node):
         self.inputs = InputCheck(view.sensing_radius, round(view.controller.measurement_timeout * _NS))
         self.sync.set_gains(**live_gains(self.agent_id, gains))
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        # hot path: CDR bytes in and out (formation_msgs_py.conversions), no message objects
+        # hot path: CDR bytes in and out (formation_msgs_py.ros.conversions), no message objects
         self._wrench_codec = conversions.wrench_codec(view.agent_id)
         self._twist_codec = conversions.twist_codec(view.agent_id)
         self._pub = self.create_publisher(WrenchStamped, _root(topics.wrench(view.agent_id)), qos.CONTROL)
@@ -377,7 +378,7 @@ class AgentNode(Node):
         self.sync.on_pose(j, ns, p, R, time.monotonic())
 
     def _refuse(self, ns: int, refusal: Refusal, neighbour: str | None = None) -> None:
-        """A refused measurement (formation_agent.inputs): ERROR, counted; a bad value answers zero."""
+        """A refused measurement (formation_agent.measurement_checks): ERROR, counted; a bad value answers zero."""
         n = self.inputs.counts[refusal.kind]
         t = (ns or self._clock.now().nanoseconds) / _NS
         self.sync.fault(t, f"refused_{refusal.kind}", refusal.reason)
@@ -507,7 +508,7 @@ def resolve_agent_id(argv: Sequence[str], context) -> str:
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``formation-agent``; exit 2 on a bad file or parameter. SIGINT and SIGTERM
-    stop the agent (formation_msgs_py.stopping): it writes its faults, destroys its node and ends
+    stop the agent (formation_msgs_py.ros.stopping): it writes its faults, destroys its node and ends
     the process at once."""
     argv = list(sys.argv if args is None else args)
     if not _cli_sets(argv, "use_sim_time"):

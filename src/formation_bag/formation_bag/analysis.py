@@ -1,7 +1,7 @@
 """Offline analysis of a recorded run (no ROS): ``formation-analyze BAG --out DIR``.
 
 From ``/formation/ground_truth`` it recomputes every e_k and ψ_k and checks every funnel with
-the same :class:`formation_sim.report.RunRecorder` the headless runner and the simulator use,
+the same :class:`formation_sim.core.recorder.RunRecorder` the headless runner and the simulator use,
 so the outputs have the format of docs/outputs.md (summary.json, trajectory.npz, errors.png,
 orientation_errors.png, inputs.png). Per ground-truth sample (stamp t_k) it uses:
 
@@ -39,14 +39,15 @@ import numpy as np
 
 from formation_agent.controller import ERROR
 from formation_bag import messages as m
-from formation_bag.commands import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_bag.dataset import RunData, Series, load_run
+from formation_bag.parsers import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_bag.rerun import AgentRerun, rerun_all
-from formation_msgs_py.bag.errors import BagError
-from formation_msgs_py.errors import FormationError
+from formation_msgs_py.errors import BagError, FormationError
+from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
-from formation_sim.preflight import prepare_out_dir
-from formation_sim.report import RunRecorder, format_summary, report_animation, write_json, write_outputs
+from formation_sim.core.preflight import prepare_out_dir
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.views.outputs import format_summary, report_animation, write_outputs
 
 
 def _rate_from_stamps(stamps: list[int]) -> float | None:
@@ -348,8 +349,8 @@ def message_ages(run: RunData) -> dict[str, Any]:
 
 # -- outputs ------------------------------------------------------------------------------------
 
-#: What formation-analyze writes besides the outputs of every run (formation_sim.report): a
-#: ``--force`` into an earlier analysis removes them first (formation_sim.preflight.prepare_out_dir).
+#: What formation-analyze writes besides the outputs of every run (formation_sim.core.recorder): a
+#: ``--force`` into an earlier analysis removes them first (formation_sim.core.preflight.prepare_out_dir).
 ANALYSIS_OUTPUTS = ("ages.json", "errors.csv", "inputs.csv", "positions.csv", "ages.csv")
 
 

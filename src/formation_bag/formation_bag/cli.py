@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from formation_msgs_py.bag.errors import BagError
+from formation_msgs_py.errors import BagError
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,10 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from formation_bag import messages as m
-from formation_bag.errors import BagFormatError, BagTopicError, OverrideError
 from formation_bag.reader import Bag
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
-from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.errors import BagFormatError, BagTopicError, FormationSpecError, OverrideError
 from formation_msgs_py.loader import parse_document, read_document
 from formation_msgs_py.spec import FormationSpec, formation_from_dict
 

@@ -23,10 +23,9 @@ from rosbags.interfaces import Connection, ConnectionExtRosbag2
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 
-from formation_bag.errors import BagFormatError, BagNotFoundError
-from formation_msgs_py.bag.errors import BagExistsError
 from formation_msgs_py.bag.metadata import STORAGES, SegmentInfo, metadata_yaml
 from formation_msgs_py.bag.writer import typestore
+from formation_msgs_py.errors import BagExistsError, BagFormatError, BagNotFoundError
 
 SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
 _SEG_RE = re.compile(r"_(\d+)$")

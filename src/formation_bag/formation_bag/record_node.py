@@ -42,16 +42,14 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from formation_bag import messages as m
-from formation_bag.commands import record_parser
-from formation_bag.errors import BagTopicError
-from formation_msgs_py import qos as fqos
+from formation_bag.parsers import record_parser
 from formation_msgs_py import topics, wire
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, STAMPED_TYPES, ros_type_name
-from formation_msgs_py.bag.errors import BagError
 from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.errors import BagError, BagTopicError, FormationSpecError
 from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, guarded
+from formation_msgs_py.ros import qos as fqos
 from formation_msgs_py.spec import load_formation
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 
@@ -70,7 +68,7 @@ def msg_class(msgtype: str) -> Any:
 
 
 def offered_profile(topic: str) -> QoSProfile:
-    """The project's QoS profile of a topic (formation_msgs_py.qos)."""
+    """The project's QoS profile of a topic (formation_msgs_py.ros.qos)."""
     if topic == topics.CLOCK:
         return fqos.CLOCK
     if topic.endswith(topics.GROUND_TRUTH):

@@ -22,13 +22,12 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 
 from formation_bag import messages as m
-from formation_bag.commands import replay_parser
-from formation_bag.errors import BagTopicError
+from formation_bag.parsers import replay_parser
 from formation_bag.reader import Bag
 from formation_bag.record_node import msg_class
-from formation_msgs_py import qos as fqos
 from formation_msgs_py import topics
-from formation_msgs_py.bag.errors import BagError
+from formation_msgs_py.errors import BagError, BagTopicError
+from formation_msgs_py.ros import qos as fqos
 
 SPIN_BEFORE = 0.003  # s: sleep until this close to a deadline, then spin (scheduler wake-up latency)
 

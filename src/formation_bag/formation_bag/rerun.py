@@ -27,11 +27,9 @@ import yaml
 
 from formation_agent.controller import LEVEL_NAMES, AgentController, ControlOutput, MissingMeasurementError
 from formation_bag import messages as m
-from formation_bag.commands import rerun_parser
 from formation_bag.dataset import RunData, apply_overrides, load_run, spec_from_document
-from formation_bag.errors import OverrideError
-from formation_msgs_py.bag.errors import BagError
-from formation_msgs_py.errors import FormationSpecError
+from formation_bag.parsers import rerun_parser
+from formation_msgs_py.errors import BagError, FormationSpecError, OverrideError
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import FormationSpec, agent_view
 

@@ -6,7 +6,7 @@ publishes: ``/clock``, ``/formation/ground_truth``, every relative pose, every v
 (all stamped t_k), then every agent's wrench stamped t_k. Each agent's controller computes
 from the *decoded* messages (quaternion -> matrix as the agent node does), so the recorded
 wrenches are what an agent node would publish; the agents are stepped by
-:class:`formation_sim.team.AgentTeam`, with the fault policy of every other run. Log times are
+:class:`formation_sim.core.team.AgentTeam`, with the fault policy of every other run. Log times are
 synthetic: ``wall_step`` seconds per step from ``start_ns``, ``message_spacing`` apart within a step.
 
 :func:`write_run_bag` returns the run's own summary (a RunRecorder filled as run_headless fills
@@ -25,9 +25,9 @@ from formation_msgs_py import topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_msgs_py.bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py.spec import FormationSpec, simulator_view
-from formation_sim.report import RunRecorder
-from formation_sim.simulation import Measurements, Simulation
-from formation_sim.team import AgentTeam
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.simulation import Measurements, Simulation
+from formation_sim.core.team import AgentTeam
 
 
 @dataclass

@@ -1,8 +1,9 @@
-"""The shared contract of the formation packages.
+"""The shared, ROS-free core of the formation packages.
 
-Formation files (schema, loading, validation, agent and simulator views), SO(3) helpers,
-performance functions, topic names, QoS profiles and message conversions. Only
-:mod:`formation_msgs_py.qos` and :mod:`formation_msgs_py.conversions` import ROS.
+Formation files (schema, loading, validation, agent and simulator views), run options, outcome
+(verdicts, exit codes), faults, SO(3) helpers, performance functions, the judge (one funnel rule),
+topic names, the wire codec and the bag writer. The few helpers that import rclpy (QoS profiles,
+message conversions, parameters, graph watch, stopping) are in :mod:`formation_msgs_py.ros`.
 """
 
 from formation_msgs_py.errors import FormationError, FormationSpecError

@@ -58,3 +58,45 @@ class CollectedFormationSpecError(FormationSpecError):
 
 class RotationError(FormationError, ValueError):
     """A matrix that should be a rotation is not one (or has the wrong shape)."""
+
+
+# --- bags: writing (formation_msgs_py.bag) and reading, analysing (formation_bag) ---
+
+
+class BagError(FormationError):
+    """Base class of the errors the bag packages raise on purpose."""
+
+
+class BagExistsError(BagError, FileExistsError):
+    """An output path exists already; we never overwrite."""
+
+    def __init__(self, path: object, what: str = "output") -> None:
+        self.path = path
+        super().__init__(f"{what} {path} exists already, not overwriting (choose another path or remove it)")
+
+
+class BagWriterError(BagError, RuntimeError):
+    """Writing a bag failed (closed writer, unknown type, storage error)."""
+
+
+class BagNotFoundError(BagError, FileNotFoundError):
+    """A bag path does not exist or holds no readable storage file."""
+
+
+class BagFormatError(BagError, ValueError):
+    """A bag, a segment file or its metadata.yaml is malformed."""
+
+
+class BagTopicError(BagError, KeyError):
+    """A topic the command needs is missing from the bag, or a topic option is malformed."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""
+
+
+class OverrideError(BagError, ValueError):
+    """An override file for the controller re-run is invalid; ``path`` names the field."""
+
+    def __init__(self, path: str, message: str) -> None:
+        self.path = path
+        super().__init__(f"{path}: {message}" if path else message)

@@ -3,16 +3,16 @@ occurrence (summary.json ``faults``; docs/outputs.md), and the strict, atomic JS
 
 Who counts what (kinds):
 
-- the simulator (formation_sim.sim_node): ``resent_step`` (lockstep: a step published again to an
+- the simulator (formation_sim.node.sim_node): ``resent_step`` (lockstep: a step published again to an
   agent that had not answered), ``stale_command`` (realtime: a tick applied an agent's older wrench,
   its answer to the last step was not in), ``zero_wrench`` (realtime: that wrench was older than
   ``command_timeout`` and replaced by zero), ``late_tick`` (realtime, agent ``simulator``: a tick
-  more than half a period late), ``refused_wrench_<kind>`` (formation_sim.inputs), and from its
+  more than half a period late), ``refused_wrench_<kind>`` (formation_sim.core.wrench_checks), and from its
   shadow of the controllers ``measurement`` (a neighbour out of sensing range) and ``controller``
   (saturated: outside a funnel);
 - each agent (formation_agent.agent_node, written to its ``faults_file`` when it stops and merged by
   formation-launch): ``reset`` (clock jumped back: controller and watchdogs reset),
-  ``refused_<kind>`` (formation_agent.inputs), ``missing_pose`` (answered without a neighbour's
+  ``refused_<kind>`` (formation_agent.measurement_checks), ``missing_pose`` (answered without a neighbour's
   relative pose after ``pose_wait``: out of range or lost; answered with a zero wrench);
 - the recorder: messages published but not in the bag, per topic (summary.json ``recorder``).
 

@@ -1,7 +1,7 @@
 """ROS-free halves of the message conversions: decoding by field names, and raw CDR bytes.
 
 The decoders read fields by name, so they take rclpy messages (the nodes) and rosbags
-messages (bag analysis, no ROS) alike; :mod:`formation_msgs_py.conversions` re-exports them next
+messages (bag analysis, no ROS) alike; :mod:`formation_msgs_py.ros.conversions` re-exports them next
 to the encoders that need the ROS message classes. Quaternions are converted only by
 :func:`formation_msgs_py.rotations.matrix_from_quaternion` and its inverse.
 """

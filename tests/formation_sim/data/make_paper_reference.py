@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from formation_msgs_py.spec import load_formation
-from formation_sim.headless import run_headless
+from formation_sim.cli.headless import run_headless
 
 ROOT = Path(__file__).resolve().parents[3]
 

@@ -2,7 +2,7 @@
 
 :mod:`writer` (the segmented rosbag2 writer and the ROS 2 Jazzy typestore), :mod:`metadata`
 (metadata.yaml, version 9), :mod:`errors`. The simulator writes a lockstep run's bag itself with
-it (formation_sim.run_bag); formation_bag records, reads and analyses bags with it. This module
+it (formation_sim.node.run_bag); formation_bag records, reads and analyses bags with it. This module
 imports nothing heavy: the command-line parsers read the names below.
 """
 

@@ -48,8 +48,8 @@ from rosbags.rosbag2.storage_mcap import McapWriter
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from formation_msgs_py.bag.errors import BagExistsError, BagWriterError
 from formation_msgs_py.bag.metadata import METADATA_VERSION, STORAGES, SegmentInfo, metadata_yaml, qos_yaml
+from formation_msgs_py.errors import BagExistsError, BagWriterError
 
 #: rmw's "infinite" duration, as Jazzy writes it in metadata.yaml
 INFINITE = QosTime(sec=9223372036, nsec=854775807)

@@ -24,7 +24,7 @@ peak wrench), ``summary.json`` (pass rate and its 95 % Wilson interval per contr
 figures ``pass_rate.png`` and ``worst_margin.png``.
 
 ``formation-campaign --sweep-rate FILE RATE…`` runs the file's own plant at each rate and prints
-the pass/fail table next to the rate each agent needs (:mod:`formation_sim.rates`).
+the pass/fail table next to the rate each agent needs (:mod:`formation_sim.core.rates`).
 
 Exit status: 0 done, 2 invalid campaign or formation file (naming the field), 130 interrupted.
 """
@@ -262,7 +262,7 @@ def sample_spec(task: Task) -> FormationSpec:
 
 def run_task(task: Task) -> dict[str, Any]:
     """One sample's headless run, as a row of ``runs.csv``."""
-    from formation_sim.headless import run_headless
+    from formation_sim.cli.headless import run_headless
 
     spec = sample_spec(task)
     summary = run_headless(spec, stop_on_violation=True).summary
@@ -475,7 +475,9 @@ def sweep_rate(formation: Path, rates: list[float], out: Path, *, workers: int, 
     from formation_msgs_py.spec import load_formation
 
     spec = load_formation(formation)
-    from formation_sim.rates import rate_needs  # numba: once the file is valid
+    from formation_sim.core.loop import initial_rho_v0  # numba: once the file is valid
+    from formation_sim.core.rates import rate_needs
+
     campaign = Campaign(formation.resolve(), 1, 0, tuple(rates), None, {})
     summary = run_campaign(campaign, out, workers=workers, scheduler=scheduler, quiet=True)
     rows = {r["control_rate"]: r for r in _finished(out / "runs.jsonl").values()}
@@ -487,7 +489,7 @@ def sweep_rate(formation: Path, rates: list[float], out: Path, *, workers: int, 
             "" if r["verdict"] == "PASS" else f"t={r['violation_t']:.3f} s {r['violation_kind']} {r['violation_where']}"
         )
         print(f"  {rate:>17g}   {r['verdict']:<7}   {where}")
-    needs = rate_needs(spec)
+    needs = rate_needs(spec, initial_rho_v0(spec))
     print("  needed (formation-check): " + ", ".join(f"agent {n.agent_id} {n.at_end:.0f} Hz" for n in needs))
     print(f"outputs in {out}/")
     return 0 if summary else 4

@@ -30,7 +30,8 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
     """(lines of the readable summary, list of reasons the file is unsafe)."""
     import numpy as np
 
-    from formation_sim.rates import rate_needs
+    from formation_sim.core.loop import initial_rho_v0
+    from formation_sim.core.rates import rate_needs
 
     sim = spec.simulation
     lines = [
@@ -72,7 +73,7 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
             unsafe.append(f"edge {e.name}: initial orientation error within {m_psi:.1%} of rho_psi0")
     lines.append(f"control rate needed by the velocity loop (zero-order hold at {sim.control_rate:g} Hz):")
     lines.append("  agent     at t=0 [Hz]   at t=T [Hz]   verdict   continuous: RK4 step <= [s]")
-    for n in rate_needs(spec):
+    for n in rate_needs(spec, initial_rho_v0(spec)):
         if n.insufficient_from is None:
             verdict = "ok"
         else:
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         return ExitCode.PASS
     if opts.file is None:
         parser.error("a formation file is required (or --schema)")
-    from formation_sim.preflight import load_spec
+    from formation_sim.core.preflight import load_spec
 
     try:
         spec = load_spec(opts)

@@ -10,7 +10,7 @@ control at 1 kHz (formation-check prints the need per agent).
 (tens of Hz, what real processes sustain; config/realtime_*): heavier bodies, a small δ, a wider
 velocity funnel, a looser steady distance band and slower funnels, as
 config/realtime_5agents_100hz.yaml, and γ chosen from the rate need
-(:func:`formation_sim.rates.rate_need`) so that every agent needs at most 1/``REALTIME_MARGIN``
+(:func:`formation_sim.core.rates.rate_need`) so that every agent needs at most 1/``REALTIME_MARGIN``
 of the control rate at the end of the run (the realtime loop applies a wrench one tick late,
 which the zero-order-hold bound does not count).
 """
@@ -145,7 +145,7 @@ def _tune_realtime(doc: dict[str, Any], control_rate: float) -> None:
     """Retune ``doc`` (in place) to hold in realtime mode at ``control_rate`` [Hz]."""
     import numpy as np
 
-    from formation_sim.rates import mass_matrix, rate_need
+    from formation_sim.core.rates import mass_matrix, rate_need
 
     sim = doc["simulation"]
     period = 1.0 / control_rate

@@ -17,12 +17,12 @@ from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import OptionParser
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
-from formation_sim.preflight import preflight
+from formation_sim.core.preflight import preflight
 
 if TYPE_CHECKING:  # the cores (numba) are imported once the options and the file are valid
     from formation_msgs_py.spec import FormationSpec
-    from formation_sim.loop import ProgressFn
-    from formation_sim.report import RunRecorder
+    from formation_sim.core.loop import ProgressFn
+    from formation_sim.core.recorder import RunRecorder
 
 
 @dataclass
@@ -39,8 +39,8 @@ def run_headless(
     stop_on_violation: bool = False,
 ) -> HeadlessResult:
     """Run the closed loop for ``spec.simulation.duration``; funnels checked at every control step."""
-    from formation_sim.loop import run_closed_loop
-    from formation_sim.report import RunRecorder
+    from formation_sim.core.loop import run_closed_loop
+    from formation_sim.core.recorder import RunRecorder
 
     mode = controller_mode or spec.simulation.controller
     if mode not in ("sampled", "continuous"):
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     spec, out, mode = run.spec, run.out, run.options.controller
     for msg in run.warnings:
         print(f"formation-headless: warning: {msg}", file=sys.stderr)
-    from formation_sim.report import format_summary, report_animation, write_outputs
+    from formation_sim.views.outputs import format_summary, report_animation, write_outputs
 
     def progress(t: float, rtf: float, margin: float) -> None:
         print(

@@ -2,7 +2,7 @@
 
 Per control step k (t_k = k / control_rate) :func:`run_sampled` does what the ROS 2 lockstep run
 does, step for step: the measurements of step k (relative poses with their noise, noisy
-twists), every agent's controller (:func:`formation_sim.team.team_step`, with the fault policy),
+twists), every agent's controller (:func:`formation_sim.core.team.team_step`, with the fault policy),
 the step's ground truth, wrenches and velocity-funnel margins into the recording buffers, every
 funnel checked on ground truth (:func:`check_step`, the :class:`Watch`), then ``substeps``
 physics steps with the wrenches held (zero-order hold); :func:`run_continuous` evaluates the
@@ -11,7 +11,7 @@ stability limit: :func:`continuous_substeps`); two kernels, so that a sampled ru
 the continuous one. Each returns to Python after a buffer's worth of steps, at the first
 violation when the run stops there, or when a state is no longer finite (naming the agents).
 Python then hands the buffers to the recorder (the decimated trajectory,
-the faults) and names the first violation (:meth:`formation_sim.report.Judge.violation_at`).
+the faults) and names the first violation (:meth:`formation_msgs_py.judge.Judge.violation_at`).
 
 :func:`run_closed_loop` drives it for a formation and a :class:`RunRecorder`.
 """
@@ -33,6 +33,7 @@ from formation_agent.controller import (
     LEVEL,
     MARGIN_V,
     REASON,
+    START_RHO_V0,
     U,
     gains,
     new_funnel_start,
@@ -40,11 +41,11 @@ from formation_agent.controller import (
 )
 from formation_msgs_py import funnels
 from formation_msgs_py.compiled import INTERPRETED, formula, kernel
+from formation_msgs_py.judge import CheckedSteps, EdgeSample, Judge
 from formation_msgs_py.so3 import flat_rows, matmul3, matrix_rows
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
-from formation_sim.inputs import non_finite_agents
-from formation_sim.measurement import Sensing, relative_poses
-from formation_sim.plant import (
+from formation_sim.core.measurement import Sensing, relative_poses
+from formation_sim.core.plant import (
     PlantParams,
     body_chart_rates,
     body_rates,
@@ -56,10 +57,11 @@ from formation_sim.plant import (
     rkmk4_step,
     saturate_into,
 )
-from formation_sim.rates import rate_needs
-from formation_sim.report import CheckedSteps, EdgeSample, Judge, RunRecorder
-from formation_sim.simulation import Simulation
-from formation_sim.team import note_errors, note_missing, step_faults, team_step
+from formation_sim.core.rates import rate_needs
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.simulation import Simulation
+from formation_sim.core.team import note_errors, note_missing, step_faults, team_step
+from formation_sim.core.wrench_checks import non_finite_agents
 
 #: why a chunk ended early (run_sampled, run_continuous)
 EVENT_NONE, EVENT_NON_FINITE = 0, 1
@@ -128,8 +130,8 @@ W_BAND_LO, W_BAND_HI, W_BAND_PSI = 17, 18, 19
 
 class Watch(NamedTuple):
     """Every funnel checked on ground truth at every control step, compiled, with the rules of
-    :class:`formation_sim.report.Judge` (which names the first violation): running minimum
-    margins, settle times (NaN: none) and peak wrenches, as :class:`formation_sim.report.CheckedSteps`."""
+    :class:`formation_msgs_py.judge.Judge` (which names the first violation): running minimum
+    margins, settle times (NaN: none) and peak wrenches, as :class:`formation_sim.core.recorder.CheckedSteps`."""
 
     pairs: np.ndarray  # (K, 2) tail, head
     edges: np.ndarray  # (K, 20)
@@ -221,7 +223,7 @@ def sense_and_control(loop, t, p, R, v):
 
 @formula
 def continuous_step(loop, t, p, R, v, h, work):
-    """One RKMK4 step (as :func:`formation_sim.plant.rkmk4_step`) with the controller at every stage."""
+    """One RKMK4 step (as :func:`formation_sim.core.plant.rkmk4_step`) with the controller at every stage."""
     sense_and_control(loop, t, p, R, v)
     saturate_into(loop.u, loop.plant, work.u)
     body_rates(t, p, R, v, work.u, loop.plant, work.p_dot[0], work.v_dot[0])
@@ -339,7 +341,7 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
 
 def compile_in_two_processes(spec: FormationSpec) -> None:
     """On a cold numba cache (no :func:`run_sampled` in it), compile the controllers' kernel
-    (:func:`formation_sim.team.team_step`) in a second process while this one compiles the plant
+    (:func:`formation_sim.core.team.team_step`) in a second process while this one compiles the plant
     and measurement kernels, both into the shared cache; :func:`run_sampled` then loads them and
     compiles only itself. A first run takes the longer of the two parts, not their sum (numba's
     compiler lock rules out threads). No-op when the cache has run_sampled, or interpreted; if the
@@ -348,7 +350,7 @@ def compile_in_two_processes(spec: FormationSpec) -> None:
     if INTERPRETED or Path(run_sampled._cache._cache_file._index_path).exists():
         return
     helper = subprocess.Popen(
-        [sys.executable, "-c", "from formation_sim.team import load_team_step; load_team_step()"],
+        [sys.executable, "-c", "from formation_sim.core.team import load_team_step; load_team_step()"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -374,6 +376,20 @@ def first_step(spec: FormationSpec) -> np.ndarray:
     return loop.start
 
 
+def initial_rho_v0(spec: FormationSpec) -> np.ndarray:
+    """ρ_v0 (N,6) as every agent sets it at its first step, on the initial measurements.
+
+    An agent that misses a neighbour at t = 0 answers the fault wrench and sets no funnel then;
+    its ``auto`` funnel is taken as the offset alone (e_v(0) = 0).
+    """
+    rho_v0 = first_step(spec)[:, START_RHO_V0:].copy()
+    for i, a in enumerate(spec.agents):
+        if np.isnan(rho_v0[i, 0]):
+            vf = a.controller.velocity_funnel
+            rho_v0[i] = vf.auto_offset if vf.rho_0 is None else vf.rho_0
+    return rho_v0
+
+
 #: Fraction of RK4's stability limit used: the linearisation at ξ_v = 0 underestimates the gain
 #: r_v(ξ)/2 near the funnel's bound.
 STABILITY_FRACTION = 0.5
@@ -381,8 +397,8 @@ STABILITY_FRACTION = 0.5
 
 def continuous_substeps(spec: FormationSpec, file_substeps: int) -> int:
     """Physics steps per control period for the continuous closed loop: at least the file's, and enough
-    for every agent's RK4 stability limit (:attr:`formation_sim.rates.RateNeed.physics_step`)."""
-    h_max = STABILITY_FRACTION * min(n.physics_step for n in rate_needs(spec))
+    for every agent's RK4 stability limit (:attr:`formation_sim.core.rates.RateNeed.physics_step`)."""
+    h_max = STABILITY_FRACTION * min(n.physics_step for n in rate_needs(spec, initial_rho_v0(spec)))
     return max(file_substeps, math.ceil(1.0 / (spec.simulation.control_rate * h_max)))
 
 
@@ -411,9 +427,9 @@ def run_closed_loop(
     """Run ``spec`` for ``simulation.duration`` into ``recorder``: (wall time [s], why it is incomplete or "").
 
     Every control step is checked (:func:`check_step`, ``recorder.add_checked``); faults are recorded as the streaming
-    runs record them (:func:`formation_sim.team.note_missing` before a step's funnel check,
-    :func:`formation_sim.team.note_errors` after it). A state that stops being finite ends the
-    run, incomplete, naming the agents (as :func:`formation_sim.inputs.advance_checked`).
+    runs record them (:func:`formation_sim.core.team.note_missing` before a step's funnel check,
+    :func:`formation_sim.core.team.note_errors` after it). A state that stops being finite ends the
+    run, incomplete, naming the agents (as :func:`formation_sim.core.wrench_checks.advance_checked`).
     ``substeps`` overrides the physics steps per control period (default: the file's, and in
     continuous mode at least :func:`continuous_substeps`).
     """

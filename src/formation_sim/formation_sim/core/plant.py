@@ -27,7 +27,15 @@ import numpy as np
 from formation_msgs_py.compiled import formula, kernel
 from formation_msgs_py.so3 import cross3, dexpinv, exp_rows, matmul3, matrix_rows, matTvec3, matvec3, set3x3, sub3, vec3
 from formation_msgs_py.spec import SimulatorView
-from formation_sim.signals import NONE, SignalParams, l1_norm, signal_params, signal_value, signals_at, signals_into
+from formation_sim.core.signals import (
+    NONE,
+    SignalParams,
+    l1_norm,
+    signal_params,
+    signal_value,
+    signals_at,
+    signals_into,
+)
 
 
 @dataclass

@@ -61,13 +61,14 @@ def load_spec(options: RunOptions) -> FormationSpec:
 
 def rate_problems(spec: FormationSpec) -> list[str]:
     """One message per agent whose velocity loop needs more than the configured control rate."""
-    from formation_sim.rates import rate_needs
+    from formation_sim.core.loop import initial_rho_v0
+    from formation_sim.core.rates import rate_needs
 
     f_s = spec.simulation.control_rate
     return [
         f"agent {n.agent_id} needs {n.at_end:.0f} Hz by t={spec.simulation.duration:g} s "
         f"(insufficient from t={n.insufficient_from:.2f} s at {f_s:g} Hz)"
-        for n in rate_needs(spec)
+        for n in rate_needs(spec, initial_rho_v0(spec))
         if n.insufficient_from is not None
     ]
 

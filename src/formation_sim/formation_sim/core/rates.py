@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from formation_agent.controller import START_RHO_V0
 from formation_msgs_py import funnels
 from formation_msgs_py.spec import FormationSpec
 
@@ -59,29 +58,15 @@ def mass_matrix(mass: float, inertia: np.ndarray) -> np.ndarray:
     return M
 
 
-def initial_rho_v0(spec: FormationSpec) -> np.ndarray:
-    """ρ_v0 (N,6) as every agent sets it at its first step, on the initial measurements.
-
-    An agent that misses a neighbour at t = 0 answers the fault wrench and sets no funnel then;
-    its ``auto`` funnel is taken as the offset alone (e_v(0) = 0).
-    """
-    from formation_sim.loop import first_step  # the run core imports this module
-
-    rho_v0 = first_step(spec)[:, START_RHO_V0:].copy()
-    for i, a in enumerate(spec.agents):
-        if np.isnan(rho_v0[i, 0]):
-            vf = a.controller.velocity_funnel
-            rho_v0[i] = vf.auto_offset if vf.rho_0 is None else vf.rho_0
-    return rho_v0
-
-
-def rate_needs(spec: FormationSpec) -> list[RateNeed]:
-    """The control rate every agent of ``spec`` needs over ``simulation.duration``."""
+def rate_needs(spec: FormationSpec, rho_v0s: np.ndarray) -> list[RateNeed]:
+    """The control rate every agent of ``spec`` needs over ``simulation.duration``, from the velocity
+    funnels ``rho_v0s`` (N,6) the agents set at their first step
+    (:func:`formation_sim.core.loop.initial_rho_v0`)."""
     T = spec.simulation.duration
     f_s = spec.simulation.control_rate
     grid = np.linspace(0.0, T, 401)
     out = []
-    for a, rho_v0 in zip(spec.agents, initial_rho_v0(spec)):
+    for a, rho_v0 in zip(spec.agents, rho_v0s):
         vf = a.controller.velocity_funnel
         rho = funnels.rho(grid[:, None], rho_v0[None, :], np.array(vf.rho_inf)[None, :], np.array(vf.decay)[None, :])
         needs = rate_need(mass_matrix(a.dynamics.mass, np.asarray(a.dynamics.inertia)), a.controller.gamma, rho)

@@ -4,7 +4,7 @@ simulator node, so both produce the same trajectory from the same file and seed.
 One control period: :meth:`Simulation.sense` gives every agent's measurements at t_k, the
 agents answer with wrenches, :meth:`Simulation.advance` integrates ``substeps`` physics steps
 with the wrenches held (zero-order hold) and moves to t_{k+1}. The run core
-(:mod:`formation_sim.loop`) steps the same plant and measurement kernels many steps at a time.
+(:mod:`formation_sim.core.loop`) steps the same plant and measurement kernels many steps at a time.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 
 from formation_msgs_py.spec import SimulatorView
-from formation_sim.measurement import Ends, MeasurementModel, RelativePoses, relative_poses
-from formation_sim.plant import Plant, PlantState
+from formation_sim.core.measurement import Ends, MeasurementModel, RelativePoses, relative_poses
+from formation_sim.core.plant import Plant, PlantState
 
 
 @dataclass(frozen=True)

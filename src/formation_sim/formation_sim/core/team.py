@@ -34,9 +34,9 @@ from formation_agent.controller import (
 )
 from formation_msgs_py.compiled import kernel
 from formation_msgs_py.spec import FormationSpec, agent_view
-from formation_sim.measurement import Ends
-from formation_sim.report import RunRecorder
-from formation_sim.simulation import Measurements
+from formation_sim.core.measurement import Ends
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.simulation import Measurements
 
 
 @kernel
@@ -63,7 +63,10 @@ def load_team_step() -> None:
 
 
 def step_faults(
-    first_end: Sequence[int], neighbours: Sequence[str], in_range: Sequence[bool], level: Sequence[float],
+    first_end: Sequence[int],
+    neighbours: Sequence[str],
+    in_range: Sequence[bool],
+    level: Sequence[float],
     reason: Sequence[float],
 ) -> tuple[dict[int, list[str]], list[tuple[int, str]]]:
     """The fault policy of one step from the kernels' outputs: ({agent index: neighbours whose pose
@@ -73,9 +76,7 @@ def step_faults(
         gone = [neighbours[k] for k in range(first_end[i], first_end[i + 1]) if not in_range[k]]
         if gone:
             missing[i] = gone
-    errors = [
-        (i, REASON_MESSAGES[int(reason[i])]) for i in range(len(level)) if level[i] == ERROR and i not in missing
-    ]
+    errors = [(i, REASON_MESSAGES[int(reason[i])]) for i in range(len(level)) if level[i] == ERROR and i not in missing]
     return missing, errors
 
 
@@ -133,9 +134,7 @@ class AgentTeam:
         )  # fmt: skip
         errors: list[tuple[int, str]] = []
         if not in_range.all() or out[:, LEVEL].max() == ERROR:
-            missing, errors = step_faults(
-                self.first_end, self.end_neighbours, in_range, out[:, LEVEL], out[:, REASON]
-            )
+            missing, errors = step_faults(self.first_end, self.end_neighbours, in_range, out[:, LEVEL], out[:, REASON])
             if recorder is not None:
                 note_missing(recorder, meas.t, self.ids, missing)
         return out[:, U : U + 6].copy(), out[:, MARGIN_V : MARGIN_V + 6].copy(), errors

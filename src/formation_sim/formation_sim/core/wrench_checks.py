@@ -100,7 +100,7 @@ class WrenchCheck:
 
 
 def advance_checked(sim: Any, u: Any) -> str:
-    """``sim.advance(u)`` (a :class:`formation_sim.simulation.Simulation`); "" when the new plant
+    """``sim.advance(u)`` (a :class:`formation_sim.core.simulation.Simulation`); "" when the new plant
     state is finite, else why the run cannot go on, naming the agents (never raises on overflow)."""
     ids = sim.agent_ids
     try:

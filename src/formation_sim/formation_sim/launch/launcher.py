@@ -2,7 +2,7 @@
 
 Validates the file (exit 2 before any process starts) and checks OUT (writable, room for the
 expected bag), then starts the simulator node and one agent process per agent through
-:class:`formation_sim.supervisor.Supervisor`, in the DDS environment of :mod:`formation_sim.dds_env`.
+:class:`formation_sim.launch.supervisor.Supervisor`, in the DDS environment of :mod:`formation_sim.launch.dds_env`.
 Recording (the default): the simulator writes OUT/bag itself (``formation-sim --bag``: nothing
 crosses DDS twice, nothing is lost). The simulator's progress is relayed from its log. The run
 stops on completion, Ctrl-C, SIGTERM, SIGHUP or the death of a process (in realtime an agent's
@@ -26,15 +26,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from formation_agent.process import compiled_pays
+from formation_agent.kernel_cache import compiled_pays
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.faults import FaultLog
 from formation_msgs_py.options import OptionParser, RunOptions
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
-from formation_sim import dds_env
-from formation_sim.preflight import preflight
-from formation_sim.supervisor import Child, LogFollower, Supervisor
+from formation_sim.core.preflight import preflight
+from formation_sim.launch import dds_env
+from formation_sim.launch.supervisor import Child, LogFollower, Supervisor
 
 if TYPE_CHECKING:
     from formation_msgs_py.spec import FormationSpec
@@ -57,7 +57,7 @@ def _bin(name: str) -> Path:
 
 
 #: wall seconds from SIGINT to SIGKILL when the launcher stops its processes: a node process needs
-#: ~10-50 ms of CPU to stop (formation_msgs_py.stopping), the interrupted simulator a little more to
+#: ~10-50 ms of CPU to stop (formation_msgs_py.ros.stopping), the interrupted simulator a little more to
 #: write its summary and trajectory; at load 10 on 2 cores each gets about a fifth of a core
 STOP_GRACE = 2.5
 
@@ -165,10 +165,10 @@ class Launcher:
         sim = self.sup.start(
             "sim",
             "sim",
-            [sys.executable, "-u", "-m", "formation_sim.sim_node", *_sim_args(args, self.out, spec)],
+            [sys.executable, "-u", "-m", "formation_sim.node.sim_node", *_sim_args(args, self.out, spec)],
         )
         self._follow = LogFollower(sim.log)
-        # the agents' controller: compiled or interpreted (formation_agent.process), unless the environment says
+        # the agents' controller: compiled or interpreted (formation_agent.kernel_cache), unless the environment says
         compiled = compiled_pays(spec.simulation.control_rate, args.mode, len(spec.agents))
         jit = self.sup.env.get("NUMBA_DISABLE_JIT") or ("0" if compiled else "1")
         for a in spec.agents:
@@ -376,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
             return ExitCode.INVALID
         if opts.out is None:  # fix the output directory before re-executing
             argv += ["--out", str(out)]
-        dds_env.reexec_in_netns("formation_sim.launch", argv)
+        dds_env.reexec_in_netns("formation_sim.launch.launcher", argv)
     out = out.resolve()
     (out / "logs").mkdir(parents=True, exist_ok=True)
     problem = check_space(out, spec, args.record)
@@ -416,7 +416,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if secure is not None:
             secure.close()
-    from formation_sim.report import format_summary, report_animation, verdict_line, write_json  # numba: not for --help
+    from formation_msgs_py.faults import write_json
+    from formation_sim.views.outputs import format_summary, report_animation, verdict_line  # numba: not for --help
 
     summary = launcher.summary()
     if secure is not None:

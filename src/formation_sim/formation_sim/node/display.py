@@ -3,7 +3,7 @@
 At ``marker_rate`` Hz of simulation time (default 30; 0 turns it off) the simulator publishes
 
 - ``/formation/markers`` (visualization_msgs/MarkerArray, frame ``world``): the scene of
-  :mod:`formation_sim.markers`;
+  :mod:`formation_sim.views.markers`;
 - ``/formation/funnels`` (std_msgs/Float64MultiArray): per edge k, in file order, the five values
   ``e_k, −C_col·ρ_e, C_con·ρ_e, ψ_k, ρ_ψ`` at ``data[5k … 5k+4]`` (for plots: Foxglove, PlotJuggler);
 - ``/tf`` (tf2_msgs/TFMessage) ``world → agent_<id>``, only where tf2_msgs is importable: an apt
@@ -23,11 +23,12 @@ from rclpy.node import Node
 from std_msgs.msg import ColorRGBA, Float64MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
-from formation_msgs_py import conversions, parameters, qos, topics
+from formation_msgs_py import topics
 from formation_msgs_py.options import RunOptions
+from formation_msgs_py.ros import conversions, parameters, qos
 from formation_msgs_py.spec import FormationSpec
-from formation_sim.display_wire import FunnelsWire, MarkerArrayWire
-from formation_sim.markers import FormationScene, Shape
+from formation_sim.views.display_wire import FunnelsWire, MarkerArrayWire
+from formation_sim.views.markers import FormationScene, Shape
 
 FUNNEL_FIELDS = ("e", "e_lower", "e_upper", "psi", "rho_psi")
 DEFAULT_MARKER_RATE = 30.0
@@ -139,9 +140,7 @@ def declare_simulator_parameters(node: Node, spec: FormationSpec, args: RunOptio
     return display
 
 
-MARKER_RATE_DOC = (
-    "display rate [Hz of simulation time] of /formation/markers, /formation/funnels and /tf; 0: off; live"
-)
+MARKER_RATE_DOC = "display rate [Hz of simulation time] of /formation/markers, /formation/funnels and /tf; 0: off; live"
 SETTING_DOCS = {
     "formation_file": "formation file (YAML), from the command line",
     "mode": "lockstep or realtime (--mode)",

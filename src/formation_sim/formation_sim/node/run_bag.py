@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from formation_msgs_py.bag import SEGMENT_MB, STAMPED_TYPES
-from formation_msgs_py.bag.errors import BagError
 from formation_msgs_py.bag.writer import SegmentedBagWriter
+from formation_msgs_py.errors import BagError
 from formation_msgs_py.wire import stamp_of
 
 MIB = 1024 * 1024

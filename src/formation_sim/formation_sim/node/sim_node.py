@@ -1,10 +1,10 @@
 """The simulator node: ``formation-sim FILE [--mode lockstep|realtime] [--out DIR] …``.
 
-Plays the world with :class:`formation_sim.simulation.Simulation`, the code path of the
+Plays the world with :class:`formation_sim.core.simulation.Simulation`, the code path of the
 headless runner (docs/ros2.md). Per control step k it publishes what ``Simulation.sense()``
 returns (relative poses of the tree pairs within sensing radius, noisy body twists), ``/clock``
 and the ground truth, and collects every agent's wrench. When to advance is decided by the
-ROS-free policy of :mod:`formation_sim.stepping`; this module is the thin node around it.
+ROS-free policy of :mod:`formation_sim.node.stepping`; this module is the thin node around it.
 
 - **lockstep**: waits for every agent's WrenchStamped whose stamp equals step k's (integer ns),
   then ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps not
@@ -26,7 +26,7 @@ summary and trajectory, no figures, so that the stop is fast). The node never ne
 to finish.
 
 ``--bag DIR`` (what formation-launch gives a recorded run): the simulator is the run's recorder
-(:mod:`formation_sim.run_bag`). Every publisher the node creates writes what it sends into the
+(:mod:`formation_sim.node.run_bag`). Every publisher the node creates writes what it sends into the
 bag, the wrench and /diagnostics subscriptions what they receive (log time: simulation time in
 lockstep, the wall clock of sending or receipt in realtime); a bag I/O error ends the run
 INCOMPLETE (exit 4). ``--wait-recorder``: wait before the first step until a recorder
@@ -53,27 +53,28 @@ from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
-from formation_agent.process import warm_up
-from formation_msgs_py import conversions, qos, stopping, topics
+from formation_agent.kernel_cache import warm_up
+from formation_msgs_py import topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, ros_type_name
-from formation_msgs_py.bag.errors import BagError
+from formation_msgs_py.errors import BagError
 from formation_msgs_py.faults import FaultLog
-from formation_msgs_py.graph_watch import GraphWatch
 from formation_msgs_py.options import RunOptions
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
+from formation_msgs_py.ros import conversions, qos, stopping
+from formation_msgs_py.ros.graph_watch import GraphWatch
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
-from formation_sim import inputs
-from formation_sim.commands import sim_preflight
-from formation_sim.deployment import Timing
-from formation_sim.display import DisplayPublisher, declare_simulator_parameters
-from formation_sim.measurement import measurement_ends
-from formation_sim.preflight import Prepared
-from formation_sim.report import RunRecorder, format_summary, write_outputs
-from formation_sim.run_bag import RunBag
-from formation_sim.simulation import Measurements, Simulation
-from formation_sim.stepping import (
+from formation_sim.core import wrench_checks
+from formation_sim.core.measurement import measurement_ends
+from formation_sim.core.preflight import Prepared
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.simulation import Measurements, Simulation
+from formation_sim.core.team import AgentTeam
+from formation_sim.node.display import DisplayPublisher, declare_simulator_parameters
+from formation_sim.node.run_bag import RunBag
+from formation_sim.node.sim_options import sim_preflight
+from formation_sim.node.stepping import (
     NS,
     ZERO_WRENCH,
     CommandHold,
@@ -82,7 +83,8 @@ from formation_sim.stepping import (
     ParticipantMissingError,
     WrenchBook,
 )
-from formation_sim.team import AgentTeam
+from formation_sim.node.timing import Timing
+from formation_sim.views.outputs import format_summary, write_outputs
 
 #: default /clock rate in realtime [Hz]: the agents' measurement-age checks need no more
 REALTIME_CLOCK_RATE = 10.0
@@ -145,7 +147,7 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         self.gt_pub = self.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
         self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), meas_qos) for a in self.ids]
-        # hot path: messages are published and taken as CDR bytes (formation_msgs_py.conversions)
+        # hot path: messages are published and taken as CDR bytes (formation_msgs_py.ros.conversions)
         self.vel_codecs = [conversions.twist_codec(a) for a in self.ids]
         # one publisher per directed tree link; each agent's by edge end (Measurements' order)
         self.links: dict[tuple[str, str], tuple[Any, conversions.StampedCodec]] = {}
@@ -159,7 +161,7 @@ class SimNode(Node):
             self.agent_ends[self.ids.index(obs)].append((k, *self.links[(obs, tgt)]))
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
         self.wrenches = WrenchBook(n)
-        self.wrench_check = inputs.WrenchCheck(
+        self.wrench_check = wrench_checks.WrenchCheck(
             [a.dynamics.max_force for a in spec.agents],
             [a.dynamics.max_torque for a in spec.agents],
             spec.simulation.control_rate,
@@ -231,7 +233,7 @@ class SimNode(Node):
             kind, reason = refused.kind, refused.reason
             if self.faults.add(self.current_ns / NS, self.ids[i], f"refused_wrench_{kind}", reason):
                 print(f"formation-sim: agent {self.ids[i]}: wrench refused ({kind}): {reason}", flush=True)
-            if kind in inputs.DROPPED_KINDS or ns == self.wrenches.stamp[i]:
+            if kind in wrench_checks.DROPPED_KINDS or ns == self.wrenches.stamp[i]:
                 return  # answers no step, or the step has its answer already: nothing changes
             u = (0.0,) * 6  # a refused value answers its step with zero: never integrated
         if self.wrenches.accept(i, ns, u):
@@ -396,7 +398,7 @@ class Runner:
         or if the run's bag could not be written)."""
         if self.node.bag is not None and self.node.bag.failed:
             raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, self.node.bag.failed))
-        reason = inputs.advance_checked(self.sim, u)
+        reason = wrench_checks.advance_checked(self.sim, u)
         if reason:
             raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, reason))
 
@@ -567,7 +569,7 @@ def _interrupted(runner: Runner | None) -> Incomplete:
 
 @guarded("formation-sim")
 def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> int:
-    """The simulator process (``formation_sim.commands.sim`` pre-flights ``argv`` first)."""
+    """The simulator process (``formation_sim.cli.sim.sim`` pre-flights ``argv`` first)."""
     raw = list(sys.argv if argv is None else [sys.argv[0], *argv])
     run = prepared or sim_preflight(raw)
     spec, out, args = run.spec, run.out, run.options

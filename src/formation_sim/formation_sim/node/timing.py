@@ -1,6 +1,6 @@
 """ROS-free bookkeeping of a ROS 2 run, used by the simulator node (``sim_node``).
 
-(The simulator's shadow of the agents' controllers is :class:`formation_sim.team.AgentTeam`.)
+(The simulator's shadow of the agents' controllers is :class:`formation_sim.core.team.AgentTeam`.)
 - :class:`Timing`: latency (measurements published -> wrench received, wall) and on-time counts.
   Per agent and step: ``answered`` (lockstep: every step; realtime: the wrench was in when the next
   tick applied it) and ``on_time`` (realtime: answered, and that tick within half a period of its

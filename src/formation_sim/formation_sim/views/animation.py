@@ -1,7 +1,7 @@
 """An animated GIF of a run: the formation in 3D and every edge's funnel margin beside it.
 
 Drawn from a run's ``trajectory.npz`` arrays (headless, ROS 2 or bag analysis: the same format)
-with the scene of :mod:`formation_sim.markers`, the one the simulator publishes to viewers:
+with the scene of :mod:`formation_sim.views.markers`, the one the simulator publishes to viewers:
 oriented bodies with their frames, tree edges coloured by the worst of their distance and
 orientation margins, the desired distance as a ghost, force (orange) and torque (purple) arrows.
 Beside it, each edge's worst margin over the run with a cursor at the frame's time.
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from formation_msgs_py.spec import FormationSpec
-from formation_sim.markers import ARROW, CUBE, LINE_LIST, SPHERE, TEXT_VIEW_FACING, FormationScene, Shape
+from formation_sim.views.markers import ARROW, CUBE, LINE_LIST, SPHERE, TEXT_VIEW_FACING, FormationScene, Shape
 
 ANIMATION_NAME = "animation.gif"
 

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from formation_sim.markers import FormationScene, SceneFrame, Shape
+from formation_sim.views.markers import FormationScene, SceneFrame, Shape
 
 _CDR_LE = b"\x00\x01\x00\x00"
 _ADD = 0  # visualization_msgs/Marker.ADD

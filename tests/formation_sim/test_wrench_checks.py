@@ -9,26 +9,26 @@ import math
 import numpy as np
 import pytest
 
-from formation_sim import inputs
+from formation_sim.core import wrench_checks
 
 NS = 1_000_000_000
 RATE = 1000.0  # Hz: steps every 1 ms
 GOOD = (1.0, 2.0, 3.0, 0.1, 0.2, 0.3)
 
 
-def check(lockstep: bool = True) -> inputs.WrenchCheck:
-    return inputs.WrenchCheck((100.0, 100.0), (50.0, 50.0), RATE, lockstep=lockstep)
+def check(lockstep: bool = True) -> wrench_checks.WrenchCheck:
+    return wrench_checks.WrenchCheck((100.0, 100.0), (50.0, 50.0), RATE, lockstep=lockstep)
 
 
 @pytest.mark.parametrize(
     ("u", "kind"),
     [
-        ((math.nan, 0, 0, 0, 0, 0), inputs.NON_FINITE),
-        ((0, 0, 0, 0, math.inf, 0), inputs.NON_FINITE),
-        ((1e308, 0, 0, 0, 0, 0), inputs.OVER_LIMIT),
-        ((1e8, 0, 0, 0, 0, 0), inputs.OVER_LIMIT),
-        ((60.0, 60.0, 60.0, 0, 0, 0), inputs.OVER_LIMIT),  # 104 N > 100 N
-        ((0, 0, 0, 0, 0, 50.001), inputs.OVER_LIMIT),
+        ((math.nan, 0, 0, 0, 0, 0), wrench_checks.NON_FINITE),
+        ((0, 0, 0, 0, math.inf, 0), wrench_checks.NON_FINITE),
+        ((1e308, 0, 0, 0, 0, 0), wrench_checks.OVER_LIMIT),
+        ((1e8, 0, 0, 0, 0, 0), wrench_checks.OVER_LIMIT),
+        ((60.0, 60.0, 60.0, 0, 0, 0), wrench_checks.OVER_LIMIT),  # 104 N > 100 N
+        ((0, 0, 0, 0, 0, 50.001), wrench_checks.OVER_LIMIT),
     ],
 )
 def test_bad_wrench_value_is_refused(u, kind) -> None:
@@ -49,44 +49,51 @@ def test_wrench_at_the_limit_is_accepted() -> None:
 @pytest.mark.parametrize(
     ("ns", "current_ns", "lockstep", "kind"),
     [
-        ((2**31 - 1) * NS, 5 * NS, False, inputs.FUTURE_STEP),  # once held for the rest of a realtime run
-        ((2**31 - 1) * NS, 5 * NS, True, inputs.FUTURE_STEP),  # once stalled a lockstep run
-        (5 * NS + 1_000_000, 5 * NS, True, inputs.FUTURE_STEP),
-        (5 * NS - 1_000_000, 5 * NS, True, inputs.PAST_STEP),
-        (5 * NS + 1, 6 * NS, False, inputs.UNKNOWN_STEP),
+        ((2**31 - 1) * NS, 5 * NS, False, wrench_checks.FUTURE_STEP),  # once held for the rest of a realtime run
+        ((2**31 - 1) * NS, 5 * NS, True, wrench_checks.FUTURE_STEP),  # once stalled a lockstep run
+        (5 * NS + 1_000_000, 5 * NS, True, wrench_checks.FUTURE_STEP),
+        (5 * NS - 1_000_000, 5 * NS, True, wrench_checks.PAST_STEP),
+        (5 * NS + 1, 6 * NS, False, wrench_checks.UNKNOWN_STEP),
     ],
 )
 def test_wrench_for_a_step_that_does_not_exist_is_refused(ns, current_ns, lockstep, kind) -> None:
     c = check(lockstep)
     refusal = c.check(0, ns, GOOD, current_ns)
     assert refusal is not None and refusal.kind == kind
-    assert kind in inputs.DROPPED_KINDS
+    assert kind in wrench_checks.DROPPED_KINDS
 
 
 def test_realtime_accepts_a_late_answer_lockstep_does_not() -> None:
     """Realtime holds the newest wrench, so an answer to an earlier step is valid; lockstep refuses it."""
     assert check(lockstep=False).check(0, 4 * NS, GOOD, current_ns=5 * NS) is None
-    assert check(lockstep=True).check(0, 4 * NS, GOOD, current_ns=5 * NS) == inputs.WrenchRefusal(
-        inputs.PAST_STEP, "stamp 4 s is before the current step 5 s"
+    assert check(lockstep=True).check(0, 4 * NS, GOOD, current_ns=5 * NS) == wrench_checks.WrenchRefusal(
+        wrench_checks.PAST_STEP, "stamp 4 s is before the current step 5 s"
     )
 
 
 def test_refusal_reasons_name_the_value() -> None:
     """The reason is what the simulator logs and counts (first and last) for the agent."""
     c = check()
-    assert c.check(0, 0, (math.nan,) * 6, current_ns=0) == inputs.WrenchRefusal(inputs.NON_FINITE, "non-finite value")
+    assert c.check(0, 0, (math.nan,) * 6, current_ns=0) == wrench_checks.WrenchRefusal(
+        wrench_checks.NON_FINITE, "non-finite value"
+    )
     over = c.check(1, 0, (1e9, 0, 0, 0, 0, 0), current_ns=0)
-    assert over is not None and over.kind == inputs.OVER_LIMIT and "1e+09 N" in over.reason and "100 N" in over.reason
+    assert (
+        over is not None
+        and over.kind == wrench_checks.OVER_LIMIT
+        and "1e+09 N" in over.reason
+        and "100 N" in over.reason
+    )
     unknown = c.check(0, 5 * NS + 1, GOOD, current_ns=6 * NS)
     assert unknown is not None and "no step of the 1000 Hz grid" in unknown.reason
 
 
 def test_non_finite_state_names_the_agent() -> None:
     p, R, v = np.zeros((3, 3)), np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 6))
-    assert inputs.non_finite_agents(("1", "2", "3"), p, R, v) == []
+    assert wrench_checks.non_finite_agents(("1", "2", "3"), p, R, v) == []
     v[1, 4] = math.nan
     R[2, 0, 0] = math.inf
-    assert inputs.non_finite_agents(("1", "2", "3"), p, R, v) == ["2", "3"]
+    assert wrench_checks.non_finite_agents(("1", "2", "3"), p, R, v) == ["2", "3"]
 
 
 def test_blown_up_plant_ends_the_run_incomplete_naming_the_agent(tmp_path) -> None:
@@ -94,7 +101,7 @@ def test_blown_up_plant_ends_the_run_incomplete_naming_the_agent(tmp_path) -> No
     import yaml
 
     from formation_msgs_py.outcome import ExitCode
-    from formation_sim import headless
+    from formation_sim.cli import headless
 
     agent = {"radius": 0.5, "sensing_radius": 3.0, "dynamics": {"mass": 1.0, "inertia": [0.1, 0.2, 0.3]}}
     doc = {
@@ -124,7 +131,7 @@ def test_bytes_that_are_no_wrench_are_refused() -> None:
     c = check()
     with pytest.raises(struct.error):
         wire.wrench_codec("b").decode(b"\x00\x01\x00\x00garbage")
-    assert c.malformed().kind == inputs.MALFORMED and inputs.MALFORMED in inputs.DROPPED_KINDS
+    assert c.malformed().kind == wrench_checks.MALFORMED and wrench_checks.MALFORMED in wrench_checks.DROPPED_KINDS
 
 
 class _Sim:
@@ -137,7 +144,7 @@ class _Sim:
         self._next = (p, R, v)
 
     def advance(self, u: np.ndarray) -> None:
-        from formation_sim.plant import PlantState
+        from formation_sim.core.plant import PlantState
 
         self.state = PlantState(*self._next)
 
@@ -157,5 +164,5 @@ def test_advance_checked_names_non_finite_agents_only(agent, field, value, reaso
     if agent is not None:
         state[field][agent].flat[:2] = value  # two entries: 1e308 + 1e308 overflows the sum
     sim = _Sim(state["p"], state["R"], state["v"])
-    got = inputs.advance_checked(sim, np.zeros((3, 6)))
+    got = wrench_checks.advance_checked(sim, np.zeros((3, 6)))
     assert got == (f"t=0.001000 s: {reason}" if reason else "")

@@ -14,10 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from formation_msgs_py.judge import Judge, judge
 from formation_msgs_py.outcome import ExitCode, Incomplete
 from formation_msgs_py.spec import FormationSpec, load_formation
-from formation_sim.rates import rate_needs
-from formation_sim.report import Judge, RunRecorder, judge, write_outputs
+from formation_sim.core.loop import initial_rho_v0
+from formation_sim.core.rates import rate_needs
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.views.outputs import write_outputs
 
 T = np.array([0.0, 0.1, 0.2, 0.3, 0.4])
 #: the margins are formed from e/ρ_e with a few float operations: equal to 1e-12
@@ -237,7 +240,7 @@ def test_faults_are_counted_with_first_and_last(spec: FormationSpec) -> None:
 def test_rate_need_matches_the_closed_form(spec: FormationSpec) -> None:
     """NOTES.md "Sampled-data": f_s > 2γ / (M_ll ρ_v,l(t)²), largest channel, at t = 0 and at the end."""
     duration = spec.simulation.duration
-    for need in rate_needs(spec):
+    for need in rate_needs(spec, initial_rho_v0(spec)):
         a = spec.agent(need.agent_id)
         vf = a.controller.velocity_funnel
         assert np.allclose(a.dynamics.inertia, np.diag(np.diag(a.dynamics.inertia)))  # closed form: diagonal M
@@ -253,7 +256,7 @@ def test_recorder_queue_equals_one_check_per_sample(spec: FormationSpec) -> None
     """RunRecorder.add queues samples and checks CHECK_BATCH at a time: across batch boundaries, with
     wrenches given late (set_inputs), results read mid-run (also between a sample and its wrenches),
     every figure equals a per-sample check (exactly: the same numpy operations on the same numbers)."""
-    from formation_sim.report import CHECK_BATCH
+    from formation_sim.core.recorder import CHECK_BATCH
 
     rng = np.random.default_rng(7)
     n_agents, steps = len(spec.agents), 2 * CHECK_BATCH + 9

@@ -7,13 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from formation_agent import inputs
+from formation_agent import measurement_checks
 from formation_agent.agent_node import StepSynchroniser
 from formation_agent.controller import ERROR, AgentController
 from formation_msgs_py import rotations, wire
 from formation_msgs_py.errors import RotationError
 from formation_msgs_py.spec import agent_view, load_formation, simulator_view
-from formation_sim.simulation import Simulation
+from formation_sim.core.simulation import Simulation
 
 NS = 1_000_000_000
 GOOD_POSE = (1.0, 2.0, 0.5, 0.0, 0.0, 0.0, 1.0)
@@ -21,21 +21,21 @@ MAX_AGE = NS // 10  # the paper preset's measurement_timeout, 0.1 s
 PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
 
 
-def check() -> inputs.InputCheck:
-    return inputs.InputCheck(sensing_radius=4.0, max_age_ns=MAX_AGE)
+def check() -> measurement_checks.InputCheck:
+    return measurement_checks.InputCheck(sensing_radius=4.0, max_age_ns=MAX_AGE)
 
 
 @pytest.mark.parametrize(
     ("values", "kind"),
     [
-        ((math.nan, 0, 0, 0, 0, 0, 1), inputs.NON_FINITE),
-        ((0, math.inf, 0, 0, 0, 0, 1), inputs.NON_FINITE),
-        ((1, 0, 0, 0, 0, 0, math.nan), inputs.NON_FINITE),
-        ((1, 0, 0, 0, 0, 0, 0), inputs.BAD_QUATERNION),  # zero quaternion
-        ((1, 0, 0, 0, 0, 0, 2), inputs.BAD_QUATERNION),  # (0,0,0,2): once 1e8 N·m
-        ((1, 0, 0, 0, 0, 0, 1 + 2e-6), inputs.BAD_QUATERNION),
-        ((1e6, 0, 0, 0, 0, 0, 1), inputs.OUT_OF_RANGE),  # once 1.2e8 N
-        ((4.5, 0, 0, 0, 0, 0, 1), inputs.OUT_OF_RANGE),  # 1.125 × the 4 m sensing radius
+        ((math.nan, 0, 0, 0, 0, 0, 1), measurement_checks.NON_FINITE),
+        ((0, math.inf, 0, 0, 0, 0, 1), measurement_checks.NON_FINITE),
+        ((1, 0, 0, 0, 0, 0, math.nan), measurement_checks.NON_FINITE),
+        ((1, 0, 0, 0, 0, 0, 0), measurement_checks.BAD_QUATERNION),  # zero quaternion
+        ((1, 0, 0, 0, 0, 0, 2), measurement_checks.BAD_QUATERNION),  # (0,0,0,2): once 1e8 N·m
+        ((1, 0, 0, 0, 0, 0, 1 + 2e-6), measurement_checks.BAD_QUATERNION),
+        ((1e6, 0, 0, 0, 0, 0, 1), measurement_checks.OUT_OF_RANGE),  # once 1.2e8 N
+        ((4.5, 0, 0, 0, 0, 0, 1), measurement_checks.OUT_OF_RANGE),  # 1.125 × the 4 m sensing radius
     ],
 )
 def test_bad_relative_pose_is_refused_and_counted(values, kind) -> None:
@@ -60,9 +60,9 @@ def test_plausible_pose_passes_within_the_stated_tolerances() -> None:
 @pytest.mark.parametrize(
     ("ns", "clock_ns", "kind"),
     [
-        ((2**31 - 1) * NS, 5 * NS, inputs.FUTURE_STAMP),
-        (5 * NS + inputs.MAX_LEAD_NS + 1, 5 * NS, inputs.FUTURE_STAMP),
-        (5 * NS - MAX_AGE - 1, 5 * NS, inputs.OLD_STAMP),
+        ((2**31 - 1) * NS, 5 * NS, measurement_checks.FUTURE_STAMP),
+        (5 * NS + measurement_checks.MAX_LEAD_NS + 1, 5 * NS, measurement_checks.FUTURE_STAMP),
+        (5 * NS - MAX_AGE - 1, 5 * NS, measurement_checks.OLD_STAMP),
     ],
 )
 def test_stamp_from_the_future_or_too_old_is_refused(ns, clock_ns, kind) -> None:
@@ -75,7 +75,7 @@ def test_stamp_from_the_future_or_too_old_is_refused(ns, clock_ns, kind) -> None
 
 def test_non_finite_velocity_is_refused() -> None:
     c = check()
-    assert c.velocity(NS, (0, 0, math.nan, 0, 0, 0), NS).kind == inputs.NON_FINITE
+    assert c.velocity(NS, (0, 0, math.nan, 0, 0, 0), NS).kind == measurement_checks.NON_FINITE
     assert c.velocity(NS, (0, 0, 1e308, 0, 0, 0), NS) is None  # finite: the controller bounds its wrench
 
 
@@ -111,8 +111,8 @@ def test_refused_measurement_answers_its_step_with_zero_and_error() -> None:
 def test_bytes_that_are_no_message_are_refused_and_dropped() -> None:
     c = check()
     refusal = c.malformed("relative pose of 3")
-    assert refusal.kind == inputs.MALFORMED and refusal.kind in inputs.DROPPED_KINDS
-    assert c.counts == {inputs.MALFORMED: 1}
+    assert refusal.kind == measurement_checks.MALFORMED and refusal.kind in measurement_checks.DROPPED_KINDS
+    assert c.counts == {measurement_checks.MALFORMED: 1}
 
 
 def test_refused_measurement_of_a_past_step_changes_nothing() -> None:

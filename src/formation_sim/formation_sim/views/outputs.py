@@ -1,0 +1,116 @@
+"""What a run leaves and prints: trajectory.npz, the figures and summary.json written atomically,
+the animation, and the summary as text (docs/outputs.md)."""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formation_msgs_py.faults import fault_lines, write_atomic, write_json
+from formation_msgs_py.outcome import ExitCode, Verdict
+from formation_msgs_py.spec import FormationSpec
+from formation_sim.core.recorder import RunRecorder
+
+
+def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> float:
+    """trajectory.npz, the figures (:mod:`formation_sim.views.figures`, unless ``plots`` is false), then
+    summary.json; each written under a temporary name and renamed. summary.json comes last and names what is there.
+    Returns the wall seconds the figures took.
+
+    Raises OSError (disk full, …) after writing a summary marked INCOMPLETE if it still can.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    try:
+        npz = io.BytesIO()
+        np.savez(npz, **recorder.arrays())
+        write_atomic(out_dir / "trajectory.npz", npz.getvalue())
+        written.append("trajectory.npz")
+        figures = 0.0
+        if plots:
+            t_figures = time.monotonic()
+            from formation_sim.views.figures import plot_run  # matplotlib only when figures are wanted
+
+            staging = Path(tempfile.mkdtemp(dir=out_dir, prefix=".figures."))
+            try:
+                for path in plot_run(staging, recorder.spec, recorder.arrays()):
+                    os.replace(path, out_dir / path.name)
+                    written.append(path.name)
+            finally:
+                shutil.rmtree(staging, ignore_errors=True)
+            figures = time.monotonic() - t_figures
+    except OSError as exc:
+        failed = dict(summary)
+        failed.update(
+            verdict=Verdict.INCOMPLETE.value,
+            funnels_held=None if summary.get("verdict") != Verdict.FAIL.value else False,
+            incomplete_reason=f"I/O error writing {out_dir}: {exc}",
+            exit_status=int(ExitCode.INCOMPLETE),
+            outputs=written,
+        )
+        try:
+            write_json(out_dir / "summary.json", failed)
+        except OSError:
+            pass
+        raise
+    write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
+    return figures
+
+
+def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+    """Write OUT/animation.gif (:mod:`formation_sim.views.animation`) and print where and how long it took."""
+    from formation_sim.views.animation import write_animation
+
+    path, frames, wall = write_animation(out_dir, spec, arrays)
+    print(f"animation: {path} ({frames} frames, written in {wall:.1f} s)", flush=True)
+    return path
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """A short human-readable summary of a run (printed by every command): the verdict line, the
+    margins per edge and agent, and every fault kind with its first and last occurrence."""
+    lines = [
+        f"formation {summary['formation']} ({summary['mode']}, control {summary['control_rate']:g} Hz, "
+        f"{summary['duration']:g} s simulated in {summary['wall_time']:.2f} s wall, "
+        f"real-time factor {summary['real_time_factor'] or 0:.3g})"
+    ]
+    lines.append(verdict_line(summary))
+    lines.append("  edge     min margin e   min margin psi   settle e [s]   settle psi [s]")
+    for name, s in summary["edges"].items():
+        lines.append(
+            f"  {name:<8} {_f(s['min_margin_e']):>12}   {_f(s['min_margin_psi']):>14}   "
+            f"{_f(s['settle_time_e']):>12}   {_f(s['settle_time_psi']):>14}"
+        )
+    lines.append("  agent    peak force [N]   peak torque [N·m]   min margin v")
+    for aid, s in summary["agents"].items():
+        lines.append(f"  {aid:<8} {s['peak_force']:>14.4g}   {s['peak_torque']:>17.4g}   {_f(s['min_margin_v']):>12}")
+    lines.extend(fault_lines(summary.get("faults") or {}))
+    return "\n".join(lines)
+
+
+def verdict_line(summary: dict[str, Any]) -> str:
+    """``PASS: …``, ``FAIL: first violation …`` or ``INCOMPLETE: reason``."""
+    verdict = summary["verdict"]
+    fv = summary["first_violation"]
+    if verdict == Verdict.PASS.value:
+        return f"PASS: every funnel held over {summary['duration']:g} s (worst margin {_f(summary['worst_margin'])})"
+    if verdict == Verdict.FAIL.value:
+        where = fv.get("edge") or fv.get("agent")
+        text = f"FAIL: first violation at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
+        reason = summary.get("incomplete_reason")
+        return text + (f"; then the run stopped early: {reason}" if reason else "")
+    return (
+        f"INCOMPLETE: {summary.get('incomplete_reason')} (no violation in the {_f(summary['duration'])} s checked, "
+        f"worst margin {_f(summary['worst_margin'])})"
+    )
+
+
+def _f(x: float | None) -> str:
+    return "-" if x is None else f"{x:.4g}"

@@ -85,6 +85,10 @@ def main() -> None:
             "8",
             "--physics-rate",
             "100",
+            # who sees and commands the run is the point here, not its timing: at a 1-minute load of 20
+            # the default 1 s lag budget ended the run INCOMPLETE (exit 4) after 0.5 s
+            "--lag-budget",
+            "60",
             "--no-record",
             "--no-plots",
             "--quiet",

@@ -31,9 +31,9 @@ SCRIPT = re.compile(r"^[\w.-]+\.(?:py|sh)$")
 BACKTICKS = re.compile(r"`([^`\n]+)`")
 #: a Markdown link or image target, without its #anchor
 LINK = re.compile(r"\]\(([^)\s#]*)(?:#[^)]*)?\)")
-#: what a page of the project must not say (development machines, people, diary entries, tickets)
 #: a file a command on the page writes
 WRITTEN = re.compile(r"(?:--out|--results|>)\s+([\w./-]+)")
+#: what a page of the project must not say (development machines, people, diary entries, tickets)
 DIARY = re.compile(
     r"/work/|/tmp/[a-z]+[0-9]+/|\b[Ss]essions?\b|\b[Ss]ittings?\b|\bthe lead\b|\bissues? [0-9]+|NOTES\.md"
     r"|shared machine"
@@ -65,6 +65,7 @@ def _exists(token: str, page: Path, written: set[str]) -> bool:
 
 
 def _lines(page: Path) -> list[tuple[int, str]]:
+    """(line number, text) of every line of ``page``."""
     return list(enumerate(page.read_text(encoding="utf-8").splitlines(), start=1))
 
 
@@ -97,7 +98,7 @@ def test_every_markdown_link_target_exists() -> None:
 
 
 def test_the_docs_speak_of_the_project_alone() -> None:
-    """No development paths, people, sessions, issue numbers or NOTES.md in README.md, BENCHMARKS.md and docs/."""
+    """No development paths, people, sessions, issue numbers or reading-notes citations in the pages."""
     found = [
         f"{page.relative_to(REPO)}:{n}: {m.group(0)!r}"
         for page in PAGES

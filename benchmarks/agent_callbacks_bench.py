@@ -1,4 +1,4 @@
-"""CPU of one agent's callbacks per step, in process, without DDS (issue 13).
+"""CPU of one agent's callbacks per step, in process, without DDS.
 
     .venv/bin/python benchmarks/agent_callbacks_bench.py [FORMATION] [--agent ID] [--steps N]
 
@@ -7,7 +7,7 @@ controller) with its wrench publisher replaced by a list, feeds it the CDR bytes
 send for N steps of the formation's open-loop motion (each step: the neighbours' relative poses,
 then the velocity) and times the callbacks: ``time.process_time`` over the steps after a warm-up
 of 200. Prints µs per step for the poses and for the velocity (which computes and publishes), and
-a SHA-1 of every wrench sent, to compare two checkouts' outputs. Results in BENCHMARKS.md.
+a SHA-1 of every wrench sent, to compare two checkouts' outputs. Results in BENCHMARKS.md ("Lockstep ROS 2 runs").
 """
 
 from __future__ import annotations

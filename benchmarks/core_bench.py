@@ -1,11 +1,11 @@
-"""Benchmarks of the ROS-free core, before and after. Figures for BENCHMARKS.md, not asserted.
+"""Benchmarks of the ROS-free core, before and after. Figures for BENCHMARKS.md ("Headless core"), not asserted.
 
     .venv/bin/python benchmarks/core_bench.py [--before COMMIT] [--part after|before|both]
                                               [--work DIR] [--quick] [--json FILE]
 
 The current tree ("after") and, with ``--before COMMIT``, the core of that commit (``git archive``
 into the work directory, run with the same interpreter), each side measuring (wall times: take
-them on a quiet machine, /work/wt/bin/quiet):
+them on a quiet machine):
 
 1. the compiled kernels of one control step, each timed in a compiled loop (controller of every
    agent, RKMK4 of every body, measurements, recording and funnel check);

@@ -1,11 +1,12 @@
-"""CPU per display frame of the simulator (issue 13): /formation/markers and /formation/funnels.
+"""CPU per display frame of the simulator: /formation/markers and /formation/funnels.
 
     .venv/bin/python benchmarks/display_bench.py [FORMATION ...]
 
 "before": each Shape built as an rclpy Marker (display.marker_message), the MarkerArray serialized
 by rclpy (what ``publish`` of a message object does); "after": the scene of the instant
 (FormationScene.frame) written into the CDR templates of formation_sim.views.display_wire, funnels
-included. CPU time (``time.process_time``) per frame, averaged; no DDS. Results in BENCHMARKS.md.
+included. CPU time (``time.process_time``) per frame, averaged; no DDS. Results in BENCHMARKS.md
+("Realtime ROS 2 runs").
 """
 
 from __future__ import annotations

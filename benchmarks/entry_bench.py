@@ -1,6 +1,6 @@
-"""First contact with every command (issues 9 and 12): wall time and peak memory, median of 5.
+"""First contact with every command: wall time and peak memory, median of 5.
 
-    /work/wt/bin/quiet .venv/bin/python benchmarks/entry_bench.py        # on a quiet machine
+    .venv/bin/python benchmarks/entry_bench.py        # on a quiet machine; results in BENCHMARKS.md
 
 - ``--help`` of every console script and of every ``ros2_ws/*.sh`` (goal: under 0.3 s);
 - a 2.5 kB YAML alias bomb and a PNG given to every command that reads a formation file

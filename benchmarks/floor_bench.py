@@ -1,4 +1,4 @@
-"""The floor of a lockstep or realtime step: the formation's messages with no work (issue 13).
+"""The floor of a lockstep or realtime step: the formation's messages with no work.
 
     .venv/bin/python benchmarks/floor_bench.py [FORMATION] [--steps 5000] [--warmup 500]
         [--rate HZ] [--clock-every 10] [--ground-truth] [--json FILE]
@@ -18,9 +18,9 @@ wrench once all of its step's messages are in. No dynamics, no controller, no ch
   (the summary's ``on_time_fraction_all``).
 
 Each process measures its own CPU (``getrusage``, every thread) over ``--steps`` steps after
-``--warmup``; the figure is their sum per step, which is what the acceptance of issue 13 measures
+``--warmup``; the figure is their sum per step, which is what the lockstep acceptance figure measures
 for a whole run (``OUT/logs/processes.json``), minus everything a run computes. Nothing is
-asserted; results in benchmarks/RESULTS_ros.md ("Fourth session: the floor of a step").
+asserted; results in BENCHMARKS.md ("Lockstep ROS 2 runs", "Realtime ROS 2 runs").
 """
 
 from __future__ import annotations

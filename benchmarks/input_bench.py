@@ -1,4 +1,4 @@
-"""Cost of reading formation files and refusing bad input (issue 9). CPU time, median of 7.
+"""Cost of reading formation files and refusing bad input. CPU time, median of 7.
 
     .venv/bin/python benchmarks/input_bench.py
 

@@ -1,4 +1,4 @@
-"""The cost of one message end through rclpy and Fast DDS on this machine (issue 13).
+"""The cost of one message end through rclpy and Fast DDS on this machine.
 
     .venv/bin/python benchmarks/msg_cost_bench.py [--rounds 2000] [--only NAME,...] [--json FILE]
 
@@ -23,7 +23,7 @@ wait-set loop with raw takes, :func:`waitset_spin`), transport (Fast DDS
 shared memory, UDP loopback), publish mode (synchronous, asynchronous), reliability (reliable,
 best effort), and the writer settings of the profile the project ships
 (``formation_msgs_py/fastdds_profile.xml``). Nothing is asserted; results in
-benchmarks/RESULTS_ros.md ("Cost of a message").
+BENCHMARKS.md ("Cost of a message").
 """
 
 from __future__ import annotations

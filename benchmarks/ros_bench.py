@@ -1,4 +1,4 @@
-"""Benchmarks of the ROS 2 deployment (issue 3); results in benchmarks/RESULTS_ros.md.
+"""Benchmarks of the ROS 2 deployment; results in BENCHMARKS.md ("Lockstep ROS 2 runs", "Realtime ROS 2 runs").
 
     .venv/bin/python benchmarks/ros_bench.py [--only lockstep,realtime,scale] [--out DIR]
 
@@ -11,7 +11,7 @@ the numbers depend on the machine and its load, which is printed with them.
 
 - lockstep: the paper preset at its 10 kHz control rate (``--lockstep-duration``, default 0.5 s;
   ``--full`` for the whole 5 s).
-- step_cpu: the acceptance figure of issue 13: CPU of all the run's processes (simulator, agents,
+- step_cpu: the lockstep acceptance figure: CPU of all the run's processes (simulator, agents,
   recorder; ``logs/processes.json``) of a ``--duration 0.55`` run minus that of a ``--duration
   0.05`` run, divided by the 5 000 steps between them, per variant of ``--variants`` (``NAME=LAUNCH
   [ARG ...]``: another checkout's formation-launch gives the "before" of a side-by-side comparison;

@@ -1,4 +1,4 @@
-"""Cost of secure mode (issue 10): the same runs with and without ``--secure``; results in BENCHMARKS.md.
+"""Cost of secure mode: the same runs with and without ``--secure``; results in BENCHMARKS.md ("Secure mode").
 
     .venv/bin/python benchmarks/secure_bench.py [--repeat 2] [--out DIR]
 

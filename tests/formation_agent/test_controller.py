@@ -68,7 +68,7 @@ def test_tail_and_head_agree_on_every_edge(spec) -> None:
 
 
 def test_norm_of_e_R_is_4psi_2_minus_psi() -> None:
-    """‖e_R‖² = 4ψ(2 − ψ) (the paper prints 2ψ(2 − ψ): NOTES.md)."""
+    """‖e_R‖² = 4ψ(2 − ψ) (the paper prints 2ψ(2 − ψ): docs/controller.md, "Errors in the paper")."""
     Q = Rotation.random(500, random_state=3).as_matrix()
     R_des = Rotation.random(500, random_state=4).as_matrix()
     A = Q @ R_des
@@ -222,7 +222,7 @@ def test_missing_neighbour_is_named(spec) -> None:
 
 
 def test_rho_v0_is_set_at_the_first_step(spec) -> None:
-    """ρ_v,0 = 2|e_v(0)| + 1 per channel (NOTES.md), then held."""
+    """ρ_v,0 = 2|e_v(0)| + 1 per channel (docs/controller.md, "The velocity funnel's start"), then held."""
     ctrl = AgentController(agent_view(spec, 2))
     p, R = world(spec)
     v = np.array([0.1, -0.2, 0.3, 0.0, 0.05, -0.05])

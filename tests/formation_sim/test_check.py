@@ -19,8 +19,9 @@ def test_paper_preset_is_valid_at_10khz(paper_path, capsys) -> None:
     assert check.main([str(paper_path)]) == 0
     out = capsys.readouterr().out
     assert "5 agents, 4 edges" in out and "VALID" in out
-    # agent 1 needs ~3 kHz by t = 5 s (NOTES.md): the printed need is the closed form's
-    # (rate_needs, checked against NOTES.md "Sampled-data" in test_report.py), not a golden number
+    # agent 1 needs ~3 kHz by t = 5 s (docs/controller.md): the printed need is the closed form's
+    # (rate_needs, checked against docs/controller.md "Sampled-data implementation" in test_recorder.py),
+    # not a golden number
     spec = load_formation(paper_path)
     need = next(n for n in rate_needs(spec, initial_rho_v0(spec)) if n.agent_id == "1")
     assert 2900 < need.at_end < 3100 and f"{need.at_end:.0f}" in out

@@ -1,4 +1,4 @@
-"""The control rate an agent needs: a pure function of (M, γ, ρ_v), against NOTES.md's closed form."""
+"""The control rate an agent needs: a pure function of (M, γ, ρ_v), against the closed form of docs/controller.md."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ RNG = np.random.default_rng(11)
 
 
 def test_diagonal_mass_matrix_gives_the_closed_form() -> None:
-    """M = diag(m I, J) with diagonal J: f_s = max_ℓ 2γ / (M_ℓℓ ρ_v,ℓ²) (NOTES.md, "Sampled-data"), to 1e-12."""
+    """M = diag(m I, J) with diagonal J: f_s = max_ℓ 2γ / (M_ℓℓ ρ_v,ℓ²) (docs/controller.md), to 1e-12."""
     for _ in range(50):
         m, J = RNG.uniform(0.05, 2.0), RNG.uniform(0.01, 1.0, size=3)
         gamma, rho = RNG.uniform(1, 20), RNG.uniform(0.05, 3.0, size=6)
@@ -48,5 +48,5 @@ def test_paper_needs_are_the_closed_form_at_both_ends(paper_path) -> None:
         for t, value in ((0.0, need.at_start), (T, need.at_end)):
             rho = funnels.rho(t, rho_v0, np.array(vf.rho_inf), np.array(vf.decay))
             assert value == pytest.approx(np.max(2 * a.controller.gamma / (M_diag * rho**2)), rel=1e-12)
-    needs = rate_needs(spec, initial_rho_v0(spec))  # NOTES.md: about 0.5 kHz at t = 0 and 3 kHz at t = 5 s
+    needs = rate_needs(spec, initial_rho_v0(spec))  # docs/controller.md: about 0.5 kHz at t = 0 and 3 kHz at t = 5 s
     assert 400 < max(n.at_start for n in needs) < 700 and 2500 < max(n.at_end for n in needs) < 3500

@@ -38,7 +38,7 @@ def paper_path_module() -> Path:
 
 
 def rho_e(spec: FormationSpec, k: int, t: float) -> float:
-    """Normalised ρ_e(t) = (1 − ρ∞/C_max)·exp(−l t) + ρ∞/C_max (paper, NOTES.md)."""
+    """Normalised ρ_e(t) = (1 − ρ∞/C_max)·exp(−l t) + ρ∞/C_max (docs/controller.md, "Normalisation of ρ_e")."""
     e = spec.edges[k]
     floor = e.rho_e_inf / max(e.c_col, e.c_con)
     return (1.0 - floor) * math.exp(-e.decay_e * t) + floor
@@ -238,7 +238,7 @@ def test_faults_are_counted_with_first_and_last(spec: FormationSpec) -> None:
 
 
 def test_rate_need_matches_the_closed_form(spec: FormationSpec) -> None:
-    """NOTES.md "Sampled-data": f_s > 2γ / (M_ll ρ_v,l(t)²), largest channel, at t = 0 and at the end."""
+    """docs/controller.md, "Sampled-data": f_s > 2γ / (M_ll ρ_v,l(t)²), largest channel, at t = 0 and at the end."""
     duration = spec.simulation.duration
     for need in rate_needs(spec, initial_rho_v0(spec)):
         a = spec.agent(need.agent_id)

@@ -7,7 +7,8 @@ The paper's Steps I–II (Section "Main Results"; docs/controller.md), one funct
 - :func:`distance_term`, :func:`orientation_term`: ξ, the margin and the weight
   2 r_e ε_e / ρ_e or r_ψ / ρ_ψ of the edge in v_i,des;
 - :func:`desired_velocity`: v_i,des (eq. vel_i_des), α = −I for the tail, R_k2ᵀR_k1 for the head;
-- :func:`velocity_funnel_start`: ρ_v0 = 2|e_v(0)| + 1 (NOTES.md) or the file's value;
+- :func:`velocity_funnel_start`: ρ_v0 = 2|e_v(0)| + 1 or the file's value (docs/controller.md,
+  "The velocity funnel's start");
 - :func:`wrench`: u_i = −γ_i ρ_v⁻¹ r_v(ξ_v) ε_v with e_v = ṽ_i − v_i,des (eq. u_i);
 - :func:`limit_wrench`, :func:`fault_wrench`, :func:`agent_step`: actuator limits, the fault
   policy, and the whole step of agent i.
@@ -96,7 +97,7 @@ def edge_errors(p_i_j_in_i, R_i_j, is_tail, d2, R_des):
     """Step I for edge k seen by agent i: (e_k, ψ_k, e_Rk) (eq. errors and eq. e_R_k and psi_k).
 
     In the tail's frame q = R_k1ᵀ(p_k2 − p_k1) and Q = R_k1ᵀR_k2: the tail measures them, the head
-    measures R_k2ᵀ(p_k1 − p_k2) and R_k2ᵀR_k1 (NOTES.md, conventions). Then e = ‖q‖² − d² [m²],
+    measures R_k2ᵀ(p_k1 − p_k2) and R_k2ᵀR_k1 (docs/controller.md, "Signs and frames"). Then e = ‖q‖² − d² [m²],
     ψ = ½(3 − tr A) and e_R = S⁻¹(A − Aᵀ) with A = Q R_des. Vectors are 3-tuples, matrices row tuples.
     """
     if is_tail:

@@ -44,8 +44,8 @@ from formation_msgs_py.schema import (
 )
 
 #: ``project: true`` accepts a matrix with ‖RᵀR − I‖_F up to this and det > 0: the paper's printed
-#: R_2(0) is 0.37 off (NOTES.md); a reflection (det −1) or a zero matrix has no nearest rotation
-#: worth taking.
+#: R_2(0) is 0.37 off (docs/controller.md, "Errors in the paper"); a reflection (det −1) or a zero
+#: matrix has no nearest rotation worth taking.
 PROJECT_TOLERANCE = 0.5
 _SIGNALS = ("disturbance", "velocity_noise")
 

@@ -93,7 +93,7 @@ class _McapWriter(McapWriter):
     """rosbags' MCAP writer with a message write of one ``struct`` pack instead of ~12 calls.
 
     Every message of a run passes here (~20 per lockstep step): a whole write took 7 µs, now 3.5 µs
-    (benchmarks/RESULTS_ros.md). The bytes are rosbags' own (tests/formation_bag/test_bag_io.py
+    (BENCHMARKS.md, "Bags"). The bytes are rosbags' own (tests/formation_bag/test_bag_io.py
     compares the files).
     """
 

@@ -3,7 +3,7 @@
 One function, :func:`preflight`, used by formation-headless, formation-sim and
 formation-launch: load the formation file with the command-line overrides, refuse QoS settings
 that cannot work (lockstep needs reliable measurements), refuse a control rate below what the
-velocity loop needs (NOTES.md, "Sampled-data") unless asked to warn, and prepare the output
+velocity loop needs (docs/controller.md, "Sampled-data implementation") unless asked to warn, and prepare the output
 directory (never overwrite a non-empty one without ``--force``; with it, an earlier run's
 outputs are removed first).
 """

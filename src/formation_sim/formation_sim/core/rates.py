@@ -1,4 +1,4 @@
-"""The control rate each agent needs (NOTES.md, "Sampled-data implementation").
+"""The control rate each agent needs (docs/controller.md, "Sampled-data implementation").
 
 Near ξ_v = 0 the wrench is u ≈ −4γ ρ_v⁻² e_v per channel, so agent i's velocity loop is
 v̇ ≈ −M⁻¹ K(t) v with K = diag(4γ/ρ_v,ℓ(t)²). A zero-order-hold controller at rate f_s is

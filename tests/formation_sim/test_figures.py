@@ -46,4 +46,43 @@ def test_animation_frames(short_run, tmp_path: Path) -> None:
     path, frames, _ = write_animation(tmp_path, spec, arrays, fps=20.0)
     assert frames == 5 and Image.open(path).n_frames == 5
     png = write_frame(tmp_path / "frame.png", spec, arrays, 0.1)
-    assert Image.open(png).size == (1000, 480)
+    assert Image.open(png).size == (1000, 560)
+
+
+def test_animation_frames_share_one_palette(short_run, tmp_path: Path) -> None:
+    """Every GIF frame maps its pixels through the same palette, so a colour means the same in each."""
+    spec, arrays = short_run
+    path, frames, _ = write_animation(tmp_path, spec, arrays, fps=20.0)
+    with Image.open(path) as gif:
+        flat = gif.getpalette()
+        palette = {tuple(flat[i : i + 3]) for i in range(0, len(flat), 3)}
+        for k in range(frames):
+            gif.seek(k)
+            colours = np.unique(np.asarray(gif.convert("RGB")).reshape(-1, 3), axis=0)
+            assert {tuple(int(x) for x in c) for c in colours} <= palette, f"frame {k} has its own colours"
+
+
+def test_edge_figures_are_two_columns_with_one_legend(short_run, tmp_path: Path) -> None:
+    """errors.png: the 4 edges in 2 columns (each the run above its second half), one figure legend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from formation_sim.views import figures
+
+    spec, arrays = short_run
+    seen = []
+    real_save = figures._save
+    figures_save = lambda fig, path: seen.append((fig, path.name)) or real_save(fig, path)  # noqa: E731
+    try:
+        figures._save = figures_save
+        figures.plot_run(tmp_path, spec, arrays)
+    finally:
+        figures._save = real_save
+    fig = dict((name, f) for f, name in seen)["errors.png"]
+    assert len([ax for ax in fig.axes if ax.get_visible()]) == 2 * len(spec.edges)
+    assert len(fig.legends) == 1 and len(fig.legends[0].get_texts()) == 3
+    for ax in fig.axes:
+        assert ax.get_legend() is None
+    plt.close("all")

@@ -3,11 +3,15 @@
 Drawn from a run's ``trajectory.npz`` arrays (headless, ROS 2 or bag analysis: the same format)
 with the scene of :mod:`formation_sim.views.markers`, the one the simulator publishes to viewers:
 oriented bodies with their frames, tree edges coloured by the worst of their distance and
-orientation margins, the desired distance as a ghost, force (orange) and torque (purple) arrows.
-Beside it, each edge's worst margin over the run with a cursor at the frame's time.
+orientation margins, the desired distance as a ghost, force (teal) and torque (purple) arrows.
+Beside it, each edge's worst margin over the run with a cursor at the frame's time, and below
+them a key: what the edge colours, the ghosts, the arrows and the body axes mean. The margin
+curves use colours that mean nothing else in the frame (no red, orange, yellow or green: those
+are the margin scale; no teal or purple: the arrows), and the cursor is black.
 
 Frames are taken at ``fps`` per second of simulated time (the GIF plays in real time) and
-written with Pillow.
+written with Pillow, every frame with the same palette (a GIF's colours are a palette per frame:
+quantised one by one, a colour drifted between frames).
 """
 
 from __future__ import annotations
@@ -18,9 +22,25 @@ from pathlib import Path
 import numpy as np
 
 from formation_msgs_py.spec import FormationSpec
-from formation_sim.views.markers import ARROW, CUBE, LINE_LIST, SPHERE, TEXT_VIEW_FACING, FormationScene, Shape
+from formation_sim.views.markers import (
+    ARROW,
+    AXIS_COLOURS,
+    CUBE,
+    FORCE_COLOUR,
+    LINE_LIST,
+    SPHERE,
+    TEXT_VIEW_FACING,
+    TORQUE_COLOUR,
+    FormationScene,
+    Shape,
+    margin_colour,
+)
 
 ANIMATION_NAME = "animation.gif"
+#: the margin curves' colours: blues, greys and browns, none of the scene's meanings
+EDGE_CURVE_COLOURS = ("#1f77b4", "#7f7f7f", "#8c564b", "#393b79", "#708090", "#9c9ede", "#000080", "#5f9ea0")
+#: samples of the run from which the GIF's one palette is made
+PALETTE_SAMPLES = 12
 
 
 def edge_margins(spec: FormationSpec, arrays: dict[str, np.ndarray]) -> np.ndarray:
@@ -48,7 +68,7 @@ class SceneArtists:
         if s.type == ARROW:
             return [ax.plot([], [], [], lw=2.0)[0], ax.plot([], [], [], marker="o", ms=3)[0]]
         if s.type == CUBE:
-            return [ax.plot([], [], [], marker="s", ms=7, ls="")[0]]
+            return [ax.plot([], [], [], marker="s", ms=11, ls="")[0]]
         if s.type == SPHERE:
             return [ax.plot([], [], [], marker="o", ms=13, ls="")[0]]
         if s.type == TEXT_VIEW_FACING:
@@ -99,9 +119,9 @@ class RunFigure:
         lo, hi = p.min(axis=(0, 1)), p.max(axis=(0, 1))
         self.centre = (lo + hi) / 2
         self.half = max(float(np.max(hi - lo)) / 2, 1.0) + float(np.max(self.scene.radius))
-        self.fig = plt.figure(figsize=(10.0, 4.8))
+        self.fig = plt.figure(figsize=(10.0, 5.6))
         # no tight_layout: it ignores the 3D axis labels, and z [m] then sits against the margins' axis
-        grid = self.fig.add_gridspec(1, 2, width_ratios=(1.2, 1.0), left=0.0, right=0.98, bottom=0.11, wspace=0.3)
+        grid = self.fig.add_gridspec(1, 2, width_ratios=(1.2, 1.0), left=0.0, right=0.98, bottom=0.26, wspace=0.3)
         self.ax3d = self.fig.add_subplot(grid[0], projection="3d")
         for setter, c in zip((self.ax3d.set_xlim, self.ax3d.set_ylim, self.ax3d.set_zlim), self.centre):
             setter(c - self.half, c + self.half)
@@ -115,15 +135,35 @@ class RunFigure:
         axm = self.fig.add_subplot(grid[1])
         every = max(1, len(t) // 1000)  # a line of ≤ 1000 points draws as well and much faster
         for k, e in enumerate(spec.edges):
-            axm.plot(t[::every], margins[::every, k], lw=1.2, label=f"edge {e.tail}-{e.head}")
+            colour = EDGE_CURVE_COLOURS[k % len(EDGE_CURVE_COLOURS)]
+            axm.plot(t[::every], margins[::every, k], lw=1.2, color=colour, label=f"edge {e.tail}-{e.head}")
         axm.axhline(0.0, color="k", lw=0.8)
         axm.set_ylim(min(-0.05, float(np.min(margins)) - 0.05), 1.05)
         axm.set_xlabel("t [s]")
         axm.set_ylabel("worst margin of e and ψ (1 centre, 0 bound)")
         axm.set_title("funnel margins", fontsize=10)
         axm.grid(alpha=0.3)
-        axm.legend(fontsize=7, loc="lower right")
-        self.cursor = axm.axvline(t[0], color="C3", lw=1.0)
+        axm.legend(fontsize=8, loc="lower right")
+        self.cursor = axm.axvline(t[0], color="k", lw=1.0, ls="--")
+        self._key()
+
+    def _key(self) -> None:
+        """The legend of the 3D scene, below both panels."""
+        from matplotlib.lines import Line2D
+
+        def line(colour, label: str, **style) -> Line2D:
+            return Line2D([], [], color=colour[:3] if isinstance(colour, tuple) else colour, label=label, **style)
+
+        handles = [
+            *(line(margin_colour(m), f"edge, margin {m:g}", lw=3) for m in (1.0, 0.5, 0.0)),
+            line(margin_colour(-1.0), "edge, outside its funnel", lw=3),
+            line("0.55", "head at the desired distance (edge colour)", marker="o", ms=10, ls="", alpha=0.75),
+            line(FORCE_COLOUR, "force (length ∝ ln(1+|f|))", lw=2),
+            line(TORQUE_COLOUR, "torque (length ∝ ln(1+|τ|))", lw=2),
+            *(line(AXIS_COLOURS[c], f"body {axis} axis", lw=1.5) for c, axis in enumerate("xyz")),
+            line("k", "time of the frame", lw=1.0, ls="--"),
+        ]
+        self.fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, frameon=False)
 
     def draw(self, s: int) -> None:
         """Show sample ``s`` of the trajectory."""
@@ -155,20 +195,35 @@ def write_animation(
     samples = np.minimum(np.searchsorted(t, frame_times), len(t) - 1)
     figure = RunFigure(spec, arrays)
     figure.fig.set_dpi(dpi)
-    frames = []
+    rgb = []
     try:
         for s in samples:
             figure.draw(int(s))
             figure.fig.canvas.draw()
-            rgba = np.asarray(figure.fig.canvas.buffer_rgba())
-            frames.append(Image.fromarray(rgba[..., :3]).quantize(colors=128))
+            rgb.append(Image.fromarray(np.asarray(figure.fig.canvas.buffer_rgba())[..., :3].copy()))
     finally:
         figure.close()
+    palette = _palette(rgb)
+    frames = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in rgb]
     path = out_dir / ANIMATION_NAME
     tmp = out_dir / (ANIMATION_NAME + ".part")
-    frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:], duration=round(1000 / fps), loop=0)
+    frames[0].save(
+        tmp, format="GIF", save_all=True, append_images=frames[1:], duration=round(1000 / fps), loop=0, optimize=False
+    )  # optimize would cut each frame's palette to its own colours
     tmp.replace(path)
     return path, len(samples), time.perf_counter() - started
+
+
+def _palette(frames: list) -> object:
+    """One 255-colour palette for every frame: quantised from a strip of frames spread over the run."""
+    from PIL import Image
+
+    picks = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, min(PALETTE_SAMPLES, len(frames)))]
+    w, h = picks[0].size
+    strip = Image.new("RGB", (w, h * len(picks)))
+    for k, im in enumerate(picks):
+        strip.paste(im, (0, k * h))
+    return strip.quantize(colors=255, dither=Image.Dither.NONE)
 
 
 def write_frame(path: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], t_frame: float, dpi: int = 100) -> Path:

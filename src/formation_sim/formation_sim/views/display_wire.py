@@ -2,7 +2,7 @@
 
 Building ``/formation/markers`` as rclpy messages cost ~20 ms of CPU per frame for 20 agents
 (~140 Marker objects, their Points and ColorRGBAs, then rclpy's field-by-field conversion):
-60 % of the simulator's CPU in a realtime run at 30 Hz (BENCHMARKS.md, issue 13). A formation's
+60 % of the simulator's CPU in a realtime run at 30 Hz (BENCHMARKS.md). A formation's
 scene has the same markers at every instant (namespaces, ids, types, texts, point counts): only
 poses, points and colours move. So the message is laid out once as little-endian CDR (the layout
 rclpy publishes; formation_msgs_py.wire does the same for the per-step messages) and each frame

@@ -1,17 +1,22 @@
 """The run's figures, like the paper's (errors in their funnels, control inputs), from trajectory.npz.
 
-- ``errors.png``: per edge k, e_k [m²] with its two bounds C_con·ρ_e (upper, dashed) and
-  −C_col·ρ_e (lower, dash-dotted); an inset zooms on the second half of the run, where the steady
-  band (ρ_e∞-wide) is visible;
-- ``orientation_errors.png``: per edge, ψ_k with its bound ρ_ψ, and the same zoomed inset;
+Edges and agents in a grid of at most two (edges) or three (agents) columns, so that the text stays
+readable at a page's width; one legend per figure, above the panels (every panel draws the same
+kinds of line):
+
+- ``errors.png``: per edge k, e_k = ‖p_k2 − p_k1‖² − d_k² [m²] with its two bounds C_con·ρ_e (upper,
+  dashed) and −C_col·ρ_e (lower, dash-dotted) over the whole run, and below it the second half of
+  the run with its own scale, where the steady band (ρ_e∞-wide) is visible;
+- ``orientation_errors.png``: per edge, ψ_k = ½ tr(I − R_desᵀ R_k2ᵀ R_k1) (dimensionless: 0 when the
+  relative orientation is the desired one, 2 at a rotation by π from it) with its bound ρ_ψ, laid
+  out the same way;
 - ``inputs.png``: per agent, the body-frame force (f_x, f_y, f_z) [N] above the torque
   (τ_x, τ_y, τ_z) [N·m];
-- ``velocity_errors.png``: per agent, e_v = v_i − v_i,des per channel inside ±ρ_v. The agents'
-  own e_v uses their noisy velocity; here it is recomputed from the recorded ground truth (the
-  same controller on noise-free relative poses and velocity), so it differs by the noise.
+- ``velocity_errors.png``: per agent, e_v = v_i − v_i,des per channel inside ±ρ_v, linear [m/s]
+  and angular [rad/s]. The agents' own e_v uses their noisy velocity; here it is recomputed from
+  the recorded ground truth (the same controller on noise-free relative poses and velocity), so it
+  differs by the noise.
 
-Each panel has its own legend, in its upper right corner: the transients (and the lower bound's
-start at −C_col) are at the left, the converged part at the bottom right is under the inset.
 Arrays as in trajectory.npz (agents and edges in file order).
 """
 
@@ -31,15 +36,15 @@ COMPONENT_COLOURS = ("C0", "C1", "C2")
 ZOOM_FROM = 0.5  # the insets show the second half of the run, over which they sit
 
 
-def _grid(plt, rows: int, cols: int, width: float, height: float, **kwargs):
+def _grid(plt, rows: int, cols: int, width: float, height: float, *, top: float = 0.35, **kwargs):
     """``plt.subplots`` of rows x cols panels, each cell ``width`` x ``height`` inches, with fixed margins.
 
     Margins and gaps are set in inches (room for a title above each panel, tick labels and an axis
     label left and below), not computed by ``tight_layout``: that costs a second drawing of every
-    text, about half the CPU of a run's figures (BENCHMARKS.md, issue 13).
+    text, about half the CPU of a run's figures.
     """
-    left, right, top, bottom, gap_w, gap_h = 0.75, 0.15, 0.35, 0.5, 0.75, 0.7
-    fig_w, fig_h = width * cols, height * rows
+    left, right, bottom, gap_w, gap_h = 0.75, 0.15, 0.5, 0.75, 0.7
+    fig_w, fig_h = width * cols, height * rows + top
     axes_w = (fig_w - left - right - gap_w * (cols - 1)) / cols
     axes_h = (fig_h - top - bottom - gap_h * (rows - 1)) / rows
     fig, axes = plt.subplots(rows, cols, figsize=(fig_w, fig_h), squeeze=False, **kwargs)
@@ -54,12 +59,14 @@ def _grid(plt, rows: int, cols: int, width: float, height: float, **kwargs):
     return fig, axes
 
 
-def _panels(plt, n: int, *, stacked: int = 1, max_cols: int = 4, width: float = 4.2, height: float = 3.0):
+def _panels(
+    plt, n: int, *, stacked: int = 1, max_cols: int = 4, width: float = 4.2, height: float = 3.0, top: float = 0.35
+):
     """A grid of n cells (at most ``max_cols`` per row), each a column of ``stacked`` panels sharing t;
     returns the figure and, per cell, its list of panels."""
     cols = min(n, max_cols)
     rows = math.ceil(n / cols) * stacked
-    fig, axes = _grid(plt, rows, cols, width, height)
+    fig, axes = _grid(plt, rows, cols, width, height, top=top)
     cells = [[axes[(k // cols) * stacked + j][k % cols] for j in range(stacked)] for k in range(n)]
     for k in range(n, rows // stacked * cols):
         for j in range(stacked):
@@ -67,22 +74,24 @@ def _panels(plt, n: int, *, stacked: int = 1, max_cols: int = 4, width: float = 
     return fig, cells
 
 
-def _zoom_inset(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> None:
-    """An inset of the last part of the run, y-limits fitted to what is drawn there."""
-    if len(t) < 10:
-        return
-    sel = t >= t[0] + ZOOM_FROM * (t[-1] - t[0])
-    ins = ax.inset_axes([0.5, 0.1, 0.47, 0.42])
+def _zoom(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> None:
+    """The second half of the run (where the steady band is) in its own panel, y-limits fitted to it."""
+    sel = t >= t[0] + ZOOM_FROM * (t[-1] - t[0]) if len(t) else np.zeros(0, dtype=bool)
+    if np.count_nonzero(sel) < 2:
+        sel = np.ones(len(t), dtype=bool)
     lo, hi = np.inf, -np.inf
     for y, style in series:
-        ins.plot(t[sel], y[sel], **style)
+        ax.plot(t[sel], y[sel], **style)
         lo, hi = min(lo, float(np.min(y[sel]))), max(hi, float(np.max(y[sel])))
-    pad = 0.1 * (hi - lo) if hi > lo else 0.1
-    ins.set_ylim(lo - pad, hi + pad)
-    ins.set_xlim(t[sel][0], t[sel][-1])
-    ins.tick_params(labelsize=6)
-    ins.grid(alpha=0.3)
-    ins.set_title("zoom: steady band", fontsize=6, pad=2)
+    if np.isfinite(lo) and np.isfinite(hi):
+        pad = 0.1 * (hi - lo) if hi > lo else 0.1
+        ax.set_ylim(lo - pad, hi + pad)
+    ax.grid(alpha=0.3)
+
+
+def _figure_legend(fig, handles: list, ncol: int) -> None:
+    """One legend for the whole figure, above the panels: every panel draws the same kinds of line."""
+    fig.legend(handles=handles, loc="upper center", ncol=ncol, fontsize=9, frameon=False, bbox_to_anchor=(0.5, 1.0))
 
 
 def _save(fig, path: Path) -> Path:
@@ -105,79 +114,128 @@ def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) 
 
 
 def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> list[Path]:
-    t = arrays["t"]
-    paths = []
-    upper = {"color": "C3", "ls": "--", "lw": 1.0}
-    lower = {"color": "C2", "ls": "-.", "lw": 1.0}
-    fig, cells = _panels(plt, len(spec.edges))
-    for k, (e, (ax,)) in enumerate(zip(spec.edges, cells)):
-        series = [
-            (arrays["e"][:, k], {"color": "C0", "lw": 1.3, "label": f"$e_{{{e.tail}{e.head}}}$"}),
-            (e.c_con * arrays["rho_e"][:, k], {**upper, "label": r"$C_{con}\,\rho_e$ (connectivity)"}),
-            (-e.c_col * arrays["rho_e"][:, k], {**lower, "label": r"$-C_{col}\,\rho_e$ (collision)"}),
-        ]
+    return [
+        _distance_errors(plt, out_dir, spec, arrays),
+        _orientation_errors(plt, out_dir, spec, arrays),
+        _inputs(plt, out_dir, spec, arrays),
+        _velocity_errors(plt, out_dir, spec, arrays),
+    ]
+
+
+UPPER = {"color": "C3", "ls": "--", "lw": 1.0}
+LOWER = {"color": "C2", "ls": "-.", "lw": 1.0}
+ERROR = {"color": "C0", "lw": 1.3}
+#: a cell of an edge figure: the whole run above, its second half (the steady band) below
+EDGE_CELL = {"stacked": 2, "max_cols": 2, "width": 4.4, "height": 2.1, "top": 0.75}
+
+
+def _edge_figure(plt, spec: FormationSpec, t: np.ndarray, per_edge, title: str, ylabel: str, legend: list):
+    """A 2-column grid with one cell per edge; ``per_edge(k)`` gives the cell's (y, style) series."""
+    fig, cells = _panels(plt, len(spec.edges), **EDGE_CELL)
+    for k, (e, (ax, ax_zoom)) in enumerate(zip(spec.edges, cells)):
+        series = per_edge(k, e)
         for y, style in series:
             ax.plot(t, y, **style)
-        ax.set_title(f"edge {e.tail}-{e.head}: distance error", fontsize=9)
-        ax.set_xlabel("t [s]")
-        ax.set_ylabel("e [m²]")
-        ax.legend(fontsize=7, loc="upper right")
+        ax.set_title(f"edge {e.tail}-{e.head}: {title}", fontsize=10)
+        ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-        _zoom_inset(ax, t, [(y, {k2: v for k2, v in s.items() if k2 != "label"}) for y, s in series])
-    paths.append(_save(fig, out_dir / "errors.png"))
-    plt.close(fig)
+        _zoom(ax_zoom, t, series)
+        ax_zoom.set_title(f"edge {e.tail}-{e.head}, second half of the run", fontsize=9)
+        ax_zoom.set_xlabel("t [s]")
+        ax_zoom.set_ylabel(ylabel)
+    _figure_legend(fig, legend, ncol=len(legend))
+    return fig
 
-    fig, cells = _panels(plt, len(spec.edges))
-    for k, (e, (ax,)) in enumerate(zip(spec.edges, cells)):
-        series = [
-            (arrays["psi"][:, k], {"color": "C0", "lw": 1.3, "label": rf"$\psi_{{{e.tail}{e.head}}}$"}),
-            (arrays["rho_psi"][:, k], {**upper, "label": r"$\rho_\psi$"}),
-        ]
-        for y, style in series:
-            ax.plot(t, y, **style)
-        ax.set_title(f"edge {e.tail}-{e.head}: orientation error", fontsize=9)
-        ax.set_xlabel("t [s]")
-        ax.set_ylabel(r"$\psi$")
-        ax.set_ylim(-0.05, 2.05)
-        ax.legend(fontsize=7, loc="upper right")
-        ax.grid(alpha=0.3)
-        _zoom_inset(ax, t, [(y, {k2: v for k2, v in s.items() if k2 != "label"}) for y, s in series])
-    paths.append(_save(fig, out_dir / "orientation_errors.png"))
-    plt.close(fig)
 
-    u = arrays["u"]
-    fig, cells = _panels(plt, len(spec.agents), stacked=2, max_cols=5, width=3.6, height=2.4)
+def _distance_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+    from matplotlib.lines import Line2D
+
+    def per_edge(k: int, e) -> list:
+        rho = arrays["rho_e"][:, k]
+        return [(arrays["e"][:, k], ERROR), (e.c_con * rho, UPPER), (-e.c_col * rho, LOWER)]
+
+    legend = [
+        Line2D([], [], **ERROR, label=r"$e_k = \|p_{k_2} - p_{k_1}\|^2 - d_k^2$"),
+        Line2D([], [], **UPPER, label=r"$C_{con}\,\rho_e$ (connectivity bound)"),
+        Line2D([], [], **LOWER, label=r"$-C_{col}\,\rho_e$ (collision bound)"),
+    ]
+    fig = _edge_figure(plt, spec, arrays["t"], per_edge, "distance error", "e [m²]", legend)
+    path = _save(fig, out_dir / "errors.png")
+    plt.close(fig)
+    return path
+
+
+def _orientation_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+    from matplotlib.lines import Line2D
+
+    def per_edge(k: int, e) -> list:
+        return [(arrays["psi"][:, k], ERROR), (arrays["rho_psi"][:, k], UPPER)]
+
+    legend = [
+        Line2D([], [], **ERROR, label=r"$\psi_k = \frac{1}{2}\,\mathrm{tr}(I - R_{des}^\top R_{k_2}^\top R_{k_1})$"),
+        Line2D([], [], **UPPER, label=r"$\rho_\psi$ (bound)"),
+    ]
+    ylabel = r"$\psi$ [-] (0 aligned, 2 at $\pi$)"
+    fig = _edge_figure(plt, spec, arrays["t"], per_edge, "orientation error", ylabel, legend)
+    path = _save(fig, out_dir / "orientation_errors.png")
+    plt.close(fig)
+    return path
+
+
+def _inputs(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+    from matplotlib.lines import Line2D
+
+    t, u = arrays["t"], arrays["u"]
+    fig, cells = _panels(plt, len(spec.agents), stacked=2, max_cols=3, width=3.6, height=2.2, top=0.7)
     for i, (a, (ax_f, ax_t)) in enumerate(zip(spec.agents, cells)):
-        for ax, lo, symbol, what, unit in ((ax_f, 0, "f", "force", "N"), (ax_t, 3, r"\tau", "torque", "N·m")):
-            for c, axis in enumerate("xyz"):
-                ax.plot(t, u[:, i, lo + c], color=COMPONENT_COLOURS[c], lw=1.0, label=f"${symbol}_{axis}$")
-            ax.set_title(f"agent {a.id}: body {what}", fontsize=9)
+        for ax, lo, what, unit in ((ax_f, 0, "force", "N"), (ax_t, 3, "torque", "N·m")):
+            for c in range(3):
+                ax.plot(t, u[:, i, lo + c], color=COMPONENT_COLOURS[c], lw=1.0)
+            ax.set_title(f"agent {a.id}: body {what}", fontsize=10)
             ax.set_ylabel(f"{what} [{unit}]")
-            ax.legend(fontsize=7, ncol=3, loc="upper right")
             ax.grid(alpha=0.3)
         ax_t.set_xlabel("t [s]")
-    paths.append(_save(fig, out_dir / "inputs.png"))
+    legend = [
+        Line2D([], [], color=COMPONENT_COLOURS[c], lw=1.0, label=f"$f_{axis}$, $\\tau_{axis}$ (body {axis})")
+        for c, axis in enumerate("xyz")
+    ]
+    _figure_legend(fig, legend, ncol=3)
+    path = _save(fig, out_dir / "inputs.png")
     plt.close(fig)
+    return path
 
+
+def _velocity_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+    from matplotlib.lines import Line2D
+
+    t = arrays["t"]
     e_v, rho_v = velocity_errors(spec, arrays)
     n = len(spec.agents)
-    fig, axes = _grid(plt, n, 2, 4.5, 2.3, sharex=True)
+    fig, axes = _grid(plt, n, 2, 4.5, 2.2, top=0.75, sharex=True)
+    quantities = (("linear", "m/s"), ("angular", "rad/s"))
     for i, a in enumerate(spec.agents):
-        for half, (ax, unit) in enumerate(zip(axes[i], ("m/s", "rad/s"))):
+        for half, (ax, (kind, unit)) in enumerate(zip(axes[i], quantities)):
             for c in range(3 * half, 3 * half + 3):
                 colour = COMPONENT_COLOURS[c % 3]
-                ax.plot(t, e_v[:, i, c], color=colour, lw=1.0, label=f"$e$ {VELOCITY_LABELS[c]}")
-                ax.plot(t, rho_v[:, i, c], color=colour, lw=0.8, ls="--", label=r"$\pm\rho_v$")
+                ax.plot(t, e_v[:, i, c], color=colour, lw=1.0)
+                ax.plot(t, rho_v[:, i, c], color=colour, lw=0.8, ls="--")
                 ax.plot(t, -rho_v[:, i, c], color=colour, lw=0.8, ls="--")
-            ax.set_title(f"agent {a.id}: {'linear' if half == 0 else 'angular'} velocity error", fontsize=9)
-            ax.set_ylabel(unit)
-            ax.legend(fontsize=6, ncol=3, loc="upper right")
+            ax.set_title(f"agent {a.id}: {kind} velocity error", fontsize=10)
+            ax.set_ylabel(f"{kind} $e_v$ [{unit}]")
             ax.grid(alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("t [s]")
-    paths.append(_save(fig, out_dir / "velocity_errors.png"))
+    legend = [
+        *(
+            Line2D([], [], color=COMPONENT_COLOURS[c], lw=1.0, label=f"{VELOCITY_LABELS[c]}, {VELOCITY_LABELS[c + 3]}")
+            for c in range(3)
+        ),
+        Line2D([], [], color="0.3", lw=0.8, ls="--", label=r"$\pm\rho_v$ (bounds, dashed)"),
+    ]
+    _figure_legend(fig, legend, ncol=4)
+    path = _save(fig, out_dir / "velocity_errors.png")
     plt.close(fig)
-    return paths
+    return path
 
 
 def velocity_errors(spec: FormationSpec, arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

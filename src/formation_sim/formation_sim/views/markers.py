@@ -9,7 +9,7 @@ One scene per display instant:
 - each tree edge: a line coloured by the worst of its distance and orientation margins
   (green 1 … yellow 0.5 … red 0, magenta outside), and a translucent ghost of the head where it
   would sit at the desired distance d_k along the current direction;
-- each agent's wrench: force (orange) and torque (purple) arrows in the world frame, length
+- each agent's wrench: force (teal) and torque (purple) arrows in the world frame, length
   ``arrow_scale·ln(1 + |u|)`` m (logarithmic: peaks of 10³ N and steady values of 10⁻² N are
   both visible).
 
@@ -34,7 +34,8 @@ Rgba = tuple[float, float, float, float]
 
 AXIS_COLOURS: tuple[Rgba, Rgba, Rgba] = ((0.9, 0.1, 0.1, 1.0), (0.1, 0.8, 0.1, 1.0), (0.1, 0.3, 0.95, 1.0))
 BODY_COLOUR: Rgba = (0.55, 0.6, 0.7, 0.9)
-FORCE_COLOUR: Rgba = (1.0, 0.55, 0.0, 1.0)
+# teal, not orange: orange is a low margin on the edges
+FORCE_COLOUR: Rgba = (0.0, 0.6, 0.7, 1.0)
 TORQUE_COLOUR: Rgba = (0.6, 0.2, 0.85, 1.0)
 GHOST_ALPHA = 0.25
 

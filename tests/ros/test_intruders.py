@@ -26,7 +26,7 @@ from formation_msgs_py.spec import load_formation, simulator_view
 from formation_sim.core.simulation import Simulation
 
 NS = 1_000_000_000
-#: DESIGN §10 / issue 10: an intruder is reported within this many wall seconds of its publisher's creation
+#: an intruder is reported within this many wall seconds of its publisher's creation
 REPORT_WITHIN = 1.0
 
 

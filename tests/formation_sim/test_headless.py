@@ -45,6 +45,7 @@ def test_paper_scenario_holds_every_funnel_and_converges(paper_run) -> None:
         assert 0 < a["min_margin_v"] <= 1 and a["peak_force"] > 0
     for name in ("errors.png", "orientation_errors.png", "inputs.png", "velocity_errors.png"):
         assert (out / name).stat().st_size > 10_000
+    assert json.loads((out / "foxglove_layout.json").read_text())["configById"]["Plot!distance"]["paths"]
 
 
 def test_paper_scenario_is_the_interpreted_loops_to_1e_9(paper_run) -> None:

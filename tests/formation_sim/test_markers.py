@@ -69,17 +69,40 @@ def test_funnel_values_match_the_report(scene_and_state) -> None:
 
 
 def test_foxglove_layout_reads_the_display_topics(paper_path) -> None:
-    """foxglove/formation_layout.json: a 3D view of the markers; plots of every paper edge's e, ψ and bounds."""
+    """foxglove/formation_layout.json is the paper's generated layout: a 3D view of the markers; every edge's
+    e and ψ once; one bound pair for the four edges' identical funnels; named lines, no values in legends."""
     import json
     import re
 
     from formation_msgs_py import topics
+    from formation_sim.views.foxglove_layout import layout_text
 
-    layout = json.loads((paper_path.parents[1] / "foxglove" / "formation_layout.json").read_text())
-    panels = layout["configById"]
+    spec = load_formation(paper_path)
+    shipped = (paper_path.parents[1] / "foxglove" / "formation_layout.json").read_text(encoding="utf-8")
+    assert shipped == layout_text(spec), "regenerate: formation_sim.views.foxglove_layout.layout_text"
+    panels = json.loads(shipped)["configById"]
     assert panels["3D!formation"]["topics"]["/" + topics.MARKERS]["visible"] is True
-    paths = [p["value"] for cfg in panels.values() for p in cfg.get("paths", [])]
-    indices = sorted(int(re.fullmatch(r"/formation/funnels\.data\[(\d+)\]", v)[1]) for v in paths)
+    plots = [cfg for cfg in panels.values() if "paths" in cfg]
+    assert all(cfg["showPlotValuesInLegend"] is False for cfg in plots)
+    lines = {
+        re.fullmatch(r"/formation/funnels\.data\[(\d+)\]", p["value"])[1]: p["label"] for c in plots for p in c["paths"]
+    }
+    k = len(spec.edges)
     assert "/" + topics.FUNNELS == "/formation/funnels"
-    edges = len(load_formation(paper_path).edges)
-    assert indices == list(range(5 * edges))  # e, −C_col·ρ_e, C_con·ρ_e, ψ, ρ_ψ of every edge, once
+    assert {int(i) for i in lines} == {*(5 * j for j in range(k)), *(5 * j + 3 for j in range(k)), 1, 2, 4}
+    assert lines["0"] == "e 1-2" and lines["3"] == "ψ 1-2"
+    assert lines["2"] == "C_con·ρ_e (1-2, 1-3, 3-4, 3-5)"
+
+
+def test_foxglove_layout_gives_each_distinct_funnel_its_bounds(paper_path) -> None:
+    """An edge whose distance funnel differs from the others' gets a bound pair of its own."""
+    from dataclasses import replace
+
+    from formation_sim.views.foxglove_layout import foxglove_layout
+
+    spec = load_formation(paper_path)
+    spec = replace(spec, edges=(replace(spec.edges[0], rho_e_inf=0.5 * spec.edges[0].rho_e_inf), *spec.edges[1:]))
+    labels = [p["label"] for p in foxglove_layout(spec)["configById"]["Plot!distance"]["paths"]]
+    assert [x for x in labels if x.startswith("C_con")] == ["C_con·ρ_e (1-2)", "C_con·ρ_e (1-3, 3-4, 3-5)"]
+    psi = [p["label"] for p in foxglove_layout(spec)["configById"]["Plot!orientation"]["paths"]]
+    assert [x for x in psi if x.startswith("ρ_ψ")] == ["ρ_ψ (1-2, 1-3, 3-4, 3-5)"]

@@ -27,10 +27,9 @@ from formation_msgs_py import topics
 from formation_msgs_py.options import RunOptions
 from formation_msgs_py.ros import conversions, parameters, qos
 from formation_msgs_py.spec import FormationSpec
-from formation_sim.views.display_wire import FunnelsWire, MarkerArrayWire
+from formation_sim.views.display_wire import FUNNEL_FIELDS, FunnelsWire, MarkerArrayWire
 from formation_sim.views.markers import FormationScene, Shape
 
-FUNNEL_FIELDS = ("e", "e_lower", "e_upper", "psi", "rho_psi")
 DEFAULT_MARKER_RATE = 30.0
 
 

@@ -192,6 +192,11 @@ class MarkerArrayWire:
         return self.cdr.message()
 
 
+#: the fields of every edge in ``/formation/funnels``, in order: e [m²], its lower bound −C_col·ρ_e and
+#: upper bound C_con·ρ_e [m²], ψ [-] and its bound ρ_ψ
+FUNNEL_FIELDS = ("e", "e_lower", "e_upper", "psi", "rho_psi")
+
+
 class FunnelsWire:
     """``/formation/funnels`` (std_msgs/Float64MultiArray): K edges × the given fields, as CDR bytes."""
 

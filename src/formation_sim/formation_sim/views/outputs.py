@@ -17,10 +17,12 @@ from formation_msgs_py.faults import fault_lines, write_atomic, write_json
 from formation_msgs_py.outcome import ExitCode, Verdict
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.core.recorder import RunRecorder
+from formation_sim.views.foxglove_layout import write_layout
 
 
 def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> float:
-    """trajectory.npz, the figures (:mod:`formation_sim.views.figures`, unless ``plots`` is false), then
+    """trajectory.npz, the figures (:mod:`formation_sim.views.figures`) and the formation's Foxglove layout
+    (:mod:`formation_sim.views.foxglove_layout`) unless ``plots`` is false, then
     summary.json; each written under a temporary name and renamed. summary.json comes last and names what is there.
     Returns the wall seconds the figures took.
 
@@ -45,6 +47,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
                     written.append(path.name)
             finally:
                 shutil.rmtree(staging, ignore_errors=True)
+            written.append(write_layout(out_dir, recorder.spec).name)
             figures = time.monotonic() - t_figures
     except OSError as exc:
         failed = dict(summary)

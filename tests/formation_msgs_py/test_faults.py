@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from formation_msgs_py.faults import FaultLog, fault_lines, write_json
+from formation_msgs_py.faults import FaultLog, fault_lines, fault_meanings, write_json
 
 
 def test_every_fault_is_counted_with_its_first_and_last() -> None:
@@ -59,3 +59,16 @@ def test_write_json_is_strict_and_atomic(tmp_path: Path) -> None:
     write_json(path, {"nan": math.nan, "inf": np.float64(np.inf), "n": np.int64(3), "a": np.arange(2)})
     assert json.loads(path.read_text()) == {"nan": None, "inf": None, "n": 3, "a": [0, 1]}
     assert [p.name for p in tmp_path.iterdir()] == ["x.json"]  # no temporary file left
+
+
+def test_fault_meanings_explain_each_kind_once_in_words() -> None:
+    """Every kind present gets one line of meaning (a refused kind by its prefix); none when no fault."""
+    log = FaultLog()
+    for agent in ("1", "2"):
+        log.add(0.1, agent, "resent_step")
+    log.add(0.2, "3", "refused_wrench_non_finite")
+    lines = fault_meanings(log.as_dict())
+    assert lines[0] == "  what the faults mean (none is a funnel violation):"
+    assert [x.split(":")[0].strip() for x in lines[1:]] == ["refused_wrench_non_finite", "resent_step"]
+    assert "simulator refused an agent's wrench" in lines[1] and "trajectory is the same" in lines[2]
+    assert fault_meanings({}) == []

@@ -99,6 +99,39 @@ def fault_lines(faults: dict[str, dict[str, Any]]) -> list[str]:
     return lines
 
 
+#: What each fault kind means, in words a reader of a run's summary needs (no code names)
+MEANINGS = {
+    "resent_step": "lockstep: an agent's answer had not arrived within the step timeout (a slow or "
+    "stopped process), so the simulator sent that step's measurements again; the step is integrated "
+    "only with the agent's answer, so the trajectory is the same as without the delay",
+    "stale_command": "realtime: a tick applied the agent's previous wrench, its answer to the last "
+    "step was not in yet (zero-order hold)",
+    "zero_wrench": "realtime: the agent's last wrench was older than command_timeout and was replaced by zero",
+    "late_tick": "realtime: a simulator tick ran more than half a control period after its wall-clock time",
+    "measurement": "a neighbour was out of sensing range: the agent had no relative pose of it",
+    "controller": "an error left its funnel between two control steps and the controller saturated "
+    "(ERROR on /diagnostics)",
+    "reset": "the agent's clock jumped back: its controller and watchdogs started again",
+    "missing_pose": "the agent answered without a neighbour's relative pose (out of range or lost), with a zero wrench",
+    "refused_wrench_": "the simulator refused an agent's wrench (not finite, over the actuator limits, "
+    "malformed, or for no step of the run) and applied a zero wrench for that step",
+    "refused_": "the agent refused a measurement (not finite, not a rotation, out of sensing range, "
+    "malformed, or stamped too far from its clock) and answered that step with a zero wrench",
+}
+
+
+def fault_meanings(faults: dict[str, dict[str, Any]]) -> list[str]:
+    """One line per fault kind present in ``faults`` (summary.json's): what it means. A kind not in
+    :data:`MEANINGS` is taken by its longest prefix there (``refused_wrench_non_finite``)."""
+    kinds = sorted({kind for per_agent in faults.values() for kind in per_agent})
+    lines = []
+    for kind in kinds:
+        key = kind if kind in MEANINGS else max((k for k in MEANINGS if kind.startswith(k)), key=len, default=None)
+        if key is not None:
+            lines.append(f"  {kind}: {MEANINGS[key]}")
+    return ["  what the faults mean (none is a funnel violation):", *lines] if lines else []
+
+
 # -- strict JSON, written atomically --------------------------------------------------------------
 
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from formation_msgs_py.faults import fault_lines, write_atomic, write_json
+from formation_msgs_py.faults import fault_lines, fault_meanings, write_atomic, write_json
 from formation_msgs_py.outcome import ExitCode, Verdict
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.core.recorder import RunRecorder
@@ -95,6 +95,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     for aid, s in summary["agents"].items():
         lines.append(f"  {aid:<8} {s['peak_force']:>14.4g}   {s['peak_torque']:>17.4g}   {_f(s['min_margin_v']):>12}")
     lines.extend(fault_lines(summary.get("faults") or {}))
+    lines.extend(fault_meanings(summary.get("faults") or {}))
     return "\n".join(lines)
 
 

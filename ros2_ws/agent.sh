@@ -8,7 +8,7 @@
 # /agent_<ID>/formation_agent, use_sim_time:=true): it subscribes to /agent_<ID>/velocity and its
 # tree neighbours' relative poses, publishes /agent_<ID>/wrench and /diagnostics, and runs until
 # Ctrl-C or SIGTERM. Parameters (-p NAME:=VALUE or --params-file FILE; formation-agent --help):
-# pose_wait, diagnostics_period, delta, gamma (live), measurement_qos, executor, intruder_policy.
+# pose_wait, diagnostics_period, delta, gamma (live), measurement_qos, intruder_policy, faults_file.
 # Network: discovery stays on this machine unless asked: --network host (default; LOCALHOST unless
 # ROS_AUTOMATIC_DISCOVERY_RANGE is set) or --network lan (SUBNET, the ROS default: multicast on
 # the LAN); ROS_STATIC_PEERS adds unicast hosts. --secure KEYS: TLS over TCP only, with the key

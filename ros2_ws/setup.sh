@@ -74,7 +74,7 @@ flock 9
 REQ_STAMP="$VENV/.stamp-requirements"
 req_hash="$(hash_files "$REQ")"
 if [ "$FORCE" = 1 ] || [ "$(cat "$REQ_STAMP" 2>/dev/null || true)" != "$req_hash" ]; then
-  say "installing requirements (ros2_ws/requirements.txt; the first time takes one to three minutes)…"
+  say "installing requirements (ros2_ws/requirements.txt; the first time takes one to four minutes)…"
   : >"$LOG"
   run_pip install -r "$REQ"
   INSTALLED=1

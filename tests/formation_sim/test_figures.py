@@ -80,9 +80,28 @@ def test_edge_figures_are_two_columns_with_one_legend(short_run, tmp_path: Path)
         figures.plot_run(tmp_path, spec, arrays)
     finally:
         figures._save = real_save
+    assert tuple(name for _, name in seen) == figures.FIGURES
     fig = dict((name, f) for f, name in seen)["errors.png"]
     assert len([ax for ax in fig.axes if ax.get_visible()]) == 2 * len(spec.edges)
     assert len(fig.legends) == 1 and len(fig.legends[0].get_texts()) == 3
     for ax in fig.axes:
         assert ax.get_legend() is None
     plt.close("all")
+
+
+def test_every_runner_help_and_outputs_page_name_every_figure() -> None:
+    """formation-headless and formation-analyze --help, docs/outputs.md and docs/bags.md name each figure."""
+    from formation_bag.parsers import analyze_parser
+    from formation_sim.cli.headless import build_parser
+    from formation_sim.views.figures import FIGURES
+    from formation_sim.views.foxglove_layout import LAYOUT_NAME
+
+    repo = Path(__file__).resolve().parents[2]
+    texts = {
+        "formation-headless --help": build_parser().format_help(),
+        "formation-analyze --help": analyze_parser().format_help(),
+        "docs/outputs.md": (repo / "docs" / "outputs.md").read_text(encoding="utf-8"),
+        "docs/bags.md": (repo / "docs" / "bags.md").read_text(encoding="utf-8"),
+    }
+    missing = [(where, name) for where, text in texts.items() for name in (*FIGURES, LAYOUT_NAME) if name not in text]
+    assert not missing

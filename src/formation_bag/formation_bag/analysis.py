@@ -2,8 +2,8 @@
 
 From ``/formation/ground_truth`` it recomputes every e_k and ψ_k and checks every funnel with
 the same :class:`formation_sim.core.recorder.RunRecorder` the headless runner and the simulator use,
-so the outputs have the format of docs/outputs.md (summary.json, trajectory.npz, errors.png,
-orientation_errors.png, inputs.png). Per ground-truth sample (stamp t_k) it uses:
+so the outputs have the format of docs/outputs.md (summary.json, trajectory.npz, the figures and
+the Foxglove layout). Per ground-truth sample (stamp t_k) it uses:
 
 - u: the wrench each agent published with stamp t_k; if the bag misses it (a recorder that matched
   an agent late), the re-run's wrench for t_k (equal to the agent's on every recorded step), else

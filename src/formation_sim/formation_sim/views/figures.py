@@ -31,6 +31,8 @@ from formation_agent.controller import AgentController
 from formation_msgs_py import funnels
 from formation_msgs_py.spec import FormationSpec, agent_view
 
+#: the files :func:`plot_run` writes, in order
+FIGURES = ("errors.png", "orientation_errors.png", "inputs.png", "velocity_errors.png")
 VELOCITY_LABELS = ("$v_x$", "$v_y$", "$v_z$", r"$\omega_x$", r"$\omega_y$", r"$\omega_z$")
 COMPONENT_COLOURS = ("C0", "C1", "C2")
 ZOOM_FROM = 0.5  # the insets show the second half of the run, over which they sit

@@ -168,8 +168,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.action == "env":
         env = discovery_client_environment({}, spec, super_client=args.super_client)
         print("\n".join(f"export {k}={shlex.quote(v)}" for k, v in env.items()))
-        if not args.super_client:
-            print("unset ROS_SUPER_CLIENT ROS_STATIC_PEERS")
+        print("unset ROS_STATIC_PEERS" + ("" if args.super_client else " ROS_SUPER_CLIENT"))
         return 0
     if not cmd:
         p.error("serve needs the command after --")

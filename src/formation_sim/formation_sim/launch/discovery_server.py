@@ -81,15 +81,27 @@ def server_command(spec: Discovery) -> list[str]:
     return [str(server_executable()), "-i", "0", "-l", spec.host, "-p", str(spec.port)]
 
 
-def udp_port_bound(port: int) -> bool:
-    """True if some local UDP socket is bound to ``port`` (from /proc/net/udp{,6})."""
+def udp_port_bound(port: int, pid: int | None = None) -> bool:
+    """True if a local UDP socket (of process ``pid``, if given) is bound to ``port`` (/proc/net/udp{,6})."""
+    inodes: set[str] | None = None
+    if pid is not None:
+        inodes = set()
+        try:
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                target = os.readlink(fd)
+                if target.startswith("socket:["):
+                    inodes.add(target[8:-1])
+        except OSError:
+            return False  # gone
     for table in ("/proc/net/udp", "/proc/net/udp6"):
         try:
             lines = Path(table).read_text().splitlines()[1:]
         except OSError:
             continue
-        if any(int(line.split()[1].rsplit(":", 1)[1], 16) == port for line in lines):
-            return True
+        for line in lines:
+            fields = line.split()
+            if int(fields[1].rsplit(":", 1)[1], 16) == port and (inodes is None or fields[9] in inodes):
+                return True
     return False
 
 
@@ -97,7 +109,7 @@ def wait_listening(proc: subprocess.Popen, spec: Discovery, log: Path | None, ti
     """Return once the server listens on its port; DiscoveryServerError if it exits or times out first."""
     assert spec.port is not None
     deadline = time.monotonic() + timeout
-    while not udp_port_bound(spec.port):
+    while not udp_port_bound(spec.port, proc.pid):
         if proc.poll() is not None:
             tail = log.read_text(errors="replace").strip().splitlines()[-3:] if log and log.exists() else []
             raise DiscoveryServerError(

@@ -145,7 +145,7 @@ def serve(spec: Discovery, cmd: Sequence[str]) -> int:
         server_command(spec),
         env=server_environment(dict(os.environ)),
         stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
+        stdout=sys.stderr,  # its banner, or why it could not start
         start_new_session=True,
         preexec_fn=die_with_parent,
     )

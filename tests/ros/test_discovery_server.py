@@ -5,6 +5,7 @@ through formation-launch and through sim.sh/agent.sh; the server is stopped with
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import pytest
 from ros_helpers import BIN, PAPER, REPO, assert_equals_headless, processes_mentioning, read_log
 
 from formation_msgs_py.spec import load_formation
+from formation_sim.launch.dds_env import netns_available
 from formation_sim.launch.discovery_server import free_udp_port, udp_port_bound
 
 
@@ -107,3 +109,39 @@ def test_agent_sh_refuses_discovery_server_with_secure(tmp_path: Path) -> None:
     )
     assert r.returncode == 2, r.stderr
     assert "--discovery server cannot be combined with --secure" in r.stderr
+
+
+def _launch_without_multicast(env: dict[str, str], out: Path, discovery: str) -> subprocess.CompletedProcess:
+    """formation-launch in a private network namespace where every multicast packet is dropped
+    (iptables; Fast DDS sends its announcements through the loopback whatever its flags and routes):
+    the launcher's namespace settings (SUBNET discovery, UDP only) are taken as they are."""
+    drop = "iptables -A OUTPUT -d 224.0.0.0/4 -j DROP && iptables -A INPUT -d 224.0.0.0/4 -j DROP"
+    script = f'ip link set lo up && {drop} && exec "$@"'
+    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd += ["--duration", "0.02", "--record-rate", "10000", "--discovery", discovery, "--discovery-timeout", "10"]
+    env = {**env, "FORMATION_IN_NETNS": "1"}
+    return subprocess.run(
+        ["unshare", "-n", "sh", "-c", script, "sh", *cmd],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        start_new_session=True,
+    )
+
+
+@pytest.mark.skipif(
+    netns_available() is not None or shutil.which("iptables") is None,
+    reason=f"needs network namespaces ({netns_available() or 'available'}) and iptables",
+)
+def test_without_multicast_a_server_works_and_simple_discovery_matches_nothing(
+    ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    """On a loopback that carries no multicast, simple discovery ends with exit 3 naming the unmatched
+    agents, while the same run through a discovery server (unicast) equals headless (≤ 1e-9)."""
+    simple = _launch_without_multicast(ros_env, tmp_path / "simple", "simple")
+    assert simple.returncode == 3, simple.stdout + simple.stderr
+    assert "not matched within 10 s" in simple.stdout + simple.stderr
+    server = _launch_without_multicast(ros_env, tmp_path / "server", "server")
+    assert server.returncode == 0, server.stdout + server.stderr
+    assert_equals_headless(tmp_path / "server" / "trajectory.npz", 0.02)

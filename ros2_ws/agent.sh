@@ -2,7 +2,7 @@
 # Start one agent process alone (multi-host deployments: one agent per machine or container).
 #
 #   ros2_ws/agent.sh FILE AGENT_ID [--network host|lan] [--secure KEYS [--hosts FILE] [--port-base N]]
-#                    [--ros-args -p NAME:=VALUE ...]
+#                    [--discovery simple|server[:HOST:PORT]] [--ros-args -p NAME:=VALUE ...]
 #
 # Runs formation-agent with formation_file:=FILE and agent_id:=AGENT_ID (node
 # /agent_<ID>/formation_agent, use_sim_time:=true): it subscribes to /agent_<ID>/velocity and its
@@ -13,7 +13,8 @@
 # ROS_AUTOMATIC_DISCOVERY_RANGE is set) or --network lan (SUBNET, the ROS default: multicast on
 # the LAN); ROS_STATIC_PEERS adds unicast hosts. --secure KEYS: TLS over TCP only, with the key
 # agent_<ID> of formation-keys init KEYS (--hosts: where each process runs). docs/security.md.
-# Environment: ROS_DOMAIN_ID (default 0). See docs/ros2.md.
+# --discovery server[:HOST:PORT]: a client of the discovery server that sim.sh started on HOST:PORT
+# (default 127.0.0.1:11811): no multicast. Environment: ROS_DOMAIN_ID (default 0). See docs/ros2.md.
 # Exit status: 0 stopped by a signal, 2 invalid file, agent id, option or parameter.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

@@ -13,7 +13,8 @@
 # Log times are simulation time in lockstep.
 # Network: --network host (default: LOCALHOST unless ROS_AUTOMATIC_DISCOVERY_RANGE is set) or lan;
 # --secure KEYS [--hosts FILE] joins a secure run with the key 'recorder' (needs --formation FILE:
-# the ports follow its agents; docs/security.md).
+# the ports follow its agents; docs/security.md); --discovery server[:HOST:PORT] joins a run whose
+# simulator started a discovery server there (as a super client: it sees the whole graph).
 # All options: formation-record --help; user guide: docs/bags.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

@@ -6,7 +6,9 @@
 #
 # Waits for a subscriber before it starts, shows progress once a second. Replaying a run's
 # relative poses and velocities into an agent (agent.sh FILE ID) re-runs that agent live.
-# ROS_AUTOMATIC_DISCOVERY_RANGE defaults to LOCALHOST (set it to SUBNET to reach other hosts).
+# Network: --network host (default: LOCALHOST unless ROS_AUTOMATIC_DISCOVERY_RANGE is set) or lan;
+# --discovery server[:HOST:PORT]: a client of the discovery server at HOST:PORT (default 127.0.0.1:11811),
+# e.g. one that sim.sh --discovery server started.
 # All options: formation-replay --help; user guide: docs/bags.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -17,5 +19,7 @@ case "${1:-}" in
     exec "$ROOT/.venv/bin/formation-replay" --help ;;
 esac
 "$ROOT/ros2_ws/setup.sh"
-export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
-exec "$ROOT/.venv/bin/formation-replay" "$@"
+# shellcheck source=lib/network.sh
+. "$ROOT/ros2_ws/lib/network.sh"
+formation_network_options replay "" "$@" || exit 2
+exec "$ROOT/.venv/bin/formation-replay" "${REST[@]+"${REST[@]}"}"

@@ -12,7 +12,8 @@
 # orientation_errors.png, inputs.png, velocity_errors.png, logs/, bag/ (unless --no-record) and,
 # with --animate, animation.gif (docs/outputs.md).
 # Discovery stays on this host: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless set; a free
-# ROS_DOMAIN_ID is picked unless set; runs above 30 processes use a private network namespace.
+# ROS_DOMAIN_ID is picked unless set; runs above 30 processes use a private network namespace, unless
+# --discovery server: every process a client of a Fast DDS discovery server the launcher starts.
 # --headless runs the same formation in one process without ROS: formation-headless FILE with the
 # other options (see formation-headless --help).
 # Verdict PASS / FAIL / INCOMPLETE (with the reason) in the last lines and OUT/summary.json. Exit status:

@@ -113,9 +113,13 @@ fi
 # load (team_step, agent_step, rkmk4_step, relative_poses, measured_velocity_into). The editable
 # sources are byte-compiled too: under PYTHONDONTWRITEBYTECODE every process would otherwise compile
 # them again (~0.2 s of each start); a stale .pyc is ignored (Python checks the source's mtime).
+# Without src/ (the container image's dependency layer copies ros2_ws/ only) there is nothing to compile.
 NUMBA_STAMP="$VENV/.stamp-numba"
-numba_hash="$(find "$ROOT/src" -name '*.py' -not -path '*/.*' | LC_ALL=C sort | { mapfile -t f; hash_files "${f[@]}"; })"
-if [ "$FORCE" = 1 ] || [ "$(cat "$NUMBA_STAMP" 2>/dev/null || true)" != "$numba_hash" ]; then
+numba_hash=""
+if [ "${#pkgs[@]}" -gt 0 ]; then
+  numba_hash="$(find "$ROOT/src" -name '*.py' -not -path '*/.*' | LC_ALL=C sort | { mapfile -t f; hash_files "${f[@]}"; })"
+fi
+if [ -n "$numba_hash" ] && { [ "$FORCE" = 1 ] || [ "$(cat "$NUMBA_STAMP" 2>/dev/null || true)" != "$numba_hash" ]; }; then
   say "compiling the closed-loop kernels into numba's cache (once per change of src/, ~15-25 s)…"
   find "$ROOT/src" -path '*/__pycache__/*' \( -name '*.nbi' -o -name '*.nbc' \) -delete
   "$VENV/bin/python" -m compileall -q "$ROOT/src" >/dev/null || say "warning: byte-compiling src/ failed"

@@ -9,6 +9,9 @@
 # and writes OUT (default out/<formation>-ros2-<mode>). All options: formation-sim --help (below).
 # Network: --network host (default: this machine only), --network lan, --secure KEYS (key
 # 'simulator'), --hosts, --port-base as for agent.sh (agent.sh --help, docs/security.md).
+# --discovery server[:HOST:PORT]: starts a Fast DDS discovery server listening on HOST:PORT (default
+# 127.0.0.1:11811; across machines an address the agents reach), runs the simulator as its client and
+# stops the server when the simulator exits; every agent.sh/record.sh takes the same --discovery.
 # Environment: ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS as for agent.sh.
 # Exit status: 0 PASS, 1 FAIL, 2 invalid, 3 a process died or an agent stopped answering, 4 incomplete, 130 interrupted.
 set -euo pipefail
@@ -24,4 +27,8 @@ esac
 # shellcheck source=lib/network.sh
 . "$ROOT/ros2_ws/lib/network.sh"
 formation_network_options simulator "${1:-}" "$@" || exit 2  # FILE comes first
+if [ "$DISCOVERY" != simple ]; then
+  exec "$ROOT/.venv/bin/python" -m formation_sim.launch.discovery_server serve "$DISCOVERY" -- \
+    "$ROOT/.venv/bin/formation-sim" "${REST[@]+"${REST[@]}"}"
+fi
 exec "$ROOT/.venv/bin/formation-sim" "${REST[@]+"${REST[@]}"}"

@@ -172,3 +172,22 @@ def test_secure_compose_gives_each_service_only_its_own_key(tmp_path: Path) -> N
     assert keyfiles == ["keys/agent_3.key", "keys/agent_3.pem", "keys/ca.pem"]
     assert all(v.endswith(":ro") for v in agent3["volumes"])
     assert main([str(PAPER), "--out", str(out), "--host-network", "--secure", str(keys), "--force"]) == 2
+
+
+def test_discovery_server_makes_sim_sh_serve_and_every_agent_its_client(tmp_path: Path) -> None:
+    """--discovery server: sim.sh starts the server on the service 'sim' (127.0.0.1 with --host-network),
+    every agent.sh joins it on Fast DDS's default port; --secure with it is refused (exit 2)."""
+    out = tmp_path / "compose.yaml"
+    assert main([str(PAPER), "--out", str(out), "--context", "none", "--discovery", "server"]) == 0
+    s = services(out)
+    assert s["sim"]["command"][-2:] == ["--discovery", "server:sim:11811"]
+    assert all(s[f"agent_{i}"]["command"][3:] == ["--discovery", "server:sim:11811"] for i in range(1, 6))
+    args = [str(PAPER), "--out", str(out), "--context", "none", "--host-network", "--force"]
+    assert main([*args, "--discovery", "server"]) == 0
+    assert services(out)["agent_2"]["command"][3:] == ["--discovery", "server:127.0.0.1:11811"]
+    assert main([*args, "--discovery", "server:10.1.2.3:7000"]) == 0
+    assert services(out)["sim"]["command"][-1] == "server:10.1.2.3:7000"
+    assert main([*args, "--discovery", "simple"]) == 0
+    assert "--discovery" not in out.read_text()
+    keys = ["--secure", str(tmp_path / "keys"), "--discovery", "server"]
+    assert main([str(PAPER), "--out", str(out), "--context", "none", "--force", *keys]) == 2

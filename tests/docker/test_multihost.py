@@ -219,6 +219,24 @@ def test_paper_scenario_across_hosts_equals_one_host(
 
 
 @needs_deployment
+def test_discovery_server_scenario_across_hosts_equals_one_host(
+    private_network: type[PrivateNetwork],
+    processes: Processes,
+    ros_env: Callable[..., dict[str, str]],
+    one_host_runs: dict[str, Path],
+    tmp_path: Path,
+) -> None:
+    """sim.sh --discovery server:ADDR:PORT starts the server on the simulator's host, agent.sh joins it
+    from five others, on a network without multicast: exactly the run of one host."""
+    net = private_network.create(NAMES, multicast=False)
+    server = f"server:{net.host('sim').address}:11811"
+    multi = tmp_path / "server"
+    env = ros_env(FASTDDS_BUILTIN_TRANSPORTS="UDPv4")  # every message crosses eth0
+    run_deployment(processes, multi, env, {h.name: h.netns for h in net.hosts}, extra=("--discovery", server))
+    assert_same_run(multi, one_host_runs["ros"])
+
+
+@needs_deployment
 def test_secure_scenario_across_hosts_equals_one_host(
     private_network: type[PrivateNetwork],
     processes: Processes,

@@ -144,3 +144,36 @@ def test_preflight_refuses_what_cannot_run(script, extra, message, tmp_path) -> 
     )
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert "Traceback" not in r.stderr + r.stdout
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("simple", options.Discovery()),
+        ("server", options.Discovery("server")),
+        ("server:10.0.0.5:11811", options.Discovery("server", "10.0.0.5", 11811)),
+        ("server:sim:7000", options.Discovery("server", "sim", 7000)),
+    ],
+)
+def test_discovery_values(text: str, expected: options.Discovery) -> None:
+    """--discovery takes simple, server and server:HOST:PORT; its text form reads back the same."""
+    parsed = options.discovery(text)
+    assert parsed == expected
+    if parsed.port is not None:
+        assert options.discovery(str(parsed)) == parsed
+        assert parsed.address() == text.removeprefix("server:")
+
+
+@pytest.mark.parametrize("text", ["multicast", "server:", "server:host", "server::11811", "server:h:0", "server:h:x"])
+def test_bad_discovery_is_exit_2_naming_the_value(text: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """A --discovery value that is none of the three forms ends formation-launch with exit 2, naming it."""
+    with pytest.raises(SystemExit) as exc:
+        options.parse(options.LAUNCH, _parser(options.LAUNCH), [str(PAPER), "--discovery", text])
+    assert exc.value.code == 2
+    assert repr(text) in capsys.readouterr().err
+
+
+def test_server_without_port_uses_fast_dds_default_outside_the_launcher() -> None:
+    """A server given without a port is reached on Fast DDS's default port 11811 (the launcher picks its own)."""
+    assert options.Discovery("server").address() == "127.0.0.1:11811"
+    assert str(options.Discovery()) == "simple"

@@ -20,17 +20,20 @@ PAPER = REPO / "config" / "paper_5agents.yaml"
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
 
 
-def assert_equals_headless(trajectory: Path, duration: float) -> dict:
-    """A lockstep run of the paper preset recorded at 10 kHz (``trajectory.npz``) equals run_headless
-    sampled at 10 kHz: the same sample times, |Δe|, |Δψ| ≤ 1e-9 (float round-off of the relative
-    rotations' quaternion round trip, ~1e-13 in practice). Returns the headless arrays."""
+def assert_equals_headless(
+    trajectory: Path, duration: float, *, formation: Path = PAPER, record_rate: float = 10000.0
+) -> dict:
+    """A lockstep run of ``formation`` (default the paper preset) recorded at ``record_rate`` [Hz]
+    (``trajectory.npz``) equals run_headless sampled alike: the same sample times, |Δe|, |Δψ| ≤ 1e-9
+    (float round-off of the relative rotations' quaternion round trip, ~1e-13 in practice). Returns
+    the headless arrays."""
     import numpy as np
 
     from formation_msgs_py.spec import load_formation
     from formation_sim.cli.headless import run_headless
 
     ros = np.load(trajectory)
-    spec = load_formation(PAPER, overrides={"duration": duration, "record_rate": 10000.0})
+    spec = load_formation(formation, overrides={"duration": duration, "record_rate": record_rate})
     ref = run_headless(spec, controller_mode="sampled").recorder.arrays()
     np.testing.assert_array_equal(ros["t"], ref["t"])
     assert np.max(np.abs(ros["e"] - ref["e"])) <= 1e-9

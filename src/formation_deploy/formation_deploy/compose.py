@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from formation_msgs_py.errors import FormationError, FormationSpecError
+from formation_msgs_py.options import DEFAULT_DISCOVERY_PORT, Discovery, discovery
 
 if TYPE_CHECKING:  # numpy: not for --help
     from formation_msgs_py.spec import FormationSpec
@@ -61,6 +62,9 @@ class ComposeOptions:
     #: addresses the processes' TLS profiles name
     keys: str | None = None
     subnet: str = DEFAULT_SUBNET
+    #: a Fast DDS discovery server that sim.sh starts and every service is a client of, or None:
+    #: simple discovery (multicast on the compose network)
+    discovery: Discovery | None = None
 
 
 def agent_service(agent_id: str) -> str:
@@ -85,13 +89,45 @@ def _flow(items: Sequence[str]) -> str:
 
 def render(spec: FormationSpec, options: ComposeOptions, *, source_label: str) -> str:
     """The compose file's text (deterministic: no time stamps, no absolute host paths)."""
+    _check_options(options)
+    services = _service_names(spec)
+    in_image = f"{FORMATION_MOUNT}/{Path(options.formation).name}"
+    secure = _SecureServices(spec.agent_ids, options) if options.keys is not None else None
+    lines = [
+        *_header(spec, services, source_label),
+        *_common_service(options, in_image),
+        "",
+        "services:",
+        *_sim_service(spec, options, in_image, services, secure),
+        *(
+            line
+            for agent_id, service in zip(spec.agent_ids, services)
+            for line in _agent_service(agent_id, service, options, in_image, secure)
+        ),
+        *(_secure_network(options) if secure is not None else []),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _check_options(options: ComposeOptions) -> None:
+    """Refuse combinations of options that cannot work together (ComposeError says why)."""
+    if options.host_network and options.keys is not None:
+        raise ComposeError("--secure needs the compose network (fixed addresses): not with --host-network")
+    if options.keys is not None and options.discovery is not None and options.discovery.server:
+        raise ComposeError("--discovery server cannot be combined with --secure (docs/security.md)")
+
+
+def _service_names(spec: FormationSpec) -> list[str]:
+    """The agents' service names, in the formation file's order (distinct, or ComposeError)."""
     services = [agent_service(a) for a in spec.agent_ids]
     if len(set(services)) != len(services):
         raise ComposeError(f"agent ids {', '.join(spec.agent_ids)} give duplicate service names (case-insensitive)")
-    file_name = Path(options.formation).name
-    in_image = f"{FORMATION_MOUNT}/{file_name}"
-    run_out = f"{OUT_MOUNT}/{spec.name}-compose"
-    lines = [
+    return services
+
+
+def _header(spec: FormationSpec, services: Sequence[str], source_label: str) -> list[str]:
+    """The generated-file mark, how to use the file, and the compose project's name."""
+    return [
         f"{MARK} from {source_label}: do not edit, regenerate with",
         f"#   formation-compose {source_label} --out <this file>",
         f"# Formation {spec.name!r}: simulator + {len(services)} agents ({', '.join(spec.agent_ids)}), one image.",
@@ -103,10 +139,12 @@ def render(spec: FormationSpec, options: ComposeOptions, *, source_label: str) -
         "# ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS. Across machines, start single services",
         "# on each (docker compose up sim / agent_3 …): docs/docker.md.",
         f"name: {_q('formation-' + re.sub(r'[^a-z0-9_-]', '-', spec.name.lower()))}",
-        "",
-        "x-formation: &formation",
-        f"  image: {_q('${FORMATION_IMAGE:-' + options.image + '}')}",
     ]
+
+
+def _common_service(options: ComposeOptions, in_image: str) -> list[str]:
+    """``x-formation``: what every service shares (image, build, stop signal, environment, networking)."""
+    lines = ["", "x-formation: &formation", f"  image: {_q('${FORMATION_IMAGE:-' + options.image + '}')}"]
     if options.context is not None:
         lines += [
             "  build:",
@@ -129,13 +167,29 @@ def render(spec: FormationSpec, options: ComposeOptions, *, source_label: str) -
         # Containers on the host's network look like one host to Fast DDS, which then uses
         # shared memory between them: they must share the IPC namespace (/dev/shm) too.
         lines += ["  network_mode: host", "  ipc: host"]
-    if options.host_network and options.keys is not None:
-        raise ComposeError("--secure needs the compose network (fixed addresses): not with --host-network")
-    secure = _SecureServices(spec.agent_ids, options) if options.keys is not None else None
-    lines += ["", "services:", "  sim:", "    <<: *formation", "    hostname: sim"]
-    sim_cmd = ["sim.sh", in_image, "--out", run_out, *options.sim_args]
-    lines.append(f"    command: {_flow(sim_cmd + (secure.args if secure else []))}")
-    lines += [
+    return lines
+
+
+def _discovery_args(options: ComposeOptions) -> list[str]:
+    """``--discovery server:HOST:PORT`` of sim.sh (which starts the server) and agent.sh, or none."""
+    return ["--discovery", str(options.discovery)] if options.discovery is not None else []
+
+
+def _sim_service(
+    spec: FormationSpec,
+    options: ComposeOptions,
+    in_image: str,
+    services: Sequence[str],
+    secure: _SecureServices | None,
+) -> list[str]:
+    """Service ``sim``: sim.sh FILE, writing its run directory into the mounted results directory."""
+    cmd = ["sim.sh", in_image, "--out", f"{OUT_MOUNT}/{spec.name}-compose", *options.sim_args]
+    cmd += _discovery_args(options) + (secure.args if secure else [])
+    return [
+        "  sim:",
+        "    <<: *formation",
+        "    hostname: sim",
+        f"    command: {_flow(cmd)}",
         "    volumes:",
         f"      - {_q(options.formation + ':' + in_image + ':ro')}",
         f"      - {_q(options.results + ':' + OUT_MOUNT)}",
@@ -143,31 +197,40 @@ def render(spec: FormationSpec, options: ComposeOptions, *, source_label: str) -
         "    depends_on: " + _flow(services),
         *(secure.network("simulator") if secure else []),
     ]
-    for agent_id, service in zip(spec.agent_ids, services):
+
+
+def _agent_service(
+    agent_id: str, service: str, options: ComposeOptions, in_image: str, secure: _SecureServices | None
+) -> list[str]:
+    """Service ``agent_<id>``: agent.sh FILE ID (with its own key pair and address in secure mode)."""
+    cmd = ["agent.sh", in_image, agent_id, *_discovery_args(options), *(secure.args if secure else [])]
+    lines = [
+        f"  {service}:",
+        "    <<: *formation",
+        f"    hostname: {_q(service.replace('_', '-'))}",
+        f"    command: {_flow(cmd)}",
+    ]
+    if secure is not None:
         name = f"agent_{agent_id}"
         lines += [
-            f"  {service}:",
-            "    <<: *formation",
-            f"    hostname: {_q(service.replace('_', '-'))}",
-            f"    command: {_flow(['agent.sh', in_image, agent_id, *(secure.args if secure else [])])}",
+            "    volumes:",
+            f"      - {_q(options.formation + ':' + in_image + ':ro')}",
+            *secure.volumes(name),
+            *secure.network(name),
         ]
-        if secure is not None:
-            lines += [
-                "    volumes:",
-                f"      - {_q(options.formation + ':' + in_image + ':ro')}",
-                *secure.volumes(name),
-                *secure.network(name),
-            ]
-    if secure is not None:
-        lines += [
-            "",
-            "networks:",
-            "  formation:",
-            "    ipam:",
-            "      config:",
-            f"        - subnet: {_q(options.subnet)}",
-        ]
-    return "\n".join(lines) + "\n"
+    return lines
+
+
+def _secure_network(options: ComposeOptions) -> list[str]:
+    """Secure mode's private network, whose subnet holds the services' fixed addresses."""
+    return [
+        "",
+        "networks:",
+        "  formation:",
+        "    ipam:",
+        "      config:",
+        f"        - subnet: {_q(options.subnet)}",
+    ]
 
 
 class _SecureServices:
@@ -217,6 +280,7 @@ def generate(
     sim_args: Sequence[str] = (),
     keys: Path | None = None,
     subnet: str = DEFAULT_SUBNET,
+    discovery_server: Discovery | None = None,
 ) -> str:
     """Load ``file`` (validated) and render the compose file that will live at ``out``."""
     from formation_msgs_py.spec import load_formation
@@ -234,11 +298,22 @@ def generate(
         sim_args=tuple(sim_args),
         keys=_rel(keys, base) if keys is not None else None,
         subnet=subnet,
+        discovery=_compose_discovery(discovery_server, host_network),
     )
     label = _rel(file, context) if context is not None else file.name
     if label.startswith("../"):
         label = file.name
     return render(spec, options, source_label=label)
+
+
+def _compose_discovery(given: Discovery | None, host_network: bool) -> Discovery | None:
+    """The discovery server of the services: ``server`` alone is the simulator's service ``sim`` (or
+    127.0.0.1 on the host's network) on Fast DDS's default port; ``simple`` is no server."""
+    if given is None or not given.server:
+        return None
+    if given.port is not None:
+        return given
+    return Discovery("server", "127.0.0.1" if host_network else "sim", DEFAULT_DISCOVERY_PORT)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -282,6 +357,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="secure mode (docs/security.md): every service gets ca.pem and its own key pair from KEYS "
         "(formation-keys init), a fixed address on a private compose network, and sim.sh/agent.sh --secure",
     )
+    p.add_argument(
+        "--discovery",
+        type=discovery,
+        default=Discovery(),
+        metavar="simple|server[:HOST:PORT]",
+        help="server: sim.sh starts a Fast DDS discovery server on HOST:PORT (default: the service 'sim', "
+        f"port {DEFAULT_DISCOVERY_PORT}) and every service is its client (no multicast; docs/ros2.md)",
+    )
     p.add_argument("--subnet", default=DEFAULT_SUBNET, help=f"with --secure: the network's subnet ({DEFAULT_SUBNET})")
     p.add_argument("--check", action="store_true", help="do not write: exit 1 if --out differs from the output")
     p.add_argument("--force", action="store_true", help="overwrite --out even if formation-compose did not write it")
@@ -310,6 +393,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             sim_args=args.sim_arg,
             keys=args.secure,
             subnet=args.subnet,
+            discovery_server=args.discovery,
         )
     except (FormationSpecError, ComposeError) as exc:
         print(f"formation-compose: error: {exc}", file=sys.stderr)

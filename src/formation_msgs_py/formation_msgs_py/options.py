@@ -65,6 +65,45 @@ def seed(text: str) -> int:
     return x
 
 
+#: the port of a discovery server given without one to sim.sh, agent.sh, … (Fast DDS's own default)
+DEFAULT_DISCOVERY_PORT = 11811
+
+
+@dataclass(frozen=True)
+class Discovery:
+    """How the DDS participants of a run find each other: ``simple`` (the ROS default: each participant
+    announces itself by multicast, or to the peers the environment names) or ``server`` (each is a
+    client of one Fast DDS discovery server at ``host:port``: unicast only; ``port`` None: the
+    launcher picks a free one, other commands use :data:`DEFAULT_DISCOVERY_PORT`)."""
+
+    mode: str = "simple"
+    host: str = "127.0.0.1"
+    port: int | None = None
+
+    @property
+    def server(self) -> bool:
+        return self.mode == "server"
+
+    def address(self) -> str:
+        """``HOST:PORT`` as ``ROS_DISCOVERY_SERVER`` takes it."""
+        return f"{self.host}:{self.port or DEFAULT_DISCOVERY_PORT}"
+
+    def __str__(self) -> str:
+        return f"server:{self.address()}" if self.server else "simple"
+
+
+def discovery(text: str) -> Discovery:
+    """``simple``, ``server`` or ``server:HOST:PORT`` (HOST an IPv4 address or a host name)."""
+    if text in ("simple", "server"):
+        return Discovery(text)
+    host, sep, port = text.removeprefix("server:").rpartition(":")
+    if not text.startswith("server:") or not sep or not host or ":" in host:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected simple, server or server:HOST:PORT")
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"{text!r}: the port must be an integer 1-65535, got {port!r}")
+    return Discovery("server", host, int(port))
+
+
 @dataclass(frozen=True)
 class Option:
     """One command-line option: ``kind`` is a converter, ``flag`` (store_true), or ``bool`` (--x/--no-x)."""
@@ -136,8 +175,12 @@ OPTIONS: tuple[Option, ...] = (
            "(formation-sim --bag). While recording, ground truth is published at every control step unless "
            "--ground-truth-rate is given, so that formation-analyze OUT/bag reproduces the run's summary",
            frozenset({LAUNCH}), "bool", True),
-    Option("--netns", "private network namespace: auto = when more than 30 DDS participants", frozenset({LAUNCH}),
-           str, "auto", ("auto", "on", "off")),
+    Option("--netns", "private network namespace: auto = when more than 30 DDS participants under simple discovery",
+           frozenset({LAUNCH}), str, "auto", ("auto", "on", "off")),
+    Option("--discovery", "simple (default: Fast DDS's announcements, multicast or LOCALHOST) or server[:HOST:PORT]: "
+           "the launcher starts a Fast DDS discovery server on HOST:PORT (default 127.0.0.1 and a free port) and "
+           "every process is its client: unicast only, no network namespace above 30 processes; not with --secure "
+           "(docs/ros2.md)", frozenset({LAUNCH}), discovery, Discovery()),
     Option("--scheduling", "Linux scheduling policy of the run's processes: normal (default) or batch: a process "
            "woken by a message waits for a free core instead of preempting the one running. On an otherwise idle "
            "machine batch costs ~11 %% less CPU per lockstep step; beside other busy processes it runs about "
@@ -188,6 +231,7 @@ class RunOptions:
     keys: Path | None = None
     record: bool = True
     netns: str = "auto"
+    discovery: Discovery = Discovery()
     scheduling: str = "normal"
     allow_low_rate: bool = False
     stop_on_violation: bool = False

@@ -1,5 +1,6 @@
 """The DDS environment of a run: a ROS_DOMAIN_ID nobody else uses, discovery kept on this host,
-and (for runs above Fast DDS's per-host participant limit) a private network namespace.
+and (for runs above Fast DDS's per-host participant limit) a private network namespace, or the
+environment of a client of a Fast DDS discovery server (:func:`discovery_client_environment`).
 
 Shared by ``formation-launch`` and the tests' allocator (tests/conftest.py): a domain is taken
 only if no local socket uses its port block *and* an exclusive ``flock`` on
@@ -18,6 +19,7 @@ from pathlib import Path
 from typing import IO
 
 from formation_msgs_py import errors
+from formation_msgs_py.options import Discovery
 
 #: the Fast DDS profile every non-secure process of a run loads (the file says what it sets and why)
 FASTDDS_PROFILE = Path(errors.__file__).with_name("fastdds_profile.xml")
@@ -111,4 +113,27 @@ def run_environment(base: dict[str, str], *, log_dir: Path) -> dict[str, str]:
     env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))  # secure mode sets its own per process
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(reserve_domain_id())
+    return env
+
+
+def discovery_client_environment(
+    base: dict[str, str], discovery: Discovery, *, super_client: bool = False
+) -> dict[str, str]:
+    """``base`` made the environment of a client of the discovery server ``discovery.address()``.
+
+    Fast DDS (2.14) turns every participant created with ``ROS_DISCOVERY_SERVER`` set into a client
+    of that server: it announces itself to the server only (unicast, no multicast) and learns from
+    it the participants whose topics match its own. ``ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT``
+    keeps rmw_fastrtps from adding its own LOCALHOST peers and multicast settings on top.
+    ``super_client``: ``ROS_SUPER_CLIENT=TRUE``, the client learns the whole graph (a recorder that
+    finds its topics on the graph, ``ros2 topic list``), not only what matches its own topics.
+    """
+    env = dict(base)
+    env["ROS_DISCOVERY_SERVER"] = discovery.address()
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
+    env.pop("ROS_STATIC_PEERS", None)  # peers of simple discovery: not used by a client
+    if super_client:
+        env["ROS_SUPER_CLIENT"] = "TRUE"
+    else:
+        env.pop("ROS_SUPER_CLIENT", None)
     return env

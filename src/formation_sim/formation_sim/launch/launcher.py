@@ -7,7 +7,9 @@ Recording (the default): the simulator writes OUT/bag itself (``formation-sim --
 crosses DDS twice, nothing is lost). The simulator's progress is relayed from its log. The run
 stops on completion, Ctrl-C, SIGTERM, SIGHUP or the death of a process (in realtime an agent's
 death is reported and the run goes on: the simulator zeroes that agent's wrench); the death is
-named. After the last step, the agents are stopped while the simulator writes OUT, then
+named. With ``--discovery server`` a Fast DDS discovery server (:mod:`formation_sim.launch.discovery_server`)
+is the run's first process and every other one its client; it is stopped with the others.
+After the last step, the agents are stopped while the simulator writes OUT, then
 OUT/summary.json is completed with the verdict of the whole run: the simulator's, made INCOMPLETE
 when a process died or the run was interrupted, and with every agent's own fault counts
 (``faults_file``: resets, refused measurements, missing poses). ``OUT/logs/processes.json`` lists every
@@ -30,10 +32,10 @@ from formation_agent.kernel_cache import compiled_pays
 from formation_msgs_py import options
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.faults import FaultLog
-from formation_msgs_py.options import OptionParser, RunOptions
+from formation_msgs_py.options import Discovery, OptionParser, RunOptions
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
 from formation_sim.core.preflight import preflight
-from formation_sim.launch import dds_env
+from formation_sim.launch import dds_env, discovery_server
 from formation_sim.launch.supervisor import Child, LogFollower, Supervisor
 
 if TYPE_CHECKING:
@@ -140,8 +142,12 @@ def _sim_args(args: RunOptions, out: Path, spec: FormationSpec) -> list[str]:
 class Launcher:
     """One run: starts the processes, relays progress, stops them, completes the summary."""
 
-    def __init__(self, spec: FormationSpec, args: RunOptions, out: Path, env: dict[str, str]) -> None:
+    def __init__(
+        self, spec: FormationSpec, args: RunOptions, out: Path, env: dict[str, str], discovery: Discovery | None = None
+    ) -> None:
         self.spec = spec
+        #: the discovery server this run starts (its address with the port), or None: simple discovery
+        self.discovery = discovery
         self.args = args
         self.out = out
         self.mode = args.mode or spec.simulation.mode
@@ -158,6 +164,13 @@ class Launcher:
     def on_signal(self, signum: int, _frame: Any) -> None:
         if self.signalled is None:
             self.signalled = signum
+
+    def start_discovery_server(self) -> None:
+        """The run's discovery server, listening before any client starts (raises DiscoveryServerError)."""
+        assert self.discovery is not None
+        self.sup.process_env["discovery_server"] = discovery_server.server_environment(self.sup.env)
+        server = self.sup.start("discovery_server", "discovery", discovery_server.server_command(self.discovery))
+        discovery_server.wait_listening(server.proc, self.discovery, server.log)
 
     def start_all(self) -> Child:
         spec, args = self.spec, self.args
@@ -229,7 +242,7 @@ class Launcher:
         """After the last step: SIGINT to the agents while the simulator writes OUT."""
         if self.interrupted or self.stop is not None:
             return  # done already, or stopping every process (interrupted, a process died)
-        others = [c for c in self.sup.alive() if c.role != "sim"]
+        others = [c for c in self.sup.alive() if c.role not in ("sim", "discovery")]  # the server stops last
         for c in others:
             c.signal(signal.SIGINT)
         self.interrupted = {c.name for c in others}
@@ -269,6 +282,15 @@ class Launcher:
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, self.on_signal)
         self.timing["start"] = time.monotonic()
+        if self.discovery is not None:
+            try:
+                self.start_discovery_server()
+            except discovery_server.DiscoveryServerError as exc:
+                self.stop = Incomplete(ExitCode.INCOMPLETE, f"nothing started: {exc}")
+                self.note(str(exc))
+                self.sup.stop(self.sup.children, STOP_GRACE, self.note)
+                self.timing["stop_from"] = self.timing["stopped"] = time.monotonic()
+                return
         sim = self.start_all()
         self.watch(sim)
         self.timing["stop_from"] = time.monotonic()
@@ -324,6 +346,7 @@ class Launcher:
         summary["launch"] = {
             "ros_domain_id": int(self.sup.env["ROS_DOMAIN_ID"]),
             "discovery_range": self.sup.env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
+            "discovery": str(self.discovery or Discovery()),
             "network_namespace": dds_env.in_netns(),
             "processes": len(self.sup.children),
             "scheduling": self.args.scheduling,
@@ -362,8 +385,18 @@ def main(argv: list[str] | None = None) -> int:
     mode = args.mode
     for msg in run.warnings:
         print(f"formation-launch: warning: {msg}", file=sys.stderr)
+    if args.discovery.server and args.secure:
+        print(
+            "formation-launch: INVALID: --discovery server with --secure: the secure transport is TLS over TCP "
+            "with every other transport off, and the discovery server listens on UDP; a client would either "
+            "reach it in clear text or not at all (docs/security.md). Use one or the other.",
+            file=sys.stderr,
+        )
+        return ExitCode.INVALID
     participants = len(spec.agents) + 1
-    want_netns = args.netns == "on" or (args.netns == "auto" and participants > dds_env.NETNS_THRESHOLD)
+    # a discovery server's clients do not announce themselves to one another: no per-host limit to avoid
+    crowded = participants > dds_env.NETNS_THRESHOLD and not args.discovery.server
+    want_netns = args.netns == "on" or (args.netns == "auto" and crowded)
     if not dds_env.in_netns() and want_netns:
         reason = dds_env.netns_available()
         if reason is not None:
@@ -384,6 +417,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-launch: INCOMPLETE: nothing started: {problem}", file=sys.stderr)
         return ExitCode.INCOMPLETE
     env = dds_env.run_environment(dict(os.environ), log_dir=out / "logs" / "ros")
+    discovery = None
+    if args.discovery.server:
+        discovery = discovery_server.with_port(args.discovery)
+        env = dds_env.discovery_client_environment(env, discovery)
     secure = None
     if args.secure:
         from formation_deploy.secure_transport import SecureRun, SecureTransportError, single_host_port_start
@@ -401,14 +438,14 @@ def main(argv: list[str] | None = None) -> int:
         f"formation-launch: {spec.name}: simulator + {len(spec.agents)} agent processes"
         f"{', recorded' if args.record else ''}, {mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
         f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, "
-        f"{transport or 'discovery ' + env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
+        f"{transport or _discovery_text(discovery, env)}"
         f"{' in a private network namespace' if dds_env.in_netns() else ''}; logs in {out / 'logs'}/",
         flush=True,
     )
     # room kept for the final summary and process table, should the disk fill up during the run
     reserve = out / ".space_reserve"
     reserve.write_bytes(b"\0" * RESERVE_BYTES)
-    launcher = Launcher(spec, args, out, env)
+    launcher = Launcher(spec, args, out, env, discovery)
     if secure is not None:
         launcher.sup.process_env = secure.environments
     try:
@@ -438,6 +475,12 @@ def main(argv: list[str] | None = None) -> int:
             report_animation(out, spec, dict(data))
     print(f"outputs in {out}/ (exit status {code})", flush=True)
     return code
+
+
+def _discovery_text(discovery: Discovery | None, env: dict[str, str]) -> str:
+    if discovery is None:
+        return f"discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
+    return f"discovery server {discovery.address()} ({discovery_server.SERVER})"
 
 
 def _default_out(spec: FormationSpec, mode: str) -> Path:

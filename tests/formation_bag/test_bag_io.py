@@ -173,7 +173,7 @@ def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:
 
 def test_classify_topics() -> None:
     """Topic names map to their meaning (docs/topics.md), also in a namespace."""
-    assert m.classify("/agent_3/relative_pose/agent_5") == m.TopicKind("relative_pose", m.TRANSFORM_STAMPED, "3", "5")
+    assert m.classify("/agent_3/relative_pose/agent_5") == m.TopicKind("relative_pose", m.POSE_STAMPED, "3", "5")
     assert m.classify("/agent_2/wrench").agent == "2"
     assert m.classify("/formation/ground_truth").kind == "ground_truth"
     assert m.classify("/run1/agent_2/velocity", "run1").kind == "velocity"

@@ -2,7 +2,8 @@
 
 Decoding uses the agent node's own decoders and CDR codecs (:mod:`formation_msgs_py.wire`, no
 ROS import), so a relative pose decoded here gives the controller exactly the numbers the agent
-node saw.
+node saw. Relative poses are geometry_msgs/PoseStamped; bags recorded when they were
+TransformStamped (same numbers, plus a child frame name) are still read.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from formation_msgs_py.bag.writer import typestore
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.wire import NS_PER_S, stamp_ns
 
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+#: the relative poses' type in bags recorded before they became PoseStamped (still read)
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
@@ -65,7 +68,7 @@ def classify(topic: str, namespace: str = "") -> TopicKind | None:
     if m := _RE_REL.match(rest):
         if m["ns"]:
             return None
-        return TopicKind("relative_pose", TRANSFORM_STAMPED, m["i"], m["j"])
+        return TopicKind("relative_pose", POSE_STAMPED, m["i"], m["j"])
     if (m := _RE_VEL.match(rest)) and not m["ns"]:
         return TopicKind("velocity", TWIST_STAMPED, m["i"])
     if (m := _RE_WRENCH.match(rest)) and not m["ns"]:
@@ -86,8 +89,8 @@ def formation_topics(agent_ids: Sequence[str], edges: Sequence[tuple[str, str]],
         out[absolute(topics.velocity(a), namespace)] = TWIST_STAMPED
         out[absolute(topics.wrench(a), namespace)] = WRENCH_STAMPED
     for tail, head in edges:
-        out[absolute(topics.relative_pose(tail, head), namespace)] = TRANSFORM_STAMPED
-        out[absolute(topics.relative_pose(head, tail), namespace)] = TRANSFORM_STAMPED
+        out[absolute(topics.relative_pose(tail, head), namespace)] = POSE_STAMPED
+        out[absolute(topics.relative_pose(head, tail), namespace)] = POSE_STAMPED
     return out
 
 
@@ -113,7 +116,8 @@ decode_poses = wire.poses_from_msg
 # -- fast decoding of the fixed-layout messages (little-endian CDR), same numbers as rosbags ---------
 
 # the nodes' codecs (formation_msgs_py.wire); decoding ignores the frame names
-_POSE_CODEC = wire.StampedCodec(["", ""], 7)
+_POSE_CODEC = wire.StampedCodec([""], 7)  # PoseStamped: header.frame_id, then position, orientation
+_OLD_POSE_CODEC = wire.StampedCodec(["", ""], 7)  # TransformStamped: frame_id and child_frame_id
 _SIX_CODEC = wire.StampedCodec([""], 6)
 
 
@@ -137,7 +141,7 @@ def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int,
     if kind == "clock":
         return wire.stamp_of(data), None
     if kind == "relative_pose":
-        stamp, values = _POSE_CODEC.decode(data)
+        stamp, values = (_OLD_POSE_CODEC if msgtype == TRANSFORM_STAMPED else _POSE_CODEC).decode(data)
         return stamp, wire.relative_pose_from_values(values)
     if kind in ("velocity", "wrench"):
         stamp, values = _SIX_CODEC.decode(data)
@@ -164,8 +168,7 @@ class Encoder:
         self.Quaternion = t["geometry_msgs/msg/Quaternion"]
         self.Point = t["geometry_msgs/msg/Point"]
         self.Pose = t["geometry_msgs/msg/Pose"]
-        self.Transform = t["geometry_msgs/msg/Transform"]
-        self.TransformStamped = t[TRANSFORM_STAMPED]
+        self.PoseStamped = t[POSE_STAMPED]
         self.Twist = t["geometry_msgs/msg/Twist"]
         self.TwistStamped = t[TWIST_STAMPED]
         self.Wrench = t["geometry_msgs/msg/Wrench"]
@@ -183,19 +186,17 @@ class Encoder:
     def clock(self, ns: int) -> bytes:
         return bytes(self.ts.serialize_cdr(self.Clock(clock=self.time(ns)), CLOCK))
 
-    def relative_pose(
-        self, ns: int, observer: str, target: str, p: Sequence[float], R: Sequence[Sequence[float]]
-    ) -> bytes:
+    def relative_pose(self, ns: int, observer: str, p: Sequence[float], R: Sequence[Sequence[float]]) -> bytes:
+        """PoseStamped in frame ``agent_<observer>``: position p (m) and orientation R of the neighbour."""
         x, y, z, w = quaternion_from_matrix(R)
-        msg = self.TransformStamped(
+        msg = self.PoseStamped(
             header=self.header(ns, topics.agent_frame(observer)),
-            child_frame_id=topics.agent_frame(target),
-            transform=self.Transform(
-                translation=self.Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                rotation=self.Quaternion(x=x, y=y, z=z, w=w),
+            pose=self.Pose(
+                position=self.Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                orientation=self.Quaternion(x=x, y=y, z=z, w=w),
             ),
         )
-        return bytes(self.ts.serialize_cdr(msg, TRANSFORM_STAMPED))
+        return bytes(self.ts.serialize_cdr(msg, POSE_STAMPED))
 
     def twist(self, ns: int, agent: str, v: Sequence[float]) -> bytes:
         v = [float(c) for c in v]

@@ -99,9 +99,9 @@ def write_run_bag(
                 pose = meas.relative_poses[i].get(j)
                 if pose is None:
                     continue
-                data = enc.relative_pose(stamp, i, j, pose[0], pose[1])
+                data = enc.relative_pose(stamp, i, pose[0], pose[1])
                 put(m.absolute(topics.relative_pose(i, j)), data)
-                received[i][j] = m.decode_relative_pose(m.deserialize(data, m.TRANSFORM_STAMPED))
+                received[i][j] = m.decode_relative_pose(m.deserialize(data, m.POSE_STAMPED))
             vels = []
             for idx, a in enumerate(ids):
                 data = enc.twist(stamp, a, meas.velocities[idx].tolist())

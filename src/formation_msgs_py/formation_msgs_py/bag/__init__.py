@@ -20,7 +20,7 @@ STAMPED_TYPES = frozenset(
     for pkg, name in (
         ("geometry_msgs", "TwistStamped"),
         ("geometry_msgs", "WrenchStamped"),
-        ("geometry_msgs", "TransformStamped"),
+        ("geometry_msgs", "PoseStamped"),
         ("geometry_msgs", "PoseArray"),
         ("rosgraph_msgs", "Clock"),
         ("diagnostic_msgs", "DiagnosticArray"),

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from formation_msgs_py.faults import FaultLog, fault_lines, write_json
+from formation_msgs_py.faults import FaultLog, fault_lines, write_atomic, write_json
 
 
 def test_every_fault_is_counted_with_its_first_and_last() -> None:
@@ -59,3 +60,18 @@ def test_write_json_is_strict_and_atomic(tmp_path: Path) -> None:
     write_json(path, {"nan": math.nan, "inf": np.float64(np.inf), "n": np.int64(3), "a": np.arange(2)})
     assert json.loads(path.read_text()) == {"nan": None, "inf": None, "n": 3, "a": [0, 1]}
     assert [p.name for p in tmp_path.iterdir()] == ["x.json"]  # no temporary file left
+
+
+def test_write_atomic_follows_the_umask(tmp_path: Path) -> None:
+    """Outputs get 0666 & ~umask like any new file (mkstemp alone gives 0600); an explicit mode wins."""
+    old = os.umask(0o027)
+    try:
+        write_json(tmp_path / "a.json", {"x": 1})
+        os.umask(0o002)
+        write_atomic(tmp_path / "b.bin", b"x")
+        write_atomic(tmp_path / "c.bin", b"x", mode=0o600)
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o640
+    assert (tmp_path / "b.bin").stat().st_mode & 0o777 == 0o664
+    assert (tmp_path / "c.bin").stat().st_mode & 0o777 == 0o600

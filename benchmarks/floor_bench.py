@@ -93,9 +93,7 @@ def agent(formation: Path, agent_id: str, steps: int, warmup: int, clock: bool) 
     subs = [node.create_subscription(TwistStamped, topics.velocity(agent_id), on_message, qos.CONTROL, raw=True)]
     for j in view.neighbours:
         subs.append(
-            node.create_subscription(
-                PoseStamped, topics.relative_pose(agent_id, j), on_message, qos.CONTROL, raw=True
-            )
+            node.create_subscription(PoseStamped, topics.relative_pose(agent_id, j), on_message, qos.CONTROL, raw=True)
         )
     executor = EventsExecutor(context=node.context)
     executor.add_node(node)

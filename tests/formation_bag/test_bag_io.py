@@ -216,3 +216,17 @@ def test_fast_ground_truth_decode_equals_rosbags() -> None:
         assert stamp == 12_345_678_901
         # both decode the same doubles and convert the quaternion with the same function: bit-identical
         assert p_fast == p_ref and R_fast == R_ref
+
+
+def test_info_into_a_closed_pipe_ends_quietly(short_bags) -> None:
+    """`formation-bag info BAG | head -1`: the reader closes the pipe; exit 0, nothing on stderr."""
+    bag, _ = short_bags["mcap"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "formation_bag.cli", "info", str(bag)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()  # closed before the first line is written: every write meets a closed pipe
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 0
+    assert err == b""

@@ -61,7 +61,8 @@ def test_relative_pose_decoder_reads_old_transform_stamped() -> None:
     old.child_frame_id = "agent_2"
     tr, q = old.transform.translation, old.transform.rotation
     tr.x, tr.y, tr.z = pose.pose.position.x, pose.pose.position.y, pose.pose.position.z
-    q.x, q.y, q.z, q.w = (pose.pose.orientation.x, pose.pose.orientation.y, pose.pose.orientation.z, pose.pose.orientation.w)
+    o = pose.pose.orientation
+    q.x, q.y, q.z, q.w = o.x, o.y, o.z, o.w
     assert cv.relative_pose_from_msg(old) == cv.relative_pose_from_msg(pose)
     assert cv.relative_pose_from_msg(pose)[0] == p
 

@@ -9,7 +9,7 @@ TransformStamped (same numbers, plus a child frame name) are still read.
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -121,35 +121,68 @@ _OLD_POSE_CODEC = wire.StampedCodec(["", ""], 7)  # TransformStamped: frame_id a
 _SIX_CODEC = wire.StampedCodec([""], 6)
 
 
+def _doubles_of(kind: str, obj: Any) -> tuple[float, ...]:
+    """The doubles of a deserialized message, in the order of its CDR (see :func:`fast_values`)."""
+    if kind == "relative_pose":
+        pose = getattr(obj, "pose", None)  # None: a TransformStamped of an older bag
+        if pose is None:
+            pos, q = obj.transform.translation, obj.transform.rotation
+        else:
+            pos, q = pose.position, pose.orientation
+        return (pos.x, pos.y, pos.z, q.x, q.y, q.z, q.w)
+    if kind == "velocity":
+        return tuple(decode_twist(obj))
+    if kind == "wrench":
+        return tuple(decode_wrench(obj))
+    if kind == "ground_truth":
+        return tuple(
+            x for ps in obj.poses for x in (ps.position.x, ps.position.y, ps.position.z, *_xyzw(ps.orientation))
+        )
+    raise ValueError(f"no decoder for {kind!r}")
+
+
+def _xyzw(q: Any) -> tuple[float, float, float, float]:
+    return q.x, q.y, q.z, q.w
+
+
+def fast_values(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int, tuple[float, ...]]:
+    """(stamp ns, the message's doubles) of a docs/topics.md message; rosbags for anything but
+    little-endian CDR. Doubles: relative_pose 7 (position, quaternion xyzw), velocity/wrench 6,
+    ground_truth 7 per agent, clock none; :data:`FROM_VALUES` turns them into the decoded values.
+    """
+    if len(data) < 12 or data[1] != 1:
+        obj = deserialize(data, msgtype)
+        if kind == "clock":
+            return stamp_ns(obj.clock), ()
+        return stamp_ns(obj.header.stamp), _doubles_of(kind, obj)
+    if kind == "clock":
+        return wire.stamp_of(data), ()
+    if kind == "relative_pose":
+        return (_OLD_POSE_CODEC if msgtype == TRANSFORM_STAMPED else _POSE_CODEC).decode(data)
+    if kind in ("velocity", "wrench"):
+        return _SIX_CODEC.decode(data)
+    if kind == "ground_truth":
+        return wire.ground_truth_values(data)
+    raise ValueError(f"no fast decoder for {kind!r}")
+
+
+#: the decoded value of a message from its doubles, per kind (the agent node's own decoders)
+FROM_VALUES: dict[str, Callable[[Sequence[float]], Any]] = {
+    "relative_pose": wire.relative_pose_from_values,
+    "velocity": list,
+    "wrench": list,
+    "ground_truth": wire.ground_truth_from_values,
+}
+
+
 def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int, Any]:
     """(stamp ns, value) of a docs/topics.md message; rosbags for anything but little-endian CDR.
 
     value: relative_pose -> (p, R), velocity/wrench -> 6 floats, ground_truth -> (p (N,3), R (N,3,3)),
     clock -> None. Identical numbers to rosbags' deserialize + the decode_* functions.
     """
-    if len(data) < 12 or data[1] != 1:
-        obj = deserialize(data, msgtype)
-        if kind == "clock":
-            return stamp_ns(obj.clock), None
-        value = {
-            "relative_pose": decode_relative_pose,
-            "velocity": decode_twist,
-            "wrench": decode_wrench,
-            "ground_truth": decode_poses,
-        }[kind](obj)
-        return stamp_ns(obj.header.stamp), value
-    if kind == "clock":
-        return wire.stamp_of(data), None
-    if kind == "relative_pose":
-        stamp, values = (_OLD_POSE_CODEC if msgtype == TRANSFORM_STAMPED else _POSE_CODEC).decode(data)
-        return stamp, wire.relative_pose_from_values(values)
-    if kind in ("velocity", "wrench"):
-        stamp, values = _SIX_CODEC.decode(data)
-        return stamp, list(values)
-    if kind == "ground_truth":
-        stamp, p, R = wire.ground_truth_from_bytes(data)
-        return stamp, (p, R)
-    raise ValueError(f"no fast decoder for {kind!r}")
+    stamp, values = fast_values(kind, data, msgtype)
+    return stamp, (None if kind == "clock" else FROM_VALUES[kind](values))
 
 
 # -- encoding (for bags written without ROS: synthetic runs, tests) -------------------------------

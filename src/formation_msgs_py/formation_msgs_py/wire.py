@@ -168,18 +168,31 @@ def _cdr_align(off: int, a: int) -> int:
     return 4 + ((off - 4 + a - 1) // a) * a
 
 
-def ground_truth_from_bytes(data: bytes | memoryview) -> tuple[int, list[list[float]], list[list[list[float]]]]:
-    """(stamp ns, p_world (N,3), R_world_body (N,3,3)) of little-endian CDR bytes of a
-    geometry_msgs/PoseArray: the inverse of :func:`ground_truth_bytes` (any frame name)."""
+def ground_truth_values(data: bytes | memoryview) -> tuple[int, tuple[float, ...]]:
+    """(stamp ns, 7 doubles per pose: position x, y, z, quaternion x, y, z, w) of little-endian CDR
+    bytes of a geometry_msgs/PoseArray (any frame name)."""
     ns = stamp_of(data)
     off = _cdr_align(16 + _U32.unpack_from(data, 12)[0], 4)  # after header.frame_id (length, bytes)
     n = _U32.unpack_from(data, off)[0]
     off = _cdr_align(off + 4, 8)
+    return ns, struct.unpack_from(f"<{7 * n}d", data, off)
+
+
+def ground_truth_from_values(values: Sequence[float]) -> tuple[list[list[float]], list[list[list[float]]]]:
+    """(p_world (N,3), R_world_body (N,3,3)) as Python lists from :func:`ground_truth_values`' doubles."""
     p, R = [], []
-    for x, y, z, qx, qy, qz, qw in struct.iter_unpack("<7d", data[off : off + 56 * n]):
+    for k in range(0, len(values), 7):
+        x, y, z, qx, qy, qz, qw = values[k : k + 7]
         p.append([x, y, z])
         R.append(matrix_from_quaternion(qx, qy, qz, qw))
-    return ns, p, R
+    return p, R
+
+
+def ground_truth_from_bytes(data: bytes | memoryview) -> tuple[int, list[list[float]], list[list[list[float]]]]:
+    """(stamp ns, p_world (N,3), R_world_body (N,3,3)) of little-endian CDR bytes of a
+    geometry_msgs/PoseArray: the inverse of :func:`ground_truth_bytes` (any frame name)."""
+    ns, values = ground_truth_values(data)
+    return (ns, *ground_truth_from_values(values))
 
 
 def relative_pose_values(p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]) -> tuple[float, ...]:

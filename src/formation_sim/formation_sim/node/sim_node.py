@@ -584,7 +584,8 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
     bag = None
     if args.bag is not None:
         try:
-            bag = RunBag(args.bag, bag_custom_data(spec, args), wall_log_time=args.mode == "realtime")
+            realtime = args.mode == "realtime"
+            bag = RunBag(args.bag, bag_custom_data(spec, args), wall_log_time=realtime, max_bytes=args.max_bag_size)
         except (BagError, OSError) as exc:
             print(f"formation-sim: {exc}", file=sys.stderr, flush=True)
             return ExitCode.INVALID

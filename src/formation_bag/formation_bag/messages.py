@@ -13,6 +13,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from formation_msgs_py import topics, wire
 from formation_msgs_py.bag.writer import typestore
 from formation_msgs_py.rotations import quaternion_from_matrix
@@ -246,6 +248,20 @@ class Encoder:
             wrench=self.Wrench(force=self.Vector3(x=u[0], y=u[1], z=u[2]), torque=self.Vector3(x=u[3], y=u[4], z=u[5])),
         )
         return bytes(self.ts.serialize_cdr(msg, WRENCH_STAMPED))
+
+    def empty(self, ns: int, msgtype: str) -> bytes:
+        """A /diagnostics, markers or funnels message with nothing in it (stamped ``ns`` where it has a header)."""
+        t = self.ts.types
+        if msgtype == DIAGNOSTIC_ARRAY:
+            msg = t[msgtype](header=self.header(ns, ""), status=[])
+        elif msgtype == MARKER_ARRAY:
+            msg = t[msgtype](markers=[])
+        elif msgtype == FLOAT64_MULTI_ARRAY:
+            layout = t["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
+            msg = t[msgtype](layout=layout, data=np.zeros(0))
+        else:
+            raise ValueError(f"no empty message of type {msgtype}")
+        return bytes(self.ts.serialize_cdr(msg, msgtype))
 
     def poses(self, ns: int, p: Sequence[Sequence[float]], R: Sequence[Sequence[Sequence[float]]]) -> bytes:
         poses = []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import signal
@@ -265,3 +266,27 @@ def test_info_into_a_closed_pipe_ends_quietly(short_bags) -> None:
     err = proc.stderr.read()
     assert proc.wait(timeout=120) == 0
     assert err == b""
+
+
+def test_older_transform_stamped_relative_poses_read_and_replay_as_pose_stamped() -> None:
+    """A relative pose of an older bag (TransformStamped) decodes to the same numbers as the PoseStamped
+    it replays as (frame agent_<observer>, same stamp), which rosbags reads back alike."""
+    ts = m.Encoder().ts
+    t = ts.types
+    q = (0.1, -0.2, 0.3, math.sqrt(1 - 0.14))
+    old = t[m.TRANSFORM_STAMPED](
+        header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=3, nanosec=500), frame_id="agent_2"),
+        child_frame_id="agent_1",
+        transform=t["geometry_msgs/msg/Transform"](
+            translation=t["geometry_msgs/msg/Vector3"](x=1.0, y=2.0, z=-3.0),
+            rotation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        ),
+    )
+    data = bytes(ts.serialize_cdr(old, m.TRANSFORM_STAMPED))
+    stamp, (p, R) = m.fast_decode("relative_pose", data, m.TRANSFORM_STAMPED)
+    assert stamp == 3_000_000_500 and p == [1.0, 2.0, -3.0]
+    new = m.pose_stamped_from_transform(data, "2")
+    pose = m.deserialize(new, m.POSE_STAMPED)
+    assert pose.header.frame_id == "agent_2" and m.stamp_ns(pose.header.stamp) == stamp
+    assert m.fast_decode("relative_pose", new, m.POSE_STAMPED) == (stamp, (p, R))
+    assert m.decode_relative_pose(pose) == m.decode_relative_pose(old) == (p, R)

@@ -16,9 +16,11 @@ orientation_errors.png, inputs.png). Per ground-truth sample (stamp t_k) it uses
   the same fault order as the headless runner (missing measurement, funnels, controller ERROR).
 
 It also writes CSV exports (errors.csv, inputs.csv, positions.csv), and ``ages.json``/``ages.csv``:
-the age of every measurement and wrench per edge and agent, in simulation time (latest /clock at
-receipt − header stamp) and in wall time (receipt − receipt of the /clock that announced the
-stamp), and each agent's response time (wrench receipt − receipt of its velocity with that stamp).
+for bags with receive log times, the age of every measurement and wrench per edge and agent, in
+simulation time (latest /clock at receipt − header stamp) and in wall time (receipt − receipt of
+the /clock that announced the stamp), and each agent's response time (wrench receipt − receipt of
+its velocity with that stamp); a lockstep bag's log times are simulation time: no ages. The
+summary's wall time and real-time factor are the run's (:func:`run_wall_time`).
 A bag truncated by a killed recorder, or missing messages, is analysed as far as it goes: the
 verdict is then INCOMPLETE with what is missing listed (``bag.missing``), never FAIL for lack of
 data; a violation seen in the data present is still FAIL.

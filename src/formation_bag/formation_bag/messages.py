@@ -168,6 +168,13 @@ def fast_values(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int,
     raise ValueError(f"no fast decoder for {kind!r}")
 
 
+def pose_stamped_from_transform(data: bytes | memoryview, observer: str) -> bytes:
+    """An older bag's TransformStamped relative pose as the PoseStamped the agents now take (same
+    stamp and numbers, frame ``agent_<observer>``): what formation-replay publishes for it."""
+    stamp, values = fast_values("relative_pose", data, TRANSFORM_STAMPED)
+    return wire.relative_pose_codec(observer).encode(stamp, values)
+
+
 #: the decoded value of a message from its doubles, per kind (the agent node's own decoders)
 FROM_VALUES: dict[str, Callable[[Sequence[float]], Any]] = {
     "relative_pose": wire.relative_pose_from_values,

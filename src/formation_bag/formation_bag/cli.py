@@ -19,13 +19,16 @@ def build_parser() -> argparse.ArgumentParser:
         "left by a killed recorder) ROS 2 bags, without ROS. Exit status: 0 fine, 1 problems found, 2 bad input.",
     )
     sub = p.add_subparsers(dest="command", required=True)
-    info = sub.add_parser("info", help="topics, types, counts, time range, segments, lost segments")
+    info = sub.add_parser("info", help="topics, types, counts, time range, files, lost files")
     info.add_argument("bag", type=Path)
     info.add_argument("--json", action="store_true", help="machine-readable output")
     check = sub.add_parser("check", help="read back with rosbags and mcap/mcap_ros2; check metadata.yaml")
     check.add_argument("bag", type=Path)
     check.add_argument("--json", action="store_true", help="machine-readable output")
-    rep = sub.add_parser("repair", help="write metadata.yaml for the readable segments of a killed recording")
+    rep = sub.add_parser(
+        "repair",
+        help="salvage the file a killed writer left open (MCAP); write metadata.yaml for the readable files",
+    )
     rep.add_argument("bag", type=Path)
     rep.add_argument("--force", action="store_true", help="replace an existing metadata.yaml")
     return p
@@ -66,7 +69,7 @@ def _run(argv: list[str] | None) -> int:
                 print(json.dumps(info, indent=2))
             else:
                 print(
-                    f"bag {info['path']}: {info['storage']}, {len(info['segments'])} segments, "
+                    f"bag {info['path']}: {info['storage']}, {len(info['segments'])} file(s), "
                     f"{info['messages']} messages over {info['duration']:.3f} s"
                 )
                 for lost in info["lost"]:

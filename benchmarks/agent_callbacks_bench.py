@@ -57,7 +57,7 @@ def main() -> None:
             ns = round(k * 1e9 / spec.simulation.control_rate)
             poses = []
             for j, (pj, Rj) in meas.relative_poses[args.agent].items():
-                codec = conversions.relative_pose_codec(args.agent, j)
+                codec = conversions.relative_pose_codec(args.agent)
                 data = codec.encode(ns, conversions.relative_pose_values(pj, Rj))
                 poses.append((j, codec, "/" + topics.relative_pose(args.agent, j), data))
             steps.append((poses, twist.encode(ns, meas.velocities[i].tolist())))

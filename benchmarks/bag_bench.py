@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bag_bench.py [--duration 5.0] [--skip-ros] [--results FILE]
 
-1. writer: SegmentedBagWriter, pre-serialized TransformStamped messages, mcap and sqlite3 (msgs/s);
+1. writer: SegmentedBagWriter, pre-serialized PoseStamped messages, mcap and sqlite3 (msgs/s);
 2. the paper run (config/paper_5agents.yaml, 10 kHz) written as a lockstep bag by formation_bag.synth
    for ``--duration`` s, then the analysis (load + re-run + funnel check + ages), the interop check,
    and a check that the analysis reproduces the run's own summary;
@@ -45,19 +45,19 @@ BLASTER = textwrap.dedent(
     import json, sys, time
     import rclpy
     from rclpy.duration import Duration
-    from geometry_msgs.msg import TransformStamped
+    from geometry_msgs.msg import PoseStamped
     from rclpy.serialization import serialize_message
     from formation_msgs_py.ros import qos
     n, topics, rate = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
     rclpy.init()
     node = rclpy.create_node("bag_bench_blaster")
-    pubs = [node.create_publisher(TransformStamped, f"/agent_{k}/relative_pose/agent_x", qos.CONTROL)
+    pubs = [node.create_publisher(PoseStamped, f"/agent_{k}/relative_pose/agent_x", qos.CONTROL)
             for k in range(topics)]
     deadline = time.monotonic() + 20
     while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in pubs):
         time.sleep(0.02)
     time.sleep(1.0)
-    data = serialize_message(TransformStamped())
+    data = serialize_message(PoseStamped())
     t0 = time.perf_counter()
     for i in range(n):
         pubs[i % topics].publish(data)
@@ -76,14 +76,14 @@ BLASTER = textwrap.dedent(
 
 def bench_writer(work: Path, n: int = 200_000) -> list[tuple[str, str]]:
     enc = m.Encoder()
-    data = enc.relative_pose(0, "1", "2", [1.0, 2.0, 3.0], np.eye(3).tolist())
+    data = enc.relative_pose(0, "1", [1.0, 2.0, 3.0], np.eye(3).tolist())
     rows = []
     for storage in ("mcap", "sqlite3"):
         bag = work / f"writer_{storage}"
         t0 = time.perf_counter()
         with SegmentedBagWriter(bag, storage=storage, segment_seconds=2.0) as w:
             for k in range(20):
-                w.add_topic(f"/agent_{k}/relative_pose/agent_x", m.TRANSFORM_STAMPED)
+                w.add_topic(f"/agent_{k}/relative_pose/agent_x", m.POSE_STAMPED)
             names = [f"/agent_{k}/relative_pose/agent_x" for k in range(20)]
             ts = 1_700_000_000 * m.NS_PER_S
             for i in range(n):

@@ -63,7 +63,7 @@ def _node(name: str, namespace: str = "", sim_time: bool = False) -> Any:
 
 def agent(formation: Path, agent_id: str, steps: int, warmup: int, clock: bool) -> dict[str, Any]:
     """Take the step's messages; answer the wrench once all are in; CPU over ``steps`` steps."""
-    from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
+    from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
     from rclpy.experimental import EventsExecutor
 
     from formation_msgs_py import topics
@@ -93,9 +93,7 @@ def agent(formation: Path, agent_id: str, steps: int, warmup: int, clock: bool) 
     subs = [node.create_subscription(TwistStamped, topics.velocity(agent_id), on_message, qos.CONTROL, raw=True)]
     for j in view.neighbours:
         subs.append(
-            node.create_subscription(
-                TransformStamped, topics.relative_pose(agent_id, j), on_message, qos.CONTROL, raw=True
-            )
+            node.create_subscription(PoseStamped, topics.relative_pose(agent_id, j), on_message, qos.CONTROL, raw=True)
         )
     executor = EventsExecutor(context=node.context)
     executor.add_node(node)
@@ -118,7 +116,7 @@ def simulator(
     formation: Path, steps: int, warmup: int, rate: float, clock_every: int, ground_truth: bool, control_rate: float
 ) -> dict[str, Any]:
     """Publish each step's measurements agent by agent; lockstep (rate 0) or on the wall clock."""
-    from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
+    from geometry_msgs.msg import PoseArray, PoseStamped, TwistStamped, WrenchStamped
     from rclpy.experimental import EventsExecutor
     from rosgraph_msgs.msg import Clock
 
@@ -134,8 +132,8 @@ def simulator(
     pose_values = (1.0, 0.5, 0.25, 0.0, 0.0, 0.0, 1.0)
     for i in ids:
         for j in agent_view(spec, i).neighbours:
-            pub = node.create_publisher(TransformStamped, topics.relative_pose(i, j), qos.CONTROL)
-            out.append((pub, conversions.relative_pose_codec(i, j), pose_values))
+            pub = node.create_publisher(PoseStamped, topics.relative_pose(i, j), qos.CONTROL)
+            out.append((pub, conversions.relative_pose_codec(i), pose_values))
         out.append(
             (
                 node.create_publisher(TwistStamped, topics.velocity(i), qos.CONTROL),

@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/msg_cost_bench.py [--rounds 2000] [--only NAME,...] [--json FILE]
 
 Two processes play one lockstep exchange, as the simulator and an agent do: per round the
-*ping* process publishes ``m`` pre-serialised TransformStamped messages (one topic each) and waits
+*ping* process publishes ``m`` pre-serialised PoseStamped messages (one topic each) and waits
 for one WrenchStamped answer; the *pong* process takes the ``m`` messages and publishes the answer.
 Each process measures its own CPU time (user + system, every thread: ``getrusage``) over the
 rounds after a warm-up, so the figures do not depend much on the machine's load (wall time does).
@@ -87,14 +87,14 @@ def cpu_s() -> float:
 def child(role: str, loop: str, reliability: str, m: int, rounds: int, warmup: int) -> dict[str, Any]:
     """One side of the exchange; returns its CPU per round over ``rounds`` after ``warmup``."""
     import rclpy
-    from geometry_msgs.msg import TransformStamped, WrenchStamped
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
 
     from formation_msgs_py.ros import conversions, qos
 
     rclpy.init()
     node = rclpy.create_node(f"bench_{role}")
     meas_qos = qos.measurements(reliability)
-    pose = conversions.relative_pose_codec("1", "2").encode(10**9, (1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0))
+    pose = conversions.relative_pose_codec("1").encode(10**9, (1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0))
     wrench = conversions.wrench_codec("1").encode(10**9, (0.0,) * 6)
     state = {"got": 0, "round": 0, "wakes": 0, "cpu0": 0.0, "wall0": 0.0}
     total = warmup + rounds
@@ -103,7 +103,7 @@ def child(role: str, loop: str, reliability: str, m: int, rounds: int, warmup: i
         state["cpu0"], state["wall0"], state["wakes"] = cpu_s(), time.monotonic(), 0
 
     if role == "ping":
-        pubs = [node.create_publisher(TransformStamped, f"bench/pose_{k}", meas_qos) for k in range(m)]
+        pubs = [node.create_publisher(PoseStamped, f"bench/pose_{k}", meas_qos) for k in range(m)]
 
         def on_answer(_data: bytes) -> None:
             state["got"] += 1
@@ -123,7 +123,7 @@ def child(role: str, loop: str, reliability: str, m: int, rounds: int, warmup: i
                     start_clock()
 
         subs = [
-            (node.create_subscription(TransformStamped, f"bench/pose_{k}", on_pose, meas_qos, raw=True), on_pose)
+            (node.create_subscription(PoseStamped, f"bench/pose_{k}", on_pose, meas_qos, raw=True), on_pose)
             for k in range(m)
         ]
     if loop == "waitset":

@@ -2,11 +2,12 @@
 # Record a running formation into a ROS 2 bag (installs the environment on first use).
 #
 #   ros2_ws/record.sh --out DIR [--formation FILE] [--storage mcap|sqlite3] [--topics T …]
-#                     [--segment-seconds S] [--segment-mb M] [--decimate TOPIC=N …] [--meta K=V …]
+#                     [--segment-seconds S] [--max-bag-size BYTES] [--decimate TOPIC=N …] [--meta K=V …]
 #
 # Default: every topic of docs/topics.md (discovered on the graph, or all of FILE's with
 # --formation, which also stores FILE in the bag for formation-analyze). Stop with Ctrl-C or
-# SIGTERM: the bag is closed cleanly. Segments of 100 MiB: a killed recorder loses at most the last.
+# SIGTERM: the bag is closed cleanly. One file unless --max-bag-size or --segment-seconds splits it;
+# after a SIGKILL, formation-bag repair BAG salvages all but the open file's last ~1 MiB.
 # Start it first, then sim.sh FILE --wait-recorder: the simulator waits for it and the bag starts at
 # the first step; started later, it says which steps it missed. It is an observer: nothing waits
 # for it while stepping (for a lockstep bag that cannot lose a message: sim.sh FILE --bag DIR).

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def main() -> int:
     n, rate = int(sys.argv[1]), float(sys.argv[2])
     spec = load_formation(sys.argv[4] if len(sys.argv) > 4 else ROOT / "config/paper_5agents.yaml")
-    from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
+    from geometry_msgs.msg import PoseArray, PoseStamped, TwistStamped, WrenchStamped
     from rosgraph_msgs.msg import Clock
 
     rclpy.init()
@@ -48,7 +48,7 @@ def main() -> int:
         pubs["/" + topics.wrench(a)] = node.create_publisher(WrenchStamped, topics.wrench(a), deep)
     for i, j in links:
         name = topics.relative_pose(i, j)
-        pubs["/" + name] = node.create_publisher(TransformStamped, name, deep)
+        pubs["/" + name] = node.create_publisher(PoseStamped, name, deep)
     deadline = time.monotonic() + 10.0
     while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in pubs.values()):
         time.sleep(0.02)
@@ -69,7 +69,7 @@ def main() -> int:
         )
         for i, j in links:
             pi, pj = spec.agent(i).index, spec.agent(j).index
-            msg = cv.relative_pose_to_msg(t, i, j, R[pi].T @ (p[pj] - p[pi]), R[pi].T @ R[pj])
+            msg = cv.relative_pose_to_msg(t, i, R[pi].T @ (p[pj] - p[pi]), R[pi].T @ R[pj])
             pubs["/" + topics.relative_pose(i, j)].publish(msg)
         for a in ids:
             pubs["/" + topics.velocity(a)].publish(cv.twist_to_msg(t, a, rng.standard_normal(6)))

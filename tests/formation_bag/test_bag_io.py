@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import signal
@@ -19,7 +20,7 @@ from formation_bag import messages as m
 from formation_bag.interop import JAZZY_KEYS, check_bag
 from formation_bag.reader import Bag, repair
 from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.errors import BagExistsError, BagNotFoundError, BagWriterError
+from formation_msgs_py.errors import BagExistsError, BagFormatError, BagNotFoundError, BagWriterError
 
 START = 1_700_000_000 * m.NS_PER_S
 
@@ -161,6 +162,41 @@ def test_sigkill_loses_at_most_the_open_segment(tmp_path: Path, storage: str) ->
         repair(bag)
 
 
+def test_sigkill_of_a_one_file_writer_is_salvaged_by_repair(tmp_path: Path) -> None:
+    """A one-file bag (the default) whose writer got SIGKILL: repair recovers every closed ~1 MiB chunk."""
+    bag = tmp_path / "bag"
+    code = textwrap.dedent(
+        f"""
+        import time
+        from formation_bag import messages as m
+        from formation_msgs_py.bag.writer import SegmentedBagWriter
+        enc = m.Encoder()
+        w = SegmentedBagWriter({str(bag)!r}, segment_seconds=None, segment_bytes=None)
+        w.add_topic("/clock", m.CLOCK)
+        for k in range(100_000):
+            w.write("/clock", k * 1000, enc.clock(k * 1000))
+        print("written", flush=True)
+        time.sleep(600)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "written"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    with pytest.raises(BagFormatError, match="no readable segment"):
+        Bag(bag)  # only the open file, without its summary
+    meta, lost = repair(bag)
+    assert meta.exists() and len(lost) == 1 and "messages recovered into bag_0.mcap" in lost[0]
+    with Bag(bag) as b:
+        stamps = [m.stamp_ns(m.deserialize(x.data, x.msgtype).clock) for x in b.messages()]
+    # a Clock message takes 43 B in a chunk: a 1 MiB chunk holds ~24 000; all but the torn last one are back
+    assert stamps == [k * 1000 for k in range(len(stamps))] and len(stamps) >= 100_000 - 25_000
+    assert check_bag(bag).ok
+
+
 def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:
     """check_bag reports a metadata.yaml whose counts do not match the files."""
     bag = tmp_path / "bag"
@@ -173,7 +209,7 @@ def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:
 
 def test_classify_topics() -> None:
     """Topic names map to their meaning (docs/topics.md), also in a namespace."""
-    assert m.classify("/agent_3/relative_pose/agent_5") == m.TopicKind("relative_pose", m.TRANSFORM_STAMPED, "3", "5")
+    assert m.classify("/agent_3/relative_pose/agent_5") == m.TopicKind("relative_pose", m.POSE_STAMPED, "3", "5")
     assert m.classify("/agent_2/wrench").agent == "2"
     assert m.classify("/formation/ground_truth").kind == "ground_truth"
     assert m.classify("/run1/agent_2/velocity", "run1").kind == "velocity"
@@ -216,3 +252,41 @@ def test_fast_ground_truth_decode_equals_rosbags() -> None:
         assert stamp == 12_345_678_901
         # both decode the same doubles and convert the quaternion with the same function: bit-identical
         assert p_fast == p_ref and R_fast == R_ref
+
+
+def test_info_into_a_closed_pipe_ends_quietly(short_bags) -> None:
+    """`formation-bag info BAG | head -1`: the reader closes the pipe; exit 0, nothing on stderr."""
+    bag, _ = short_bags["mcap"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "formation_bag.cli", "info", str(bag)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()  # closed before the first line is written: every write meets a closed pipe
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 0
+    assert err == b""
+
+
+def test_older_transform_stamped_relative_poses_read_and_replay_as_pose_stamped() -> None:
+    """A relative pose of an older bag (TransformStamped) decodes to the same numbers as the PoseStamped
+    it replays as (frame agent_<observer>, same stamp), which rosbags reads back alike."""
+    ts = m.Encoder().ts
+    t = ts.types
+    q = (0.1, -0.2, 0.3, math.sqrt(1 - 0.14))
+    old = t[m.TRANSFORM_STAMPED](
+        header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=3, nanosec=500), frame_id="agent_2"),
+        child_frame_id="agent_1",
+        transform=t["geometry_msgs/msg/Transform"](
+            translation=t["geometry_msgs/msg/Vector3"](x=1.0, y=2.0, z=-3.0),
+            rotation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        ),
+    )
+    data = bytes(ts.serialize_cdr(old, m.TRANSFORM_STAMPED))
+    stamp, (p, R) = m.fast_decode("relative_pose", data, m.TRANSFORM_STAMPED)
+    assert stamp == 3_000_000_500 and p == [1.0, 2.0, -3.0]
+    new = m.pose_stamped_from_transform(data, "2")
+    pose = m.deserialize(new, m.POSE_STAMPED)
+    assert pose.header.frame_id == "agent_2" and m.stamp_ns(pose.header.stamp) == stamp
+    assert m.fast_decode("relative_pose", new, m.POSE_STAMPED) == (stamp, (p, R))
+    assert m.decode_relative_pose(pose) == m.decode_relative_pose(old) == (p, R)

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from formation_msgs_py.faults import FaultLog, fault_lines, fault_meanings, write_json
+from formation_msgs_py.faults import FaultLog, fault_lines, fault_meanings, write_atomic, write_json
 
 
 def test_every_fault_is_counted_with_its_first_and_last() -> None:
@@ -72,3 +73,18 @@ def test_fault_meanings_explain_each_kind_once_in_words() -> None:
     assert [x.split(":")[0].strip() for x in lines[1:]] == ["refused_wrench_non_finite", "resent_step"]
     assert "simulator refused an agent's wrench" in lines[1] and "trajectory is the same" in lines[2]
     assert fault_meanings({}) == []
+
+
+def test_write_atomic_follows_the_umask(tmp_path: Path) -> None:
+    """Outputs get 0666 & ~umask like any new file (mkstemp alone gives 0600); an explicit mode wins."""
+    old = os.umask(0o027)
+    try:
+        write_json(tmp_path / "a.json", {"x": 1})
+        os.umask(0o002)
+        write_atomic(tmp_path / "b.bin", b"x")
+        write_atomic(tmp_path / "c.bin", b"x", mode=0o600)
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o640
+    assert (tmp_path / "b.bin").stat().st_mode & 0o777 == 0o664
+    assert (tmp_path / "c.bin").stat().st_mode & 0o777 == 0o600

@@ -15,11 +15,12 @@ REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"
 BIN = Path(sys.executable).parent
 
-NUMERIC = [o for o in OPTIONS if o.kind in (options.positive, options.nonnegative, options.seed)]
+NUMERIC = [o for o in OPTIONS if o.kind in (options.positive, options.nonnegative, options.seed, options.byte_count)]
 BAD = {
     options.positive: ["0", "-1", "nan", "inf", "-inf", "1e400", "abc"],
     options.nonnegative: ["-1", "nan", "inf", "abc"],
     options.seed: ["-1", "1.5", "nan", "abc"],
+    options.byte_count: ["0", "-1", "1.5", "1e9", "abc"],
 }
 
 
@@ -50,6 +51,14 @@ def test_good_options_become_a_frozen_run_options() -> None:
     assert opts.overrides() == {"control_rate": 1000.0, "seed": 7}
     with pytest.raises(AttributeError):
         opts.seed = 3  # type: ignore[misc]
+
+
+def test_max_bag_size_goes_to_the_simulator_only_when_given() -> None:
+    """formation-launch --max-bag-size BYTES is passed on to formation-sim; without it the bag is one file."""
+    parse = lambda *argv: options.parse(options.LAUNCH, _parser(options.LAUNCH), [str(PAPER), *argv])  # noqa: E731
+    assert parse().max_bag_size is None and "--max-bag-size" not in parse().child_argv(options.SIM)
+    argv = parse("--max-bag-size", "50000000").child_argv(options.SIM)
+    assert argv[argv.index("--max-bag-size") + 1] == "50000000"
 
 
 def test_scheduling_is_normal_unless_batch_is_asked_and_nothing_else(capsys) -> None:

@@ -18,8 +18,8 @@ CLOCK, WRENCH, FUNNELS = "/clock", "/agent_1/wrench", "/formation/funnels"
 STEP_NS = 100_000  # 10 kHz
 
 
-def _bag(path: Path) -> RunBag:
-    bag = RunBag(path, {"mode": "lockstep", "formation_file": "f.yaml"})
+def _bag(path: Path, max_bytes: int | None = None) -> RunBag:
+    bag = RunBag(path, {"mode": "lockstep", "formation_file": "f.yaml"}, max_bytes=max_bytes)
     bag.add_topic(CLOCK, "rosgraph_msgs/msg/Clock", make_qos(depth=1), published=True)
     bag.add_topic(WRENCH, "geometry_msgs/msg/WrenchStamped", make_qos(), published=False)
     bag.add_topic(FUNNELS, "std_msgs/msg/Float64MultiArray", make_qos(), published=True)
@@ -69,6 +69,20 @@ def test_log_time_is_simulation_time(tmp_path: Path) -> None:
     # the simulator's own topics: every publication written; received ones: publisher unknown here
     assert stored["published_total"] == {CLOCK: 3, WRENCH: None, FUNNELS: 4}
     assert stored["log_time"] == "sim"
+
+
+@pytest.mark.parametrize(("max_bytes", "files"), [(None, 1), (20_000, 3)])
+def test_one_file_unless_a_size_is_given_and_the_wall_time_noted(tmp_path: Path, max_bytes, files) -> None:
+    """The run's bag is one file by default; --max-bag-size splits it (each file closed once it holds about
+    that many bytes); custom_data.wall_time is the wall span from the first to the last message written."""
+    bag = _bag(tmp_path / "bag", max_bytes)
+    for k in range(1000):  # 1000 × (12 B + 48 B of MCAP record and index) ≈ 60 kB
+        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+    bag.close()
+    info = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert len(info["relative_file_paths"]) == files
+    assert sum(f["message_count"] for f in info["files"]) == 1000
+    assert 0.0 <= float(info["custom_data"]["wall_time"]) < 600.0  # a duration in s: not a log-time span
 
 
 def test_a_failed_write_stops_the_bag_and_counts_what_is_lost(tmp_path: Path) -> None:

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 import pytest
-from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -62,7 +62,7 @@ def test_agent_parameters_read_only_live_and_checked(procs, ros_env: dict[str, s
 
         clock = node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         vel = node.create_publisher(TwistStamped, topics.velocity("5"), qos.CONTROL)
-        pose = node.create_publisher(TransformStamped, topics.relative_pose("5", "3"), qos.CONTROL)
+        pose = node.create_publisher(PoseStamped, topics.relative_pose("5", "3"), qos.CONTROL)
         wrenches: dict[int, tuple[float, ...]] = {}
         codec = conversions.wrench_codec("5")
 
@@ -81,7 +81,7 @@ def test_agent_parameters_read_only_live_and_checked(procs, ros_env: dict[str, s
 
         def step(ns: int) -> np.ndarray:
             clock.publish(conversions.clock_bytes(ns))
-            pose.publish(conversions.relative_pose_codec("5", "3").encode(ns, conversions.relative_pose_values(p, R)))
+            pose.publish(conversions.relative_pose_codec("5").encode(ns, conversions.relative_pose_values(p, R)))
             vel.publish(conversions.twist_codec("5").encode(ns, v))
             end = time.monotonic() + 20
             while ns not in wrenches and time.monotonic() < end:

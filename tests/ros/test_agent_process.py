@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from ros_helpers import PAPER, read_log, ros_context, wait_for_line
@@ -27,7 +27,7 @@ def test_agent_answers_each_stamp_and_resets_on_a_backward_clock_jump(procs, ros
         node = Node("agent_driver", context=context)
         clock = node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         vel = node.create_publisher(TwistStamped, topics.velocity("5"), qos.CONTROL)
-        pose = node.create_publisher(TransformStamped, topics.relative_pose("5", "3"), qos.CONTROL)
+        pose = node.create_publisher(PoseStamped, topics.relative_pose("5", "3"), qos.CONTROL)
         got: list[int] = []
         codec = conversions.wrench_codec("5")
         node.create_subscription(
@@ -46,7 +46,7 @@ def test_agent_answers_each_stamp_and_resets_on_a_backward_clock_jump(procs, ros
         def step(ns: int) -> None:
             clock.publish(conversions.clock_bytes(ns))
             time.sleep(0.05)
-            pose.publish(conversions.relative_pose_codec("5", "3").encode(ns, conversions.relative_pose_values(p, R)))
+            pose.publish(conversions.relative_pose_codec("5").encode(ns, conversions.relative_pose_values(p, R)))
             vel.publish(conversions.twist_codec("5").encode(ns, v))
             end = time.monotonic() + 10
             while ns not in got and time.monotonic() < end:

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from ros_helpers import PAPER, REALTIME, read_log, ros_context, wait_for_line
@@ -75,7 +75,7 @@ def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict
     with injector_node(ros_env) as (node, executor):
         clock = node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         vel = node.create_publisher(TwistStamped, topics.velocity("5"), qos.CONTROL)
-        pose = node.create_publisher(TransformStamped, topics.relative_pose("5", "3"), qos.CONTROL)
+        pose = node.create_publisher(PoseStamped, topics.relative_pose("5", "3"), qos.CONTROL)
         got: dict[int, tuple[float, ...]] = {}
         codec = conversions.wrench_codec("5")
         node.create_subscription(
@@ -86,7 +86,7 @@ def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict
             assert time.monotonic() < deadline, read_log(agent)
             time.sleep(0.1)
         time.sleep(1.0)
-        pose_codec, vel_codec = conversions.relative_pose_codec("5", "3"), conversions.twist_codec("5")
+        pose_codec, vel_codec = conversions.relative_pose_codec("5"), conversions.twist_codec("5")
 
         def step(ns: int, pose_values, velocity, wait: float = 10.0, clock_ns: int = 0) -> tuple[float, ...] | None:
             clock.publish(conversions.clock_bytes(clock_ns or ns))
@@ -110,7 +110,7 @@ def test_agent_refuses_bad_measurements_and_keeps_answering(procs, ros_env: dict
         for k, (name, (pose_values, velocity)) in enumerate(bad.items(), start=1):
             u = step(base + k * 1_000_000, pose_values, velocity)
             assert u == (0.0,) * 6, (name, u, read_log(agent))
-        # bytes that are no TransformStamped (anyone may publish raw CDR): dropped, counted, no crash
+        # bytes that are no PoseStamped (anyone may publish raw CDR): dropped, counted, no crash
         pose.publish(b"\x00\x01\x00\x00garbage")
         # from the future: dropped (it names no step to answer), counted
         assert step((2**31 - 1) * NS, good, v, wait=1.0, clock_ns=base + 9_000_000) is None
@@ -148,9 +148,9 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
         node.create_subscription(
             Clock, topics.CLOCK, lambda m: latest.__setitem__(0, m.clock.sec * NS + m.clock.nanosec), qos.CLOCK
         )
-        pose = node.create_publisher(TransformStamped, topics.relative_pose("1", "2"), qos.measurements("reliable"))
+        pose = node.create_publisher(PoseStamped, topics.relative_pose("1", "2"), qos.measurements("reliable"))
         wrench = node.create_publisher(WrenchStamped, topics.wrench("1"), qos.CONTROL)
-        pose_codec, wrench_codec = conversions.relative_pose_codec("1", "2"), conversions.wrench_codec("1")
+        pose_codec, wrench_codec = conversions.relative_pose_codec("1"), conversions.wrench_codec("1")
         stop = threading.Event()
 
         def spin() -> None:

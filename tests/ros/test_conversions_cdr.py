@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped, TwistStamped, WrenchStamped
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 
@@ -28,23 +28,43 @@ def test_twist_and_wrench_round_trip_through_rclpy() -> None:
 
 
 def test_relative_pose_round_trip_through_rclpy() -> None:
-    """TransformStamped: translation and quaternion (x, y, z, w) in geometry_msgs order."""
+    """PoseStamped in the observer's frame: position and quaternion (x, y, z, w) in geometry_msgs order."""
     from formation_msgs_py.so3 import exp_so3
 
     rng = np.random.default_rng(1)
-    for obs, tgt in (("1", "2"), ("10", "3"), ("abc", "defgh")):
-        codec = cv.relative_pose_codec(obs, tgt)
+    for obs in ("1", "10", "abc", "defgh"):
+        codec = cv.relative_pose_codec(obs)
         p = rng.normal(size=3).tolist()
         R = exp_so3(rng.normal(size=3)).tolist()
         data = codec.encode(5_000_100, cv.relative_pose_values(p, R))
-        msg = deserialize_message(data, TransformStamped)
-        ref = cv.relative_pose_to_msg(0.0050001, obs, tgt, p, R)
+        msg = deserialize_message(data, PoseStamped)
+        ref = cv.relative_pose_to_msg(0.0050001, obs, p, R)
+        assert msg.header.frame_id == f"agent_{obs}"
         assert msg == ref
         ns, vals = codec.decode(serialize_message(ref))
         assert ns == 5_000_100
         p2, R2 = cv.relative_pose_from_values(vals)
         assert p2 == p
         assert max(abs(a - b) for ra, rb in zip(R, R2) for a, b in zip(ra, rb)) < 1e-15
+
+
+def test_relative_pose_decoder_reads_old_transform_stamped() -> None:
+    """Bags recorded before PoseStamped hold TransformStamped relative poses: the decoder reads both alike."""
+    from formation_msgs_py.so3 import exp_so3
+
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=3).tolist()
+    R = exp_so3(rng.normal(size=3)).tolist()
+    pose = cv.relative_pose_to_msg(1.5, "1", p, R)
+    old = TransformStamped()
+    old.header = pose.header
+    old.child_frame_id = "agent_2"
+    tr, q = old.transform.translation, old.transform.rotation
+    tr.x, tr.y, tr.z = pose.pose.position.x, pose.pose.position.y, pose.pose.position.z
+    o = pose.pose.orientation
+    q.x, q.y, q.z, q.w = o.x, o.y, o.z, o.w
+    assert cv.relative_pose_from_msg(old) == cv.relative_pose_from_msg(pose)
+    assert cv.relative_pose_from_msg(pose)[0] == p
 
 
 def test_clock_bytes() -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from ros_helpers import BIN, PAPER, REALTIME, read_log, ros_context
@@ -78,7 +78,7 @@ def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: 
         time.sleep(0.5)
         created = time.monotonic()
         fake_wrench = node.create_publisher(WrenchStamped, topics.wrench("3"), qos.CONTROL)
-        pose = node.create_publisher(TransformStamped, topics.relative_pose("3", "1"), qos.CONTROL)
+        pose = node.create_publisher(PoseStamped, topics.relative_pose("3", "1"), qos.CONTROL)
         wrench_seen = _reported_at(agent, "/agent_3/wrench", "outsider", created + 10)
         pose_seen = _reported_at(agent, "/agent_3/relative_pose/agent_1", "outsider", created + 10)
         assert wrench_seen is not None and pose_seen is not None, read_log(agent)
@@ -100,7 +100,7 @@ def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: 
         end = time.monotonic() + 3.0
         while time.monotonic() < end and stamp not in got:
             clock.publish(conversions.clock_bytes(stamp))
-            pose.publish(conversions.relative_pose_codec("3", "1").encode(stamp, pose_values))
+            pose.publish(conversions.relative_pose_codec("3").encode(stamp, pose_values))
             vel.publish(conversions.twist_codec("3").encode(stamp, v))
             executor.spin_once(timeout_sec=0.2)
         if policy == "report":

@@ -223,7 +223,7 @@ def live_gains(agent_id: str, values: Mapping[str, Any]) -> dict[str, float]:
 
 import rclpy  # noqa: E402  (the synchroniser above stays importable and testable without rclpy)
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
-from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped  # noqa: E402
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped  # noqa: E402
 from rcl_interfaces.msg import SetParametersResult  # noqa: E402
 from rclpy._rclpy_pybind11 import RCLError  # noqa: E402
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump  # noqa: E402
@@ -308,10 +308,10 @@ class AgentNode(Node):
             )
         }
         for j in view.neighbours:
-            codec = conversions.relative_pose_codec(view.agent_id, j)
+            codec = conversions.relative_pose_codec(view.agent_id)
             topic = _root(topics.relative_pose(view.agent_id, j))
             self._subs[topic] = self.create_subscription(
-                TransformStamped,
+                PoseStamped,
                 topic,
                 lambda data, j=j, codec=codec, topic=topic: self._on_pose(j, codec, topic, data),
                 meas_qos,

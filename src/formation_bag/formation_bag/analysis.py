@@ -16,9 +16,11 @@ the Foxglove layout). Per ground-truth sample (stamp t_k) it uses:
   the same fault order as the headless runner (missing measurement, funnels, controller ERROR).
 
 It also writes CSV exports (errors.csv, inputs.csv, positions.csv), and ``ages.json``/``ages.csv``:
-the age of every measurement and wrench per edge and agent, in simulation time (latest /clock at
-receipt − header stamp) and in wall time (receipt − receipt of the /clock that announced the
-stamp), and each agent's response time (wrench receipt − receipt of its velocity with that stamp).
+for bags with receive log times, the age of every measurement and wrench per edge and agent, in
+simulation time (latest /clock at receipt − header stamp) and in wall time (receipt − receipt of
+the /clock that announced the stamp), and each agent's response time (wrench receipt − receipt of
+its velocity with that stamp); a lockstep bag's log times are simulation time: no ages. The
+summary's wall time and real-time factor are the run's (:func:`run_wall_time`).
 A bag truncated by a killed recorder, or missing messages, is analysed as far as it goes: the
 verdict is then INCOMPLETE with what is missing listed (``bag.missing``), never FAIL for lack of
 data; a violation seen in the data present is still FAIL.
@@ -32,6 +34,9 @@ import json
 import math
 import sys
 import time
+from array import array
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -50,14 +55,196 @@ from formation_sim.core.recorder import RunRecorder
 from formation_sim.views.outputs import format_summary, report_animation, write_outputs
 
 
-def _rate_from_stamps(stamps: list[int]) -> float | None:
+def _rate_from_stamps(stamps: Sequence[int]) -> float | None:
     if len(stamps) < 2:
         return None
-    d = np.diff(np.array(stamps, dtype=np.int64))
+    d = np.diff(np.asarray(stamps, dtype=np.int64))
     d = d[d > 0]
     if not d.size:
         return None
     return float(m.NS_PER_S / np.median(d))
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What the analysis needs to know of the run beyond its messages (bag custom_data, else the file)."""
+
+    mode: str
+    control_rate: float  # Hz
+    gt_rate: float  # Hz of the recorded ground truth
+    duration: float  # s requested
+    gt_rate_measured: float | None  # from the stamps (None: fewer than two samples)
+
+    @property
+    def realtime(self) -> bool:
+        return "realtime" in self.mode
+
+
+def run_settings(run: RunData) -> RunSettings:
+    """Mode, control rate, ground-truth rate and requested duration of a recorded run."""
+    spec, custom = run.spec, run.custom_data
+    gt_rate = _rate_from_stamps(run.ground_truth.stamps)
+    try:
+        control_rate = float(custom["control_rate"])
+    except (KeyError, ValueError):
+        first = run.velocity[spec.agent_ids[0]].stamps
+        control_rate = _rate_from_stamps(first) or gt_rate or spec.simulation.control_rate
+    try:
+        duration = float(custom["duration"])
+    except (KeyError, ValueError):
+        duration = spec.simulation.duration  # a recorder started without --meta: the file's duration
+    mode = custom.get("mode") or spec.simulation.mode
+    return RunSettings(mode, control_rate, gt_rate or control_rate, duration, gt_rate)
+
+
+def log_times_are_wall(run: RunData) -> bool:
+    """True if the bag's log times are receive times (realtime runs, ``formation-record --log-time
+    receive``); False if they are simulation time (lockstep): then they say nothing of wall time."""
+    counts = _recorder_counts(run.custom_data)
+    if counts and counts.get("log_time") in ("receive", "sim"):
+        return bool(counts["log_time"] == "receive")
+    return "realtime" in (run.custom_data.get("mode") or run.spec.simulation.mode)
+
+
+def run_wall_time(run: RunData) -> float | None:
+    """The run's wall time [s]: noted by its writer in the bag (``wall_time``), else the span of
+    receive log times, else None (a lockstep bag's log times are simulation time)."""
+    try:
+        return float(run.custom_data["wall_time"])
+    except (KeyError, ValueError):
+        pass
+    if log_times_are_wall(run):
+        return (run.last_log - run.first_log) / m.NS_PER_S
+    return None
+
+
+class _StepReplay:
+    """Feeds a recorded run to a :class:`RunRecorder` sample by sample (see the module docstring)."""
+
+    def __init__(self, run: RunData, settings: RunSettings, recorder: RunRecorder, reruns: dict[str, AgentRerun]):
+        self.run, self.settings, self.recorder, self.reruns = run, settings, recorder, reruns
+        self.ids = list(run.spec.agent_ids)
+        self.rerun_stamps = {a: array("q", r.stamps.tolist()) for a, r in reruns.items()}
+        self.substituted: dict[str, int] = {}
+        gt_set = set(run.ground_truth.stamps)
+        # control steps without a ground-truth sample (ground truth recorded below the control rate):
+        # their velocity margins, faults and wrench peaks are still known from the re-run and the bag
+        self.between = sorted({int(s) for r in reruns.values() for s in r.stamps} - gt_set)
+        self._between_pos = 0
+        self._held: dict[str, tuple[list[int], list[int]]] = {}
+        if settings.realtime:
+            for a in self.ids:
+                w = run.wrench[a]
+                order = sorted(range(len(w)), key=lambda k: (w.log_times[k], w.stamps[k]))
+                self._held[a] = ([w.log_times[k] for k in order], order)
+
+    def run_all(self) -> None:
+        """Every ground-truth sample, and the control steps between them (lockstep)."""
+        gt = self.run.ground_truth
+        for kk, stamp in enumerate(gt.stamps):
+            self.steps_between(stamp)
+            self.sample(kk, stamp)
+        self.steps_between(gt.stamps[-1] + 1 if len(gt) else None)  # not past the last sample: the run's end
+
+    def rerun_step(self, a: str, stamp: int) -> tuple[int, bool] | None:
+        """(index, exact) of agent a's re-run step for ``stamp``: the step itself, else the latest before."""
+        stamps = self.rerun_stamps.get(a)
+        if stamps is None:
+            return None
+        k = bisect.bisect_right(stamps, stamp) - 1
+        return None if k < 0 else (k, stamps[k] == stamp)
+
+    def count_fault(self, t: float, a: str, k: int) -> bool:
+        """Count re-run step k's fault; True if its margins are known (no measurement missing in the bag)."""
+        r = self.reruns[a]
+        if r.level[k] == ERROR:
+            self.recorder.fault(t, "controller", a, r.messages.get(k, ""))
+        if r.faults[k] is not None:
+            self.recorder.fault(t, "measurement", a, r.faults[k])
+            return False
+        return True
+
+    def steps_between(self, until: int | None) -> None:
+        """The control steps before ``until`` (ns) that have no ground-truth sample (lockstep only)."""
+        while self._between_pos < len(self.between) and (until is None or self.between[self._between_pos] < until):
+            step = self.between[self._between_pos]
+            self._between_pos += 1
+            if self.settings.realtime:
+                continue
+            t_s = m.seconds(step)
+            margin_v = np.full((len(self.ids), 6), math.inf)
+            rec = self.recorder
+            for i, a in enumerate(self.ids):
+                found = self.rerun_step(a, step)
+                if found is None or not found[1]:
+                    continue
+                k = found[0]
+                w = self.recorded_wrench(a, step) or self.reruns[a].rerun[k].tolist()
+                rec.peak_force[i] = max(rec.peak_force[i], math.sqrt(sum(x * x for x in w[:3])))
+                rec.peak_torque[i] = max(rec.peak_torque[i], math.sqrt(sum(x * x for x in w[3:])))
+                if self.count_fault(t_s, a, k):
+                    margin_v[i] = self.reruns[a].margin_v[k]
+            rec.update_velocity(t_s, margin_v)
+
+    def recorded_wrench(self, a: str, stamp: int) -> list[float] | None:
+        series = self.run.wrench[a]
+        k = series.exactly_at(stamp)
+        return None if k is None else series.value(k)
+
+    def held_wrench(self, a: str, kk: int) -> list[float]:
+        """Realtime: the latest wrench received before ground-truth sample kk+1, zero if older than
+        ``command_timeout`` (the simulator's rule, approximated with the recorder's receive order)."""
+        gt, run = self.run.ground_truth, self.run
+        nxt = gt.log_times[kk + 1] if kk + 1 < len(gt) else run.last_log + 1
+        log_times, order = self._held[a]
+        j = bisect.bisect_left(log_times, nxt) - 1
+        if j < 0:
+            return [0.0] * 6
+        w = run.wrench[a]
+        timeout_ns = round(run.spec.simulation.command_timeout * m.NS_PER_S)
+        return w.value(order[j]) if gt.stamps[kk] - w.stamps[order[j]] <= timeout_ns else [0.0] * 6
+
+    def applied_wrench(self, a: str, stamp: int, found: tuple[int, bool] | None) -> list[float]:
+        """Lockstep: the wrench agent a sent for ``stamp``; else the re-run's (not in the bag: the
+        recorder matched the agent late; it equals the agent's on every recorded step); else the latest."""
+        w = self.recorded_wrench(a, stamp)
+        if w is None and found is not None and found[1] and self.reruns[a].faults[found[0]] is None:
+            w = self.reruns[a].rerun[found[0]].tolist()
+            self.substituted[a] = self.substituted.get(a, 0) + 1
+        if w is None:
+            series = self.run.wrench[a]
+            k = series.latest_at(stamp)
+            w = None if k is None else series.value(k)
+        return w or [0.0] * 6
+
+    def sample(self, kk: int, stamp: int) -> None:
+        """Ground-truth sample kk (stamp ns) with the agents' wrenches, twists and velocity margins."""
+        t = m.seconds(stamp)
+        found = {a: self.rerun_step(a, stamp) for a in self.ids}
+        if self.settings.realtime:
+            u = np.array([self.held_wrench(a, kk) for a in self.ids])
+        else:
+            u = np.array([self.applied_wrench(a, stamp, found[a]) for a in self.ids])
+        v = []
+        for a in self.ids:
+            series = self.run.velocity[a]
+            k = series.latest_at(stamp)
+            v.append((None if k is None else series.value(k)) or [0.0] * 6)
+        margin_v = None
+        if self.reruns:
+            # a step whose measurements are missing from the bag has unknown margins (inf), not −1
+            margin_v = np.full((len(self.ids), 6), math.inf)
+            for i, a in enumerate(self.ids):
+                f = found[a]
+                if f is None:
+                    continue
+                k, exact = f
+                if exact and self.count_fault(t, a, k):
+                    margin_v[i] = self.reruns[a].margin_v[k]
+                elif not exact and self.reruns[a].faults[k] is None:
+                    margin_v[i] = self.reruns[a].margin_v[k]  # the latest step before this sample
+        p_list, R_list = self.run.ground_truth.value(kk)
+        self.recorder.add(t, np.array(p_list), np.array(R_list), np.array(v), u, margin_v)
 
 
 def analyze_run(
@@ -65,158 +252,68 @@ def analyze_run(
     *,
     velocity_margins: str = "rerun",
     reruns: dict[str, AgentRerun] | None = None,
+    prog: str = "formation-analyze",
 ) -> tuple[RunRecorder, dict[str, Any], dict[str, AgentRerun]]:
     """Check every funnel on a decoded run; returns (recorder, summary, re-runs)."""
     if velocity_margins not in VELOCITY_MARGIN_MODES:
         raise ValueError(f"velocity_margins {velocity_margins!r} is not one of {VELOCITY_MARGIN_MODES}")
     started = time.perf_counter()
-    spec = run.spec
-    ids = list(spec.agent_ids)
-    gt = run.ground_truth
-    gt_rate = _rate_from_stamps(gt.stamps)
-    custom = run.custom_data
-    try:
-        control_rate = float(custom["control_rate"])
-    except (KeyError, ValueError):
-        control_rate = _rate_from_stamps(run.velocity[ids[0]].stamps) or gt_rate or spec.simulation.control_rate
-    mode = custom.get("mode") or spec.simulation.mode
-    record_every = max(1, round((gt_rate or control_rate) / spec.simulation.record_rate))
-    recorder = RunRecorder(spec, record_every=record_every, mode=mode, control_rate=control_rate)
-
+    settings = run_settings(run)
+    record_every = max(1, round(settings.gt_rate / run.spec.simulation.record_rate))
+    recorder = RunRecorder(run.spec, record_every=record_every, mode=settings.mode, control_rate=settings.control_rate)
     if velocity_margins == "rerun" and reruns is None:
-        reruns = rerun_all(run, check_age=False)
+        reruns = rerun_all(run, check_age=False, prog=prog)
     reruns = reruns or {}
-    rerun_index = {a: {int(s): k for k, s in enumerate(r.stamps)} for a, r in reruns.items()}
-
-    def at(series: Series, stamp: int) -> Any:
-        k = series.latest_at(stamp)
-        return None if k is None else series.values[k]
-
-    wrench_exact = {a: dict(zip(run.wrench[a].stamps, run.wrench[a].values)) for a in ids}
-    zeros6 = [0.0] * 6
-    realtime = "realtime" in mode
-    substituted: dict[str, int] = {}
-    # realtime: the simulator applies, over the period after sample k, the latest wrench it has
-    # received when it ticks (just before it publishes sample k+1), zero if older than
-    # command_timeout. Approximated with the recorder's receive order.
-    by_log = {a: sorted(zip(run.wrench[a].log_times, run.wrench[a].stamps, run.wrench[a].values)) for a in ids}
-    by_log_t = {a: [x[0] for x in rows] for a, rows in by_log.items()}
-    timeout_ns = round(spec.simulation.command_timeout * m.NS_PER_S)
-
-    def held(a: str, k: int) -> list[float]:
-        nxt = gt.log_times[k + 1] if k + 1 < len(gt) else run.last_log + 1
-        j = bisect.bisect_left(by_log_t[a], nxt) - 1
-        if j < 0:
-            return zeros6
-        _, st, val = by_log[a][j]
-        return val if gt.stamps[k] - st <= timeout_ns else zeros6
-
-    # control steps without a ground-truth sample (ground truth recorded below the control rate):
-    # their velocity margins, faults and wrench peaks are still known from the re-run and the bag
-    gt_set = set(gt.stamps)
-    between = sorted({int(s) for r in reruns.values() for s in r.stamps} - gt_set) if reruns else []
-    between_pos = 0
-
-    def between_steps(until: int | None) -> None:
-        nonlocal between_pos
-        while between_pos < len(between) and (until is None or between[between_pos] < until):
-            step = between[between_pos]
-            between_pos += 1
-            if not lockstep_checks:
-                continue
-            t_s = m.seconds(step)
-            margin_v = np.full((len(ids), 6), math.inf)
-            for i, a in enumerate(ids):
-                k = rerun_index[a].get(step) if a in reruns else None
-                if k is None:
-                    continue
-                out, fault = reruns[a].outputs[k], reruns[a].faults[k]
-                w = wrench_exact[a].get(step) or list(out.wrench)
-                recorder.peak_force[i] = max(recorder.peak_force[i], math.sqrt(sum(x * x for x in w[:3])))
-                recorder.peak_torque[i] = max(recorder.peak_torque[i], math.sqrt(sum(x * x for x in w[3:])))
-                if _count_fault(recorder, t_s, a, out, fault):
-                    margin_v[i] = out.margin_v
-            recorder.update_velocity(t_s, margin_v)
-
-    lockstep_checks = not realtime
-    for kk, (stamp, (p_list, R_list)) in enumerate(zip(gt.stamps, gt.values)):
-        between_steps(stamp)
-        t = m.seconds(stamp)
-        outs = []
-        if reruns:
-            for a in ids:
-                r = reruns.get(a)
-                k = None if r is None else rerun_index[a].get(stamp)
-                if k is None and r is not None:
-                    j = bisect.bisect_right(r.stamps, stamp) - 1
-                    k = j if j >= 0 else None
-                outs.append(None if k is None else (r.outputs[k], r.faults[k], int(r.stamps[k]) == stamp))
-        if realtime:
-            u = np.array([held(a, kk) for a in ids])
-        else:
-            rows = []
-            for a, o in zip(ids, outs or [None] * len(ids)):
-                w = wrench_exact[a].get(stamp)
-                if w is None and o is not None and o[2] and o[1] is None:
-                    # not in the bag (the recorder matched this agent late): the re-run's wrench,
-                    # which equals the agent's on every recorded step
-                    w = list(o[0].wrench)
-                    substituted[a] = substituted.get(a, 0) + 1
-                rows.append(w or at(run.wrench[a], stamp) or zeros6)
-            u = np.array(rows)
-        v = np.array([at(run.velocity[a], stamp) or zeros6 for a in ids])
-        margin_v = None
-        if reruns:
-            # a step whose measurements are missing from the bag has unknown margins (inf), not −1
-            margin_v = np.full((len(ids), 6), math.inf)
-            for i, (a, o) in enumerate(zip(ids, outs)):
-                if o is not None and o[2] and _count_fault(recorder, t, a, o[0], o[1]):
-                    margin_v[i] = o[0].margin_v
-                elif o is not None and not o[2] and o[1] is None:
-                    margin_v[i] = o[0].margin_v  # the latest step before this sample
-        recorder.add(t, np.array(p_list), np.array(R_list), v, u, margin_v)
-    between_steps(gt.stamps[-1] + 1 if len(gt) else None)  # not past the last sample: the run's end
-    wall = (run.last_log - run.first_log) / m.NS_PER_S
-    try:
-        duration = float(custom["duration"])
-    except (KeyError, ValueError):
-        duration = spec.simulation.duration  # a recorder started without --meta: the file's duration
-    expected = round(duration * (gt_rate or control_rate)) + 1
-    gaps = stamp_gaps(gt.stamps, gt_rate or control_rate, duration)
+    replay = _StepReplay(run, settings, recorder, reruns)
+    replay.run_all()
     missing = missing_data(
-        run, control_rate, gt_rate or control_rate, duration, _recorder_counts(custom), wrenches=not realtime
+        run,
+        settings.control_rate,
+        settings.gt_rate,
+        settings.duration,
+        _recorder_counts(run.custom_data),
+        wrenches=not settings.realtime,
     )
-    truncated = bool(missing)
     incomplete = Incomplete(ExitCode.INCOMPLETE, "data missing: " + "; ".join(missing)) if missing else None
-    bag_info = {
-        "path": str(run.path),
-        "recovered_without_metadata": run.recovered,
-        "lost": run.lost,
-        "truncated": truncated,
-        "ground_truth_samples": len(gt),
-        "ground_truth_expected": expected,
-        "ground_truth_gaps": len(gaps),
-        "ground_truth_missing": [[m.seconds(lo), m.seconds(hi)] for lo, hi in gaps],
-        "missing": missing,
-        "ground_truth_rate": gt_rate,
-        "steps_between_ground_truth": len(between) if lockstep_checks else 0,
-        "topics": run.topic_counts,
-        "velocity_margins": velocity_margins,
-        "wrenches_from_rerun": substituted,
-        "recorder_counts": _recorder_counts(custom),
-        "rerun": {
-            a: {"equal": r.first_difference(1e-12) is None, "max_abs_diff": r.max_abs_diff, "compared": r.compared}
-            for a, r in reruns.items()
-        },
-        "analysis_time": time.perf_counter() - started,
-    }
+    bag_info = bag_report(run, settings, missing, replay, velocity_margins)
+    bag_info["analysis_time"] = time.perf_counter() - started
     summary = recorder.summary(
-        wall_time=wall,
-        requested_duration=duration,
+        wall_time=run_wall_time(run),
+        requested_duration=settings.duration,
         incomplete=incomplete,
         extra={"source": "bag", "bag": bag_info},
     )
     return recorder, summary, reruns
+
+
+def bag_report(
+    run: RunData, settings: RunSettings, missing: list[str], replay: _StepReplay, velocity_margins: str
+) -> dict[str, Any]:
+    """The summary's ``bag`` entry: what the bag held and lacked, and how the re-runs compared."""
+    gt = run.ground_truth
+    gaps = stamp_gaps(gt.stamps, settings.gt_rate, settings.duration)
+    return {
+        "path": str(run.path),
+        "recovered_without_metadata": run.recovered,
+        "lost": run.lost,
+        "truncated": bool(missing),
+        "ground_truth_samples": len(gt),
+        "ground_truth_expected": round(settings.duration * settings.gt_rate) + 1,
+        "ground_truth_gaps": len(gaps),
+        "ground_truth_missing": [[m.seconds(lo), m.seconds(hi)] for lo, hi in gaps],
+        "missing": missing,
+        "ground_truth_rate": settings.gt_rate_measured,
+        "steps_between_ground_truth": 0 if settings.realtime else len(replay.between),
+        "topics": run.topic_counts,
+        "log_time": "receive" if log_times_are_wall(run) else "sim",
+        "velocity_margins": velocity_margins,
+        "wrenches_from_rerun": replay.substituted,
+        "recorder_counts": _recorder_counts(run.custom_data),
+        "rerun": {
+            a: {"equal": r.first_difference(1e-12) is None, "max_abs_diff": r.max_abs_diff, "compared": r.compared}
+            for a, r in replay.reruns.items()
+        },
+    }
 
 
 def stamp_gaps(stamps: list[int], rate: float, duration: float) -> list[tuple[int, int]]:
@@ -268,16 +365,6 @@ def missing_data(
     return out
 
 
-def _count_fault(recorder: RunRecorder, t: float, agent: str, out: Any, missing: str | None) -> bool:
-    """Count a re-run step's fault; True if its margins are known (no measurement missing in the bag)."""
-    if out.level == ERROR:
-        recorder.fault(t, "controller", agent, out.message)
-    if missing is not None:
-        recorder.fault(t, "measurement", agent, missing)
-        return False
-    return True
-
-
 def _recorder_counts(custom: dict[str, str]) -> dict[str, Any] | None:
     """The recorder's counts, and per topic how many messages its publisher sent that are not in the bag."""
     try:
@@ -310,7 +397,18 @@ def _stats(x: list[float]) -> dict[str, float | int | None]:
 
 
 def message_ages(run: RunData) -> dict[str, Any]:
-    """Age of measurements and wrenches per edge link and agent (sim time and wall time, seconds)."""
+    """Age of measurements and wrenches per edge link and agent (sim time and wall time, seconds).
+
+    Only where the log times are receive times: a lockstep bag's log times are the simulation time
+    of each message (its stamp), so there ages would be zero or negative by construction; its
+    ``ages.json`` says so and holds no ages.
+    """
+    if not log_times_are_wall(run):
+        return {
+            "log_time": "sim",
+            "note": "log times are simulation time (lockstep): message ages are not measured in this bag",
+            "clock_messages": len(run.clock),
+        }
     clock = run.clock
     clock_logs = sorted(zip(clock.log_times, clock.stamps))
     c_log = [c[0] for c in clock_logs]
@@ -331,6 +429,7 @@ def message_ages(run: RunData) -> dict[str, Any]:
         return {"sim_age": _stats(sim), "wall_latency": _stats(wall)}
 
     out: dict[str, Any] = {
+        "log_time": "receive",
         "clock_messages": len(clock),
         "relative_pose": {f"{i}->{j}": ages(s) for (i, j), s in sorted(run.relative_pose.items())},
         "velocity": {a: ages(s) for a, s in run.velocity.items()},
@@ -403,7 +502,7 @@ def write_csv(out: Path, recorder: RunRecorder, ages: dict[str, Any]) -> list[Pa
         del K
     rows = []
     for kind in ("relative_pose", "velocity", "wrench"):
-        for key, entry in ages[kind].items():
+        for key, entry in ages.get(kind, {}).items():
             for measure in ("sim_age", "wall_latency", "response_wall"):
                 if measure in entry:
                     s = entry[measure]
@@ -420,7 +519,7 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or bag.parent / f"{bag.stem if bag.is_file() else bag.name}-analysis"
     try:
         prepare_out_dir(out, args.force, ANALYSIS_OUTPUTS)
-        run = load_run(args.bag, formation=args.formation, namespace=args.namespace)
+        run = load_run(args.bag, formation=args.formation, namespace=args.namespace, prog="formation-analyze")
     except (BagError, FormationError, FileNotFoundError) as exc:
         print(f"formation-analyze: {exc}", file=sys.stderr)
         return 2

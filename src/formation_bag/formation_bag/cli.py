@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -18,19 +19,32 @@ def build_parser() -> argparse.ArgumentParser:
         "left by a killed recorder) ROS 2 bags, without ROS. Exit status: 0 fine, 1 problems found, 2 bad input.",
     )
     sub = p.add_subparsers(dest="command", required=True)
-    info = sub.add_parser("info", help="topics, types, counts, time range, segments, lost segments")
+    info = sub.add_parser("info", help="topics, types, counts, time range, files, lost files")
     info.add_argument("bag", type=Path)
     info.add_argument("--json", action="store_true", help="machine-readable output")
     check = sub.add_parser("check", help="read back with rosbags and mcap/mcap_ros2; check metadata.yaml")
     check.add_argument("bag", type=Path)
     check.add_argument("--json", action="store_true", help="machine-readable output")
-    rep = sub.add_parser("repair", help="write metadata.yaml for the readable segments of a killed recording")
+    rep = sub.add_parser(
+        "repair",
+        help="salvage the file a killed writer left open (MCAP); write metadata.yaml for the readable files",
+    )
     rep.add_argument("bag", type=Path)
     rep.add_argument("--force", action="store_true", help="replace an existing metadata.yaml")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _run(argv)
+    except BrokenPipeError:
+        # the reader of our output closed it (formation-bag info BAG | head -1): it has what it wanted;
+        # stdout goes to /dev/null so that the interpreter's final flush cannot fail again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+
+
+def _run(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     from formation_bag import messages as m  # rosbags: not for --help
     from formation_bag.interop import check_bag
@@ -55,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps(info, indent=2))
             else:
                 print(
-                    f"bag {info['path']}: {info['storage']}, {len(info['segments'])} segments, "
+                    f"bag {info['path']}: {info['storage']}, {len(info['segments'])} file(s), "
                     f"{info['messages']} messages over {info['duration']:.3f} s"
                 )
                 for lost in info["lost"]:

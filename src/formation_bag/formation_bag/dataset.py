@@ -10,12 +10,14 @@ the bag itself (``custom_data.formation_yaml`` in metadata.yaml and in every seg
 from __future__ import annotations
 
 import bisect
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from array import array
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 from formation_bag import messages as m
+from formation_bag.progress import Progress
 from formation_bag.reader import Bag
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_msgs_py.errors import BagFormatError, BagTopicError, FormationSpecError, OverrideError
@@ -23,33 +25,81 @@ from formation_msgs_py.loader import parse_document, read_document
 from formation_msgs_py.spec import FormationSpec, formation_from_dict
 
 
-@dataclass
 class Series:
-    """Messages of one topic in stamp order: stamps (ns), log times (ns), decoded values."""
+    """Messages of one topic in stamp order: stamps (ns), log times (ns), values.
 
-    stamps: list[int] = field(default_factory=list)
-    log_times: list[int] = field(default_factory=list)
-    values: list[Any] = field(default_factory=list)
+    Stored compactly (a bag holds ~10⁶ messages: Python lists of decoded values took ~1.5 GB):
+    each message's ``width`` doubles as sent (docs/topics.md order) in one flat array; ``values[k]``
+    decodes message k on demand with ``decode`` (the nodes' own decoders, so the numbers are the
+    ones the agents saw).
+    """
 
-    def add(self, stamp: int, log_time: int, value: Any) -> None:
+    def __init__(self, width: int = 0, decode: Callable[[Sequence[float]], Any] | None = None) -> None:
+        self.width = width
+        self.decode = decode
+        self.stamps = array("q")
+        self.log_times = array("q")
+        self.flat = array("d")
+        self.values = _Values(self)
+
+    def add(self, stamp: int, log_time: int, doubles: Sequence[float]) -> None:
+        """One message: its stamp and log time (ns) and its ``width`` doubles."""
+        if len(doubles) != self.width:
+            raise BagFormatError(f"a message of {len(doubles)} values where {self.width} were expected")
         self.stamps.append(stamp)
         self.log_times.append(log_time)
-        self.values.append(value)
+        self.flat.extend(doubles)
+
+    def value(self, k: int) -> Any:
+        """The decoded value of message k."""
+        if self.decode is None:
+            return None
+        w = self.width
+        return self.decode(self.flat[k * w : (k + 1) * w])
 
     def sort(self) -> None:
         if any(a > b for a, b in zip(self.stamps, self.stamps[1:])):
             order = sorted(range(len(self.stamps)), key=lambda k: (self.stamps[k], self.log_times[k]))
-            self.stamps = [self.stamps[k] for k in order]
-            self.log_times = [self.log_times[k] for k in order]
-            self.values = [self.values[k] for k in order]
+            w, flat = self.width, self.flat
+            self.stamps = array("q", (self.stamps[k] for k in order))
+            self.log_times = array("q", (self.log_times[k] for k in order))
+            self.flat = array("d", (x for k in order for x in flat[k * w : (k + 1) * w]))
 
     def latest_at(self, stamp: int) -> int | None:
         """Index of the last message with stamp ≤ ``stamp`` (None if there is none)."""
         k = bisect.bisect_right(self.stamps, stamp) - 1
         return k if k >= 0 else None
 
+    def exactly_at(self, stamp: int) -> int | None:
+        """Index of the last message stamped exactly ``stamp`` (None if there is none)."""
+        k = self.latest_at(stamp)
+        return k if k is not None and self.stamps[k] == stamp else None
+
     def __len__(self) -> int:
         return len(self.stamps)
+
+
+class _Values(Sequence[Any]):
+    """The decoded values of a :class:`Series`, one at a time (nothing is held)."""
+
+    def __init__(self, series: Series) -> None:
+        self._s = series
+
+    def __len__(self) -> int:
+        return len(self._s)
+
+    @overload
+    def __getitem__(self, k: int) -> Any: ...
+    @overload
+    def __getitem__(self, k: slice) -> list[Any]: ...
+    def __getitem__(self, k: int | slice) -> Any:
+        if isinstance(k, slice):
+            return [self._s.value(i) for i in range(*k.indices(len(self)))]
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(k)
+        return self._s.value(k)
 
 
 @dataclass
@@ -159,51 +209,69 @@ def load_run(
     formation: str | Path | None = None,
     namespace: str = "",
     need_ground_truth: bool = True,
+    prog: str = "formation-bag",
 ) -> RunData:
-    """Read and decode every docs/topics.md topic of a bag (tolerates a killed recorder's bag)."""
+    """Read and decode every docs/topics.md topic of a bag in one pass (tolerates a killed recorder's
+    bag); a progress line on stderr every few seconds when it takes that long."""
     path = Path(path)
     with Bag(path) as bag:
         doc, name = formation_document(bag, formation)
         spec = spec_from_document(doc, name)
-        kinds = {t: m.classify(t, namespace) for t in bag.topics}
+        infos = bag.topics
+        kinds = {t: m.classify(t, namespace) for t in infos}
         wanted = [t for t, k in kinds.items() if k is not None and k.kind != "diagnostics"]
-        gt = Series()
+        n_agents = len(spec.agents)
+        gt = Series(7 * n_agents, m.FROM_VALUES["ground_truth"])
         clock = Series()
-        vel: dict[str, Series] = {a.id: Series() for a in spec.agents}
-        wr: dict[str, Series] = {a.id: Series() for a in spec.agents}
+        vel = {a.id: Series(6, m.FROM_VALUES["velocity"]) for a in spec.agents}
+        wr = {a.id: Series(6, m.FROM_VALUES["wrench"]) for a in spec.agents}
         rel: dict[tuple[str, str], Series] = {}
-        counts: dict[str, int] = {t: 0 for t in bag.topics}
-        first = last = None
-        decode = m.fast_decode
-        for msg in bag.messages(wanted):
-            counts[msg.topic] += 1
-            first = msg.log_time if first is None else min(first, msg.log_time)
-            last = msg.log_time if last is None else max(last, msg.log_time)
-            k = kinds[msg.topic]
-            stamp, value = decode(k.kind, msg.data, msg.msgtype)
+        # every series a topic's messages go to (None: a topic of no agent of the formation)
+        target: dict[str, Series | None] = {}
+        for t in wanted:
+            k = kinds[t]
+            assert k is not None
             if k.kind == "clock":
-                clock.add(stamp, msg.log_time, None)
+                target[t] = clock
             elif k.kind == "ground_truth":
-                gt.add(stamp, msg.log_time, value)
-            elif k.kind == "velocity" and k.agent in vel:
-                vel[k.agent].add(stamp, msg.log_time, value)
-            elif k.kind == "wrench" and k.agent in wr:
-                wr[k.agent].add(stamp, msg.log_time, value)
-            elif k.kind == "relative_pose":
-                rel.setdefault((k.agent, k.target), Series()).add(stamp, msg.log_time, value)
+                target[t] = gt
+            elif k.kind == "velocity":
+                target[t] = vel.get(k.agent or "")
+            elif k.kind == "wrench":
+                target[t] = wr.get(k.agent or "")
+            else:
+                target[t] = rel.setdefault((k.agent or "", k.target or ""), Series(7, m.FROM_VALUES["relative_pose"]))
+        first = last = None
+        values_of = m.fast_values
+        progress = Progress(prog, f"reading {path.name}", sum(infos[t].count for t in wanted))
+        n = 0
+        for msg in bag.messages(wanted):
+            n += 1
+            progress.update(n)
+            lg = msg.log_time
+            if first is None or lg < first:
+                first = lg
+            if last is None or lg > last:
+                last = lg
+            series = target[msg.topic]
+            if series is None:
+                continue
+            stamp, values = values_of(kinds[msg.topic].kind, msg.data, msg.msgtype)  # type: ignore[union-attr]
+            if len(values) != series.width:
+                raise BagFormatError(
+                    f"bag {path}: {msg.topic} at stamp {stamp} ns holds {len(values)} values, expected "
+                    f"{series.width}" + (f" (7 per agent: {name} has {n_agents} agents)" if series is gt else "")
+                )
+            series.add(stamp, lg, values)
+        progress.finish(n)
         lost, recovered = list(bag.lost), bag.recovered
         custom = dict(bag.custom_data)
+        # every topic's count, also of those not decoded (/diagnostics, markers, funnels): from the index
+        counts = {t: info.count for t, info in infos.items()}
     for s in (gt, clock, *vel.values(), *wr.values(), *rel.values()):
         s.sort()
     if need_ground_truth and not len(gt):
         raise BagTopicError(
             f"bag {path} has no {m.absolute('formation/ground_truth', namespace)} messages: cannot check the funnels"
         )
-    n = len(spec.agents)
-    for k, s in enumerate(gt.values):
-        if len(s[0]) != n:
-            raise BagFormatError(
-                f"bag {path}: ground truth at stamp {gt.stamps[k]} ns has {len(s[0])} poses, "
-                f"the formation file {name} has {n} agents"
-            )
     return RunData(path, spec, doc, custom, gt, vel, wr, rel, clock, lost, recovered, first or 0, last or 0, counts)

@@ -1,20 +1,24 @@
 """Interoperability check of a bag: rosbags, and for MCAP the independent ``mcap``/``mcap_ros2`` readers.
 
 :func:`check_bag` reads every message with rosbags (and deserializes it with the Jazzy
-typestore); for MCAP segments it also reads every file with ``mcap.reader`` and decodes every
-message with ``mcap_ros2.decoder``, and compares per-topic counts and the header stamps of both
-readers; it checks that metadata.yaml has the keys, order and counts Jazzy's rosbag2 writes.
+typestore); for MCAP files it also reads every file with ``mcap.reader`` and decodes every
+message with ``mcap_ros2.decoder``, side by side in one pass, and compares per-topic counts and
+the header stamps of both readers (as an order-free digest per topic: memory does not grow with
+the bag); it checks that metadata.yaml has the keys, order and counts Jazzy's rosbag2 writes.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from itertools import zip_longest
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from formation_bag import messages as m
+from formation_bag.progress import Progress
 from formation_bag.reader import Bag
 from formation_msgs_py.bag.writer import typestore
 
@@ -101,53 +105,102 @@ def check_metadata(path: Path, report: InteropReport) -> None:
             report.problems.append(f"{meta}: {tm.get('name')}: type_description_hash is not RIHS01")
 
 
-def check_bag(path: str | Path) -> InteropReport:
-    """Read a bag with rosbags and (MCAP) with mcap + mcap_ros2; compare. See :class:`InteropReport`."""
+class StampDigest:
+    """Per topic: message count and an order-free digest of the header stamps (sums of the stamps and
+    of a 64-bit mix of them, modulo 2⁶⁴): equal for two readers that read the same stamps in any
+    order, in constant memory however long the bag."""
+
+    MASK = (1 << 64) - 1
+
+    def __init__(self) -> None:
+        self.topics: dict[str, list[int]] = {}
+
+    def add(self, topic: str, stamp: int | None) -> None:
+        d = self.topics.get(topic)
+        if d is None:
+            d = self.topics[topic] = [0, 0, 0]
+        d[0] += 1
+        if stamp is not None:
+            d[1] = (d[1] + stamp) & self.MASK
+            d[2] = (d[2] + _mix64(stamp)) & self.MASK
+
+    def counts(self) -> dict[str, int]:
+        return {t: d[0] for t, d in self.topics.items()}
+
+
+def _mix64(x: int) -> int:
+    """splitmix64's finaliser: a 64-bit mix of x (one stamp's contribution to a digest)."""
+    x = (x + 0x9E3779B97F4A7C15) & StampDigest.MASK
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & StampDigest.MASK
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & StampDigest.MASK
+    return x ^ (x >> 31)
+
+
+def _rosbags_stamps(bag: Bag, report: InteropReport) -> Iterator[tuple[str, int | None]]:
+    """(topic, header stamp) of every message rosbags reads and deserializes (problems reported)."""
+    ts = typestore()
+    for msg in bag.messages():
+        try:
+            obj = ts.deserialize_cdr(msg.data, msg.msgtype)
+        except Exception as exc:
+            report.problems.append(f"rosbags: {msg.topic} at {msg.log_time}: cannot deserialize ({exc})")
+            continue
+        yield msg.topic, _stamp(obj)
+
+
+def _mcap_stamps(segments: list[Path], report: InteropReport) -> Iterator[tuple[str, int | None]]:
+    """(topic, header stamp) of every message of the MCAP files, read by mcap and decoded by mcap_ros2."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    for seg in segments:
+        with seg.open("rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            header = reader.get_header()
+            if header.profile != "ros2":
+                report.problems.append(f"mcap: {seg}: profile {header.profile!r}, expected 'ros2'")
+            for schema, channel, _message, decoded in reader.iter_decoded_messages(log_time_order=True):
+                if schema is None or schema.encoding != "ros2msg" or channel.message_encoding != "cdr":
+                    report.problems.append(f"mcap: {seg}: {channel.topic}: not a ros2msg/cdr channel")
+                yield channel.topic, _stamp(decoded)
+
+
+def check_bag(path: str | Path, *, prog: str = "formation-bag") -> InteropReport:
+    """Read a bag with rosbags and (MCAP) with mcap + mcap_ros2 side by side in one pass (constant
+    memory, a progress line every few seconds); compare. See :class:`InteropReport`."""
     path = Path(path)
     report = InteropReport(path)
     if path.is_dir():
         check_metadata(path, report)
-    ts = typestore()
-    stamps_rb: dict[str, list[int | None]] = {}
     with Bag(path) as bag:
         report.lost = list(bag.lost)
-        segments = list(bag.segments)
+        mcaps = [s for s in bag.segments if s.suffix == ".mcap"]
         listed = bag.topics
-        for msg in bag.messages():
-            try:
-                obj = ts.deserialize_cdr(msg.data, msg.msgtype)
-            except Exception as exc:
-                report.problems.append(f"rosbags: {msg.topic} at {msg.log_time}: cannot deserialize ({exc})")
-                continue
-            report.counts_rosbags[msg.topic] = report.counts_rosbags.get(msg.topic, 0) + 1
-            stamps_rb.setdefault(msg.topic, []).append(_stamp(obj))
-        for name, info in listed.items():
-            if info.count != report.counts_rosbags.get(name, 0):
-                report.problems.append(
-                    f"rosbags: {name}: {report.counts_rosbags.get(name, 0)} messages read, {info.count} listed"
-                )
-    mcaps = [s for s in segments if s.suffix == ".mcap"]
-    if mcaps:
-        from mcap.reader import make_reader
-        from mcap_ros2.decoder import DecoderFactory
-
-        counts: dict[str, int] = {}
-        stamps_mc: dict[str, list[int | None]] = {}
-        for seg in mcaps:
-            with seg.open("rb") as f:
-                reader = make_reader(f, decoder_factories=[DecoderFactory()])
-                header = reader.get_header()
-                if header.profile != "ros2":
-                    report.problems.append(f"mcap: {seg}: profile {header.profile!r}, expected 'ros2'")
-                for schema, channel, _message, decoded in reader.iter_decoded_messages(log_time_order=True):
-                    if schema is None or schema.encoding != "ros2msg" or channel.message_encoding != "cdr":
-                        report.problems.append(f"mcap: {seg}: {channel.topic}: not a ros2msg/cdr channel")
-                    counts[channel.topic] = counts.get(channel.topic, 0) + 1
-                    stamps_mc.setdefault(channel.topic, []).append(_stamp(decoded))
-        report.counts_mcap = counts
-        if counts != report.counts_rosbags:
-            report.problems.append(f"mcap: per-topic counts {counts} differ from rosbags' {report.counts_rosbags}")
-        for topic, st in stamps_rb.items():
-            if sorted(x for x in st if x is not None) != sorted(x for x in stamps_mc.get(topic, []) if x is not None):
+        rb, mc = StampDigest(), StampDigest() if mcaps else None
+        progress = Progress(prog, f"checking {path.name}", bag.message_count)
+        n = 0
+        readers = zip_longest(_rosbags_stamps(bag, report), _mcap_stamps(mcaps, report) if mcaps else ())
+        for from_rb, from_mc in readers:
+            if from_rb is not None:
+                rb.add(*from_rb)
+                n += 1
+                progress.update(n)
+            if from_mc is not None and mc is not None:
+                mc.add(*from_mc)
+        progress.finish(n)
+    report.counts_rosbags = rb.counts()
+    for name, info in listed.items():
+        if info.count != report.counts_rosbags.get(name, 0):
+            report.problems.append(
+                f"rosbags: {name}: {report.counts_rosbags.get(name, 0)} messages read, {info.count} listed"
+            )
+    if mc is not None:
+        report.counts_mcap = mc.counts()
+        if report.counts_mcap != report.counts_rosbags:
+            report.problems.append(
+                f"mcap: per-topic counts {report.counts_mcap} differ from rosbags' {report.counts_rosbags}"
+            )
+        for topic, digest in rb.topics.items():
+            if digest[1:] != mc.topics.get(topic, [0, 0, 0])[1:]:
                 report.problems.append(f"mcap: {topic}: header stamps differ between rosbags and mcap_ros2")
     return report

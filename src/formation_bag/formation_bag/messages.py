@@ -2,21 +2,26 @@
 
 Decoding uses the agent node's own decoders and CDR codecs (:mod:`formation_msgs_py.wire`, no
 ROS import), so a relative pose decoded here gives the controller exactly the numbers the agent
-node saw.
+node saw. Relative poses are geometry_msgs/PoseStamped; bags recorded when they were
+TransformStamped (same numbers, plus a child frame name) are still read.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from formation_msgs_py import topics, wire
 from formation_msgs_py.bag.writer import typestore
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.wire import NS_PER_S, stamp_ns
 
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+#: the relative poses' type in bags recorded before they became PoseStamped (still read)
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
@@ -65,7 +70,7 @@ def classify(topic: str, namespace: str = "") -> TopicKind | None:
     if m := _RE_REL.match(rest):
         if m["ns"]:
             return None
-        return TopicKind("relative_pose", TRANSFORM_STAMPED, m["i"], m["j"])
+        return TopicKind("relative_pose", POSE_STAMPED, m["i"], m["j"])
     if (m := _RE_VEL.match(rest)) and not m["ns"]:
         return TopicKind("velocity", TWIST_STAMPED, m["i"])
     if (m := _RE_WRENCH.match(rest)) and not m["ns"]:
@@ -86,8 +91,8 @@ def formation_topics(agent_ids: Sequence[str], edges: Sequence[tuple[str, str]],
         out[absolute(topics.velocity(a), namespace)] = TWIST_STAMPED
         out[absolute(topics.wrench(a), namespace)] = WRENCH_STAMPED
     for tail, head in edges:
-        out[absolute(topics.relative_pose(tail, head), namespace)] = TRANSFORM_STAMPED
-        out[absolute(topics.relative_pose(head, tail), namespace)] = TRANSFORM_STAMPED
+        out[absolute(topics.relative_pose(tail, head), namespace)] = POSE_STAMPED
+        out[absolute(topics.relative_pose(head, tail), namespace)] = POSE_STAMPED
     return out
 
 
@@ -113,8 +118,70 @@ decode_poses = wire.poses_from_msg
 # -- fast decoding of the fixed-layout messages (little-endian CDR), same numbers as rosbags ---------
 
 # the nodes' codecs (formation_msgs_py.wire); decoding ignores the frame names
-_POSE_CODEC = wire.StampedCodec(["", ""], 7)
+_POSE_CODEC = wire.StampedCodec([""], 7)  # PoseStamped: header.frame_id, then position, orientation
+_OLD_POSE_CODEC = wire.StampedCodec(["", ""], 7)  # TransformStamped: frame_id and child_frame_id
 _SIX_CODEC = wire.StampedCodec([""], 6)
+
+
+def _doubles_of(kind: str, obj: Any) -> tuple[float, ...]:
+    """The doubles of a deserialized message, in the order of its CDR (see :func:`fast_values`)."""
+    if kind == "relative_pose":
+        pose = getattr(obj, "pose", None)  # None: a TransformStamped of an older bag
+        if pose is None:
+            pos, q = obj.transform.translation, obj.transform.rotation
+        else:
+            pos, q = pose.position, pose.orientation
+        return (pos.x, pos.y, pos.z, q.x, q.y, q.z, q.w)
+    if kind == "velocity":
+        return tuple(decode_twist(obj))
+    if kind == "wrench":
+        return tuple(decode_wrench(obj))
+    if kind == "ground_truth":
+        return tuple(
+            x for ps in obj.poses for x in (ps.position.x, ps.position.y, ps.position.z, *_xyzw(ps.orientation))
+        )
+    raise ValueError(f"no decoder for {kind!r}")
+
+
+def _xyzw(q: Any) -> tuple[float, float, float, float]:
+    return q.x, q.y, q.z, q.w
+
+
+def fast_values(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int, tuple[float, ...]]:
+    """(stamp ns, the message's doubles) of a docs/topics.md message; rosbags for anything but
+    little-endian CDR. Doubles: relative_pose 7 (position, quaternion xyzw), velocity/wrench 6,
+    ground_truth 7 per agent, clock none; :data:`FROM_VALUES` turns them into the decoded values.
+    """
+    if len(data) < 12 or data[1] != 1:
+        obj = deserialize(data, msgtype)
+        if kind == "clock":
+            return stamp_ns(obj.clock), ()
+        return stamp_ns(obj.header.stamp), _doubles_of(kind, obj)
+    if kind == "clock":
+        return wire.stamp_of(data), ()
+    if kind == "relative_pose":
+        return (_OLD_POSE_CODEC if msgtype == TRANSFORM_STAMPED else _POSE_CODEC).decode(data)
+    if kind in ("velocity", "wrench"):
+        return _SIX_CODEC.decode(data)
+    if kind == "ground_truth":
+        return wire.ground_truth_values(data)
+    raise ValueError(f"no fast decoder for {kind!r}")
+
+
+def pose_stamped_from_transform(data: bytes | memoryview, observer: str) -> bytes:
+    """An older bag's TransformStamped relative pose as the PoseStamped the agents now take (same
+    stamp and numbers, frame ``agent_<observer>``): what formation-replay publishes for it."""
+    stamp, values = fast_values("relative_pose", data, TRANSFORM_STAMPED)
+    return wire.relative_pose_codec(observer).encode(stamp, values)
+
+
+#: the decoded value of a message from its doubles, per kind (the agent node's own decoders)
+FROM_VALUES: dict[str, Callable[[Sequence[float]], Any]] = {
+    "relative_pose": wire.relative_pose_from_values,
+    "velocity": list,
+    "wrench": list,
+    "ground_truth": wire.ground_truth_from_values,
+}
 
 
 def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int, Any]:
@@ -123,29 +190,8 @@ def fast_decode(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int,
     value: relative_pose -> (p, R), velocity/wrench -> 6 floats, ground_truth -> (p (N,3), R (N,3,3)),
     clock -> None. Identical numbers to rosbags' deserialize + the decode_* functions.
     """
-    if len(data) < 12 or data[1] != 1:
-        obj = deserialize(data, msgtype)
-        if kind == "clock":
-            return stamp_ns(obj.clock), None
-        value = {
-            "relative_pose": decode_relative_pose,
-            "velocity": decode_twist,
-            "wrench": decode_wrench,
-            "ground_truth": decode_poses,
-        }[kind](obj)
-        return stamp_ns(obj.header.stamp), value
-    if kind == "clock":
-        return wire.stamp_of(data), None
-    if kind == "relative_pose":
-        stamp, values = _POSE_CODEC.decode(data)
-        return stamp, wire.relative_pose_from_values(values)
-    if kind in ("velocity", "wrench"):
-        stamp, values = _SIX_CODEC.decode(data)
-        return stamp, list(values)
-    if kind == "ground_truth":
-        stamp, p, R = wire.ground_truth_from_bytes(data)
-        return stamp, (p, R)
-    raise ValueError(f"no fast decoder for {kind!r}")
+    stamp, values = fast_values(kind, data, msgtype)
+    return stamp, (None if kind == "clock" else FROM_VALUES[kind](values))
 
 
 # -- encoding (for bags written without ROS: synthetic runs, tests) -------------------------------
@@ -164,8 +210,7 @@ class Encoder:
         self.Quaternion = t["geometry_msgs/msg/Quaternion"]
         self.Point = t["geometry_msgs/msg/Point"]
         self.Pose = t["geometry_msgs/msg/Pose"]
-        self.Transform = t["geometry_msgs/msg/Transform"]
-        self.TransformStamped = t[TRANSFORM_STAMPED]
+        self.PoseStamped = t[POSE_STAMPED]
         self.Twist = t["geometry_msgs/msg/Twist"]
         self.TwistStamped = t[TWIST_STAMPED]
         self.Wrench = t["geometry_msgs/msg/Wrench"]
@@ -183,19 +228,17 @@ class Encoder:
     def clock(self, ns: int) -> bytes:
         return bytes(self.ts.serialize_cdr(self.Clock(clock=self.time(ns)), CLOCK))
 
-    def relative_pose(
-        self, ns: int, observer: str, target: str, p: Sequence[float], R: Sequence[Sequence[float]]
-    ) -> bytes:
+    def relative_pose(self, ns: int, observer: str, p: Sequence[float], R: Sequence[Sequence[float]]) -> bytes:
+        """PoseStamped in frame ``agent_<observer>``: position p (m) and orientation R of the neighbour."""
         x, y, z, w = quaternion_from_matrix(R)
-        msg = self.TransformStamped(
+        msg = self.PoseStamped(
             header=self.header(ns, topics.agent_frame(observer)),
-            child_frame_id=topics.agent_frame(target),
-            transform=self.Transform(
-                translation=self.Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                rotation=self.Quaternion(x=x, y=y, z=z, w=w),
+            pose=self.Pose(
+                position=self.Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                orientation=self.Quaternion(x=x, y=y, z=z, w=w),
             ),
         )
-        return bytes(self.ts.serialize_cdr(msg, TRANSFORM_STAMPED))
+        return bytes(self.ts.serialize_cdr(msg, POSE_STAMPED))
 
     def twist(self, ns: int, agent: str, v: Sequence[float]) -> bytes:
         v = [float(c) for c in v]
@@ -212,6 +255,20 @@ class Encoder:
             wrench=self.Wrench(force=self.Vector3(x=u[0], y=u[1], z=u[2]), torque=self.Vector3(x=u[3], y=u[4], z=u[5])),
         )
         return bytes(self.ts.serialize_cdr(msg, WRENCH_STAMPED))
+
+    def empty(self, ns: int, msgtype: str) -> bytes:
+        """A /diagnostics, markers or funnels message with nothing in it (stamped ``ns`` where it has a header)."""
+        t = self.ts.types
+        if msgtype == DIAGNOSTIC_ARRAY:
+            msg = t[msgtype](header=self.header(ns, ""), status=[])
+        elif msgtype == MARKER_ARRAY:
+            msg = t[msgtype](markers=[])
+        elif msgtype == FLOAT64_MULTI_ARRAY:
+            layout = t["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
+            msg = t[msgtype](layout=layout, data=np.zeros(0))
+        else:
+            raise ValueError(f"no empty message of type {msgtype}")
+        return bytes(self.ts.serialize_cdr(msg, msgtype))
 
     def poses(self, ns: int, p: Sequence[Sequence[float]], R: Sequence[Sequence[Sequence[float]]]) -> bytes:
         poses = []

@@ -14,8 +14,9 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from formation_msgs_py.bag import SEGMENT_MB, STORAGE_NAMES
+from formation_msgs_py.bag import STORAGE_NAMES
 from formation_msgs_py.errors import FormationError
+from formation_msgs_py.options import byte_count
 from formation_msgs_py.outcome import EXIT_STATUS_HELP
 
 #: formation-analyze --velocity-margins
@@ -30,7 +31,8 @@ def record_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-record",
         description="Record a running formation's topics (docs/topics.md) into a ROS 2 bag (MCAP or sqlite3, "
-        "metadata version 9), written in segments so a killed recorder loses at most the last one. "
+        "metadata version 9), one file unless --max-bag-size or --segment-seconds splits it (a killed recorder "
+        "loses at most the file it was writing). "
         "Stop with Ctrl-C (SIGINT) or SIGTERM: the bag is closed cleanly.",
     )
     p.add_argument("--out", type=Path, required=True, help="bag directory to create (must not exist)")
@@ -52,7 +54,12 @@ def record_parser() -> argparse.ArgumentParser:
         help="also close a segment after S s of log time (simulated s with --log-time sim; default: by size only)",
     )
     p.add_argument(
-        "--segment-mb", type=float, default=SEGMENT_MB, help=f"close a segment after M MiB (default {SEGMENT_MB:g})"
+        "--max-bag-size",
+        type=byte_count,
+        default=None,
+        metavar="BYTES",
+        help="also close a file after about BYTES bytes, as ros2 bag record -b (default: one file, unless "
+        "--segment-seconds)",
     )
     p.add_argument(
         "--log-time",

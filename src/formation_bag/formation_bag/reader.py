@@ -10,8 +10,11 @@ died) are listed in :attr:`Bag.lost`. :func:`repair` writes the rebuilt ``metada
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
 import sqlite3
+import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -224,10 +227,56 @@ def embedded_custom_data(path: Path) -> dict[str, str]:
         return {}
 
 
+def salvage(partial: Path, final: Path) -> int:
+    """Write the messages of the closed chunks of ``partial`` (an MCAP file whose writer was killed:
+    no summary, a torn last chunk) as the complete MCAP file ``final``; returns how many.
+
+    rosbags' MCAP writer puts each chunk (~1 MiB) in the file when it closes, so a killed writer's
+    file holds all but its last ~1 MiB. Nothing is written if no message can be read.
+    """
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+    from rosbags.rosbag2.metadata import parse_qos
+
+    from formation_msgs_py.bag.writer import SegmentedBagWriter
+
+    tmp = final.parent / f".salvage_{final.stem}"
+    schemas: dict[int, str] = {}
+    topics: dict[int, tuple[str, str, list[Any]]] = {}
+    writer: SegmentedBagWriter | None = None
+    count = 0
+    with partial.open("rb") as f:
+        try:
+            for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec.name
+                elif isinstance(rec, Channel):
+                    qos = parse_qos(rec.metadata.get("offered_qos_profiles", "") or [])
+                    topics[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""), qos)
+                elif isinstance(rec, Message) and rec.channel_id in topics:
+                    topic, msgtype, qos = topics[rec.channel_id]
+                    if writer is None:
+                        writer = SegmentedBagWriter(tmp, segment_seconds=None, segment_bytes=None)
+                    writer.add_topic(topic, msgtype, qos)
+                    writer.write(topic, rec.log_time, rec.data)
+                    count += 1
+        except (McapError, EOFError, ValueError, struct.error):
+            pass  # the torn end of the file
+    if writer is None:
+        return 0
+    writer.close()
+    written = writer.path / f"{writer.path.name}_0.mcap"
+    os.replace(written, final)
+    shutil.rmtree(tmp)
+    return count
+
+
 def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
     """Write ``metadata.yaml`` for the readable segments of a bag; returns (path, lost files).
 
-    Refuses to replace an existing metadata.yaml unless ``force``.
+    The file a killed writer left open (MCAP) is salvaged first: its closed chunks become a complete
+    file in its place. Refuses to replace an existing metadata.yaml unless ``force``.
     """
     path = Path(path)
     meta = path / "metadata.yaml"
@@ -235,6 +284,17 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
         raise BagExistsError(meta, "metadata file")
     if meta.exists():
         meta.unlink()
+    salvaged = []
+    for part in partial_files(path):
+        final = path / f"{part.name.lstrip('.')}"
+        if part.suffix != ".mcap" or final.exists():
+            continue
+        n = salvage(part, final)
+        if n:
+            shutil.rmtree(part.parent)
+            salvaged.append(
+                f"{part}: open when the writer stopped: {n} messages recovered into {final.name}, its tail lost"
+            )
     bag = Bag(path)
     try:
         infos: list[SegmentInfo] = []
@@ -256,7 +316,7 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
             topics=[tuple(r) for r in topic_rows.values()],  # type: ignore[misc]
             custom_data=bag.custom_data,
         )
-        lost = list(bag.lost)
+        lost = salvaged + list(bag.lost)
     finally:
         bag.close()
     meta.write_text(text, encoding="utf-8")

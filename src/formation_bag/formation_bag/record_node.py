@@ -25,6 +25,7 @@ where the analysis needs the order in which wrenches arrived).
 
 from __future__ import annotations
 
+import argparse
 import fnmatch
 import importlib
 import json
@@ -32,6 +33,8 @@ import signal
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import rclpy
@@ -128,6 +131,9 @@ class Recorder(Node):
         self.step_topics = step_topics or []  # velocities and wrenches: the first one dates the recording
         self.first_step_stamp: int | None = None
         self.sim_now = 0  # the latest stamp taken [ns]
+        #: monotonic wall clock [s] when the first and the latest messages were taken: the run's wall time
+        self.first_wall: float | None = None
+        self.last_wall = 0.0
         self.writer = writer
         self.namespace = namespace
         self.only = only
@@ -357,6 +363,10 @@ class Recorder(Node):
             if n % every == 0:
                 write(name, stamp if sim_time else info.get("received_timestamp") or time.time_ns(), data)
                 self.written[name] += 1
+        if count:
+            self.last_wall = time.monotonic()
+            if self.first_wall is None:
+                self.first_wall = self.last_wall
         return count
 
     def missed_start(self) -> str | None:
@@ -387,6 +397,9 @@ class Recorder(Node):
             "missed_start": self.missed_start(),
         }
         self.writer.custom_data["recorder_counts"] = json.dumps(stats, sort_keys=True)
+        if self.first_wall is not None:
+            # the wall time from the first to the last message taken: formation-analyze's real-time factor
+            self.writer.custom_data["wall_time"] = repr(self.last_wall - self.first_wall)
         self.writer.close()
         return stats
 
@@ -395,43 +408,48 @@ def _unused(_msg: Any) -> None:  # the subscriptions are drained by Recorder.spi
     return None
 
 
-@guarded("formation-record")
-def main(argv: list[str] | None = None) -> int:
-    args = record_parser().parse_args(argv)
-    try:
-        decimate = parse_decimation(args.decimate)
-        custom = parse_meta(args.meta)
-        known: dict[str, str] = {}
-        step_topics: list[str] = []
-        mode = custom.get("mode")
-        if args.formation is not None:
-            spec = load_formation(args.formation)
-            mode = mode or spec.simulation.mode
-            known = m.formation_topics(spec.agent_ids, [(e.tail, e.head) for e in spec.edges], args.namespace)
-            custom.setdefault(KEY_FORMATION_YAML, args.formation.read_text(encoding="utf-8"))
-            custom.setdefault(KEY_FORMATION_FILE, args.formation.name)
-            step_topics = [
-                m.absolute(f(a), args.namespace) for a in spec.agent_ids for f in (topics.velocity, topics.wrench)
-            ]
-        only = None
-        if args.topics:
-            only = [m.absolute(t, args.namespace) for t in args.topics]
-            for t in only:
-                k = m.classify(t, args.namespace)
-                if k is not None and t not in known:
-                    known[t] = k.msgtype
-            step_topics = [t for t in step_topics if t in only]
-        sim_log_time = args.log_time == "sim" or (args.log_time == "auto" and mode == "lockstep")
-        writer = SegmentedBagWriter(
-            args.out,
-            storage=args.storage,
-            segment_seconds=args.segment_seconds,
-            segment_bytes=round(args.segment_mb * 1024 * 1024),
-            custom_data=custom,
-        )
-    except (BagError, FormationSpecError, OSError) as exc:
-        print(f"formation-record: {exc}", file=sys.stderr)
-        return ExitCode.INVALID
+@dataclass
+class RecordPlan:
+    """What to record, decided from the command line before anything starts."""
+
+    known: dict[str, str]  # topics subscribed before they appear: {absolute name: type}
+    only: list[str] | None  # --topics: exactly these
+    step_topics: list[str]  # velocities and wrenches: the first one dates the recording
+    decimate: list[tuple[str, int]]
+    custom: dict[str, str]  # the bag's custom_data
+    sim_log_time: bool
+
+
+def plan_recording(args: argparse.Namespace) -> RecordPlan:
+    """The topics, decimation, custom_data and log time of ``args`` (raises on a bad input)."""
+    decimate = parse_decimation(args.decimate)
+    custom = parse_meta(args.meta)
+    known: dict[str, str] = {}
+    step_topics: list[str] = []
+    mode = custom.get("mode")
+    if args.formation is not None:
+        spec = load_formation(args.formation)
+        mode = mode or spec.simulation.mode
+        known = m.formation_topics(spec.agent_ids, [(e.tail, e.head) for e in spec.edges], args.namespace)
+        custom.setdefault(KEY_FORMATION_YAML, args.formation.read_text(encoding="utf-8"))
+        custom.setdefault(KEY_FORMATION_FILE, args.formation.name)
+        step_topics = [
+            m.absolute(f(a), args.namespace) for a in spec.agent_ids for f in (topics.velocity, topics.wrench)
+        ]
+    only = None
+    if args.topics:
+        only = [m.absolute(t, args.namespace) for t in args.topics]
+        for t in only:
+            k = m.classify(t, args.namespace)
+            if k is not None and t not in known:
+                known[t] = k.msgtype
+        step_topics = [t for t in step_topics if t in only]
+    sim_log_time = args.log_time == "sim" or (args.log_time == "auto" and mode == "lockstep")
+    return RecordPlan(known, only, step_topics, decimate, custom, sim_log_time)
+
+
+def record(args: argparse.Namespace, plan: RecordPlan, writer: SegmentedBagWriter) -> tuple[int, dict[str, Any]]:
+    """Run the recorder node until SIGINT/SIGTERM and close the bag; returns (exit status, counts)."""
     # our own SIGINT/SIGTERM handlers: rclpy's would shut the context down at once, before the
     # messages already received are written
     rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
@@ -442,50 +460,67 @@ def main(argv: list[str] | None = None) -> int:
     try:
         node = Recorder(
             writer,
-            known=known,
-            only=only,
+            known=plan.known,
+            only=plan.only,
             namespace=args.namespace,
-            decimate=decimate,
-            sim_log_time=sim_log_time,
-            step_topics=step_topics,
+            decimate=plan.decimate,
+            sim_log_time=plan.sim_log_time,
+            step_topics=plan.step_topics,
         )
         check_secure_transport()  # secure mode: refuse to record over a transport that fell back to UDP
         signal.signal(signal.SIGINT, node.request_stop)
         signal.signal(signal.SIGTERM, node.request_stop)
         print(
             f"formation-record: recording {node.topic_count} topics into {args.out} "
-            f"(log time: {'simulation' if sim_log_time else 'receive'})",
+            f"(log time: {'simulation' if plan.sim_log_time else 'receive'})",
             flush=True,
         )
-        try:
-            node.spin(discovery_period=args.discovery_period, status_period=None if args.quiet else 5.0)
-        except (OSError, BagError) as exc:
-            print(f"formation-record: I/O error writing {args.out}: {exc}; recording stopped", file=sys.stderr)
-            code = ExitCode.INCOMPLETE
-        except Exception:
-            if node.context.ok():
-                raise
-            # a graph query or wait interrupted by SIGINT/SIGTERM (the context is shut down): a normal stop
+        code = spin_until_stopped(node, args)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except InsecureTransportError as exc:
         print(f"formation-record: {exc}", file=sys.stderr)
-        code = 2
+        code = ExitCode.INVALID
+    finally:
+        stats, closed = close_recording(node, writer, args.out)
+        code = code if closed else ExitCode.INCOMPLETE
+        rclpy.try_shutdown()
+    return code, stats
+
+
+def spin_until_stopped(node: Recorder, args: argparse.Namespace) -> int:
+    """Record until stopped; INCOMPLETE if writing failed (full disk), else PASS."""
+    try:
+        node.spin(discovery_period=args.discovery_period, status_period=None if args.quiet else 5.0)
+    except (OSError, BagError) as exc:
+        print(f"formation-record: I/O error writing {args.out}: {exc}; recording stopped", file=sys.stderr)
+        return ExitCode.INCOMPLETE
+    except Exception:
+        if node.context.ok():
+            raise
+        # a graph query or wait interrupted by SIGINT/SIGTERM (the context is shut down): a normal stop
+    return ExitCode.PASS
+
+
+def close_recording(node: Recorder | None, writer: SegmentedBagWriter, out: Path) -> tuple[dict[str, Any], bool]:
+    """Close the bag (with the counts, if the node exists) and the node; returns (counts, closed cleanly)."""
+    stats: dict[str, Any] = {}
+    try:
+        if node is not None:
+            stats = node.finish()
+        else:
+            writer.close()
+    except (BagError, OSError) as exc:
+        print(f"formation-record: closing {out} failed: {exc}", file=sys.stderr)
+        return stats, False
     finally:
         if node is not None:
-            try:
-                stats = node.finish()
-            except (BagError, OSError) as exc:
-                print(f"formation-record: closing {args.out} failed: {exc}", file=sys.stderr)
-                code = ExitCode.INCOMPLETE
             node.destroy_node()
-        else:
-            try:
-                writer.close()
-            except (BagError, OSError) as exc:
-                print(f"formation-record: closing {args.out} failed: {exc}", file=sys.stderr)
-                code = ExitCode.INCOMPLETE
-        rclpy.try_shutdown()
+    return stats, True
+
+
+def report_recording(args: argparse.Namespace, writer: SegmentedBagWriter, stats: dict[str, Any], code: int) -> int:
+    """Write ``--stats`` and print the closing lines; returns the exit status."""
     if args.stats is not None and stats:
         try:
             write_json(args.stats, stats)
@@ -495,12 +530,31 @@ def main(argv: list[str] | None = None) -> int:
     rec, wr = sum(stats.get("received", {}).values()), sum(stats.get("written", {}).values())
     print(
         f"formation-record: closed {args.out}: {wr} messages written of {rec} received "
-        f"on {len(stats.get('received', {}))} topics, {len(writer.segments)} segments",
+        f"on {len(stats.get('received', {}))} topics, {len(writer.segments)} files",
         flush=True,
     )
     if stats.get("missed_start"):
         print(f"formation-record: WARNING: {stats['missed_start']}", file=sys.stderr, flush=True)
     return code
+
+
+@guarded("formation-record")
+def main(argv: list[str] | None = None) -> int:
+    args = record_parser().parse_args(argv)
+    try:
+        plan = plan_recording(args)
+        writer = SegmentedBagWriter(
+            args.out,
+            storage=args.storage,
+            segment_seconds=args.segment_seconds,
+            segment_bytes=args.max_bag_size,
+            custom_data=plan.custom,
+        )
+    except (BagError, FormationSpecError, OSError) as exc:
+        print(f"formation-record: {exc}", file=sys.stderr)
+        return ExitCode.INVALID
+    code, stats = record(args, plan, writer)
+    return report_recording(args, writer, stats, code)
 
 
 if __name__ == "__main__":

@@ -72,9 +72,16 @@ class Replayer(Node):
         self.bag = bag
         infos = bag.topics
         self.pubs: dict[str, Any] = {}
+        #: relative poses of an older bag (TransformStamped): published as PoseStamped, what agents take
+        self.convert: dict[str, str] = {}
         for name in selected:
             info = infos[name]
-            self.pubs[name] = self.create_publisher(msg_class(info.msgtype), name, to_rclpy_qos(info.qos, name))
+            msgtype = info.msgtype
+            kind = m.classify(name)
+            if msgtype == m.TRANSFORM_STAMPED and kind is not None and kind.kind == "relative_pose":
+                self.convert[name] = kind.agent or ""
+                msgtype = m.POSE_STAMPED
+            self.pubs[name] = self.create_publisher(msg_class(msgtype), name, to_rclpy_qos(info.qos, name))
         self.clock_pub = None
         self.clock_hz = 0.0
         if topics.CLOCK not in self.pubs and clock_hz > 0:
@@ -125,7 +132,9 @@ class Replayer(Node):
             sleep_until(send_time(t0, msg.log_time, t_first, rate))
             if not ok():
                 break
-            self.pubs[msg.topic].publish(bytes(msg.data))
+            observer = self.convert.get(msg.topic)
+            data = bytes(msg.data) if observer is None else m.pose_stamped_from_transform(msg.data, observer)
+            self.pubs[msg.topic].publish(data)
             count += 1
             if progress and time.perf_counter() >= next_progress:
                 done = (msg.log_time - t_first) / span

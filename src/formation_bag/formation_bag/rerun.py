@@ -25,10 +25,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from formation_agent.controller import LEVEL_NAMES, AgentController, ControlOutput, MissingMeasurementError
+from formation_agent.controller import ERROR, LEVEL_NAMES, AgentController, MissingMeasurementError
 from formation_bag import messages as m
-from formation_bag.dataset import RunData, apply_overrides, load_run, spec_from_document
+from formation_bag.dataset import RunData, Series, apply_overrides, load_run, spec_from_document
 from formation_bag.parsers import rerun_parser
+from formation_bag.progress import Progress
 from formation_msgs_py.errors import BagError, FormationSpecError, OverrideError
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import FormationSpec, agent_view
@@ -36,14 +37,17 @@ from formation_msgs_py.spec import FormationSpec, agent_view
 
 @dataclass
 class AgentRerun:
-    """One agent's re-run, step by step (one step per recorded velocity message)."""
+    """One agent's re-run, step by step (one step per recorded velocity message), in arrays: a run
+    has ~10⁵ steps per agent, too many for one ControlOutput object each."""
 
     agent: str
     stamps: np.ndarray  # (T,) int64 ns
-    outputs: list[ControlOutput]
-    faults: list[str | None]  # neighbours missing at that step ("2,3"), None if complete
+    faults: list[str | None]  # neighbours missing at that step ("2,3"), "stale", None if complete
     recorded: np.ndarray  # (T,6), NaN where no wrench with that stamp was recorded
-    rerun: np.ndarray  # (T,6)
+    rerun: np.ndarray  # (T,6): the re-run's wrench (force N, torque N·m, body frame)
+    margin_v: np.ndarray  # (T,6): the re-run's velocity-funnel margins
+    level: np.ndarray  # (T,) int8: the controller's level (formation_agent.controller.LEVEL_NAMES)
+    messages: dict[int, str]  # the controller's message at each ERROR step
 
     @property
     def comparable(self) -> np.ndarray:
@@ -62,6 +66,7 @@ class AgentRerun:
 
     @property
     def max_abs_diff(self) -> float:
+        """The largest difference of one wrench component over the compared steps."""
         d = np.abs(self.recorded - self.rerun)[self.comparable]
         return float(d.max()) if d.size else 0.0
 
@@ -71,12 +76,10 @@ class AgentRerun:
         return int(bad[0]) if bad.size else None
 
     def report(self, tol: float) -> dict[str, Any]:
+        """Differences per component (the norm of the tolerance): overall, of the force and of the torque."""
         k = self.first_difference(tol)
         d = np.abs(self.recorded - self.rerun)
         valid = self.comparable
-        force = np.linalg.norm(self.recorded[:, :3] - self.rerun[:, :3], axis=1)
-        torque = np.linalg.norm(self.recorded[:, 3:] - self.rerun[:, 3:], axis=1)
-        levels = [o.level for o in self.outputs]
         return {
             "steps": len(self.stamps),
             "compared": self.compared,
@@ -84,8 +87,8 @@ class AgentRerun:
             "measurements_missing": self.measurements_missing,
             "equal": k is None,
             "max_abs_diff": self.max_abs_diff,
-            "max_force_diff": float(np.nanmax(force)) if valid.any() else 0.0,
-            "max_torque_diff": float(np.nanmax(torque)) if valid.any() else 0.0,
+            "max_force_diff": float(d[valid, :3].max()) if valid.any() else 0.0,
+            "max_torque_diff": float(d[valid, 3:].max()) if valid.any() else 0.0,
             "rms_diff": float(np.sqrt(np.nanmean(d[valid] ** 2))) if valid.any() else 0.0,
             "first_difference": None
             if k is None
@@ -96,8 +99,8 @@ class AgentRerun:
             },
             "steps_differing": int(np.sum(d[valid].max(axis=1) > tol)) if valid.any() else 0,
             "faults": sum(f is not None for f in self.faults),
-            "levels": {name: levels.count(i) for i, name in enumerate(LEVEL_NAMES)},
-            "min_margin_v_rerun": float(min((min(o.margin_v) for o in self.outputs), default=math.inf)),
+            "levels": {name: int(np.sum(self.level == i)) for i, name in enumerate(LEVEL_NAMES)},
+            "min_margin_v_rerun": float(self.margin_v.min()) if self.margin_v.size else math.inf,
         }
 
 
@@ -114,61 +117,73 @@ def rerun_agent(
     ctrl = AgentController(view)
     timeout_ns = round(view.controller.measurement_timeout * m.NS_PER_S)
     vel = run.velocity[agent_id]
-    rel = {
-        j: dict(zip(s.stamps, s.values)) if (s := run.relative_pose.get((agent_id, j))) is not None else {}
-        for j in view.neighbours
-    }
+    empty = Series(7)
+    rel = {j: run.relative_pose.get((agent_id, j), empty) for j in view.neighbours}
     clock = sorted(zip(run.clock.log_times, run.clock.stamps))
     clock_logs = [c[0] for c in clock]
     wr = run.wrench[agent_id]
-    recorded_by_stamp = dict(zip(wr.stamps, wr.values))
-    stamps: list[int] = []
-    outs: list[ControlOutput] = []
+    T = len(vel)
+    stamps = np.empty(T, dtype=np.int64)
+    recorded = np.full((T, 6), math.nan)
+    rerun = np.empty((T, 6))
+    margin_v = np.empty((T, 6))
+    level = np.empty(T, dtype=np.int8)
     faults: list[str | None] = []
-    rec_rows: list[list[float]] = []
+    messages: dict[int, str] = {}
+    n = 0
     last = None
-    for stamp, log_time, v in zip(vel.stamps, vel.log_times, vel.values):
+    for idx, (stamp, log_time) in enumerate(zip(vel.stamps, vel.log_times)):
         if stamp == last:
             continue  # a re-sent step: the agent answers it once
         last = stamp
         t = m.seconds(stamp)
-        poses = {j: by_stamp[stamp] for j, by_stamp in rel.items() if stamp in by_stamp}
-        k = bisect.bisect_right(clock_logs, log_time) - 1
-        clock_ns = clock[k][1] if k >= 0 else 0
+        poses = {j: series.value(k) for j, series in rel.items() if (k := series.exactly_at(stamp)) is not None}
+        c = bisect.bisect_right(clock_logs, log_time) - 1
+        clock_ns = clock[c][1] if c >= 0 else 0
         try:
             if check_age and clock_ns and clock_ns - stamp > timeout_ns:
                 age = (clock_ns - stamp) / m.NS_PER_S
                 out = ctrl.fault_output(t, f"measurement too old: {age:.3f} s behind /clock")
                 fault = "stale"
             else:
-                out = ctrl.compute(t, poses, v)
+                out = ctrl.compute(t, poses, vel.value(idx))
                 fault = None
         except MissingMeasurementError as exc:
             out = ctrl.fault_output(t, str(exc))
             fault = ",".join(exc.neighbours)
-        stamps.append(stamp)
-        outs.append(out)
+        stamps[n] = stamp
+        rerun[n] = out.wrench
+        margin_v[n] = out.margin_v
+        level[n] = out.level
+        if out.level == ERROR:
+            messages[n] = out.message
+        if (k := wr.exactly_at(stamp)) is not None:
+            recorded[n] = wr.value(k)
         faults.append(fault)
-        rec_rows.append(recorded_by_stamp.get(stamp, [math.nan] * 6))
-    T = len(stamps)
-    return AgentRerun(
-        agent_id,
-        np.array(stamps, dtype=np.int64),
-        outs,
-        faults,
-        np.array(rec_rows, dtype=np.float64).reshape(T, 6),
-        np.array([o.wrench for o in outs], dtype=np.float64).reshape(T, 6),
-    )
+        n += 1
+    return AgentRerun(agent_id, stamps[:n], faults, recorded[:n], rerun[:n], margin_v[:n], level[:n], messages)
 
 
 def rerun_all(
-    run: RunData, agents: list[str] | None = None, spec: FormationSpec | None = None, *, check_age: bool = True
+    run: RunData,
+    agents: list[str] | None = None,
+    spec: FormationSpec | None = None,
+    *,
+    check_age: bool = True,
+    prog: str = "formation-rerun",
 ) -> dict[str, AgentRerun]:
+    """Every agent's re-run (or those of ``agents``), with a progress line per agent when it takes a while."""
     spec = spec or run.spec
     ids = agents or list(spec.agent_ids)
     for a in ids:
         spec.agent(a)  # names the bad id
-    return {a: rerun_agent(run, a, spec, check_age=check_age) for a in ids}
+    progress = Progress(prog, "re-running the controllers", len(ids), unit="agents", stride=1)
+    out = {}
+    for a in ids:
+        out[a] = rerun_agent(run, a, spec, check_age=check_age)
+        progress.update(len(out))
+    progress.finish(len(out))
+    return out
 
 
 def load_override(path: Path) -> dict[str, Any]:
@@ -188,12 +203,18 @@ def main(argv: list[str] | None = None) -> int:
         if args.out is not None and args.out.exists() and any(args.out.iterdir()):
             raise FileExistsError(f"output directory {args.out} exists and is not empty, not overwriting")
         started = time.perf_counter()
-        run = load_run(args.bag, formation=args.formation, namespace=args.namespace, need_ground_truth=False)
+        run = load_run(
+            args.bag,
+            formation=args.formation,
+            namespace=args.namespace,
+            need_ground_truth=False,
+            prog="formation-rerun",
+        )
         spec = run.spec
         if args.override is not None:
             doc = apply_overrides(run.document, load_override(args.override), where=str(args.override))
             spec = spec_from_document(doc, run.spec.source)
-        results = rerun_all(run, args.agent, spec)
+        results = rerun_all(run, args.agent, spec, prog="formation-rerun")
     except (BagError, FormationSpecError, FileExistsError, FileNotFoundError) as exc:
         print(f"formation-rerun: {exc}", file=sys.stderr)
         return 2
@@ -209,8 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     for a, r in report["agents"].items():
         verdict = "equal" if r["equal"] else "DIFFERENT"
         line = (
-            f"agent {a}: {r['compared']}/{r['steps']} steps compared, max |Δu| {r['max_abs_diff']:.3g} "
-            f"(force {r['max_force_diff']:.3g} N, torque {r['max_torque_diff']:.3g} N·m): {verdict}"
+            f"agent {a}: {r['compared']}/{r['steps']} steps compared, largest component of |Δu| "
+            f"{r['max_abs_diff']:.3g} (force {r['max_force_diff']:.3g} N, torque {r['max_torque_diff']:.3g} N·m): "
+            f"{verdict}"
         )
         if r["first_difference"] is not None:
             line += f", first at t={r['first_difference']['t']:.6f} s, {r['steps_differing']} steps differ"
@@ -228,8 +250,8 @@ def main(argv: list[str] | None = None) -> int:
                 t=r.stamps / m.NS_PER_S,
                 recorded=r.recorded,
                 rerun=r.rerun,
-                margin_v=np.array([o.margin_v for o in r.outputs]).reshape(-1, 6),
-                level=np.array([o.level for o in r.outputs], dtype=np.int8),
+                margin_v=r.margin_v,
+                level=r.level,
             )
         print(f"report in {args.out}/rerun.json")
     incomplete = any(r["missing_recorded_wrench"] or r["measurements_missing"] for r in report["agents"].values())

@@ -8,6 +8,8 @@ from the *decoded* messages (quaternion -> matrix as the agent node does), so th
 wrenches are what an agent node would publish; the agents are stepped by
 :class:`formation_sim.core.team.AgentTeam`, with the fault policy of every other run. Log times are
 synthetic: ``wall_step`` seconds per step from ``start_ns``, ``message_spacing`` apart within a step.
+With ``display_every=N`` every N-th step also carries what a run's bag holds besides: an (empty)
+/diagnostics array and /formation/markers and /formation/funnels messages, not analysed.
 
 :func:`write_run_bag` returns the run's own summary (a RunRecorder filled as run_headless fills
 it), which ``formation-analyze`` must reproduce from the bag.
@@ -50,6 +52,7 @@ def write_run_bag(
     message_spacing: float = 1e-6,
     start_ns: int = 1_700_000_000 * m.NS_PER_S,
     stop_on_violation: bool = False,
+    display_every: int | None = None,
 ) -> SynthResult:
     """Run ``spec`` (sampled control, lockstep) and record every docs/topics.md message in ``bag``."""
     sim_spec = spec.simulation
@@ -75,9 +78,14 @@ def write_run_bag(
     count = 0
     started = time.perf_counter()
     with SegmentedBagWriter(bag, storage=storage, segment_seconds=segment_seconds, custom_data=custom) as w:
+        display = {m.DIAGNOSTIC_ARRAY, m.MARKER_ARRAY, m.FLOAT64_MULTI_ARRAY}
+        display_topics = {}
         for name, msgtype in m.formation_topics(ids, edges).items():
-            if msgtype not in (m.DIAGNOSTIC_ARRAY, m.MARKER_ARRAY, m.FLOAT64_MULTI_ARRAY):  # not synthesised
-                w.add_topic(name, msgtype, (make_qos(depth=1 if name == topics.CLOCK else 10),))
+            if msgtype in display:
+                display_topics[name] = msgtype
+                if display_every is None:
+                    continue  # not synthesised
+            w.add_topic(name, msgtype, (make_qos(depth=1 if name == topics.CLOCK else 10),))
         step_ns = round(wall_step * m.NS_PER_S)
         space_ns = max(1, round(message_spacing * m.NS_PER_S))
         for k in range(n_steps + 1):
@@ -99,9 +107,9 @@ def write_run_bag(
                 pose = meas.relative_poses[i].get(j)
                 if pose is None:
                     continue
-                data = enc.relative_pose(stamp, i, j, pose[0], pose[1])
+                data = enc.relative_pose(stamp, i, pose[0], pose[1])
                 put(m.absolute(topics.relative_pose(i, j)), data)
-                received[i][j] = m.decode_relative_pose(m.deserialize(data, m.TRANSFORM_STAMPED))
+                received[i][j] = m.decode_relative_pose(m.deserialize(data, m.POSE_STAMPED))
             vels = []
             for idx, a in enumerate(ids):
                 data = enc.twist(stamp, a, meas.velocities[idx].tolist())
@@ -111,6 +119,9 @@ def write_run_bag(
             u, margin_v, errors = team.evaluate(Measurements.from_poses(t, k, received, vels, meas.ends), recorder)
             for a, wrench in zip(ids, u.tolist()):
                 put(m.absolute(topics.wrench(a)), enc.wrench(stamp, a, wrench))
+            if display_every is not None and k % display_every == 0:
+                for name, msgtype in display_topics.items():
+                    put(name, enc.empty(stamp, msgtype))
             recorder.add(t, s.p, s.R, s.v, u, margin_v)
             team.note_errors(t, errors, recorder)
             if k == n_steps or (stop_on_violation and recorder.first_violation is not None):

@@ -174,8 +174,8 @@ def write_process_config(
     directory.mkdir(parents=True, exist_ok=True)
     # one file per process, replaced atomically: processes starting together never read a half-written one
     profile, conf = directory / f"{name}.xml", directory / f"{name}.openssl.cnf"
-    write_atomic(profile, profile_xml(peers[name], peers, keys, listen=listen).encode("utf-8"))
-    write_atomic(conf, OPENSSL_CONF.encode("utf-8"))
+    write_atomic(profile, profile_xml(peers[name], peers, keys, listen=listen).encode("utf-8"), mode=0o600)
+    write_atomic(conf, OPENSSL_CONF.encode("utf-8"), mode=0o600)
     return {
         SECURE_FLAG: "1",  # the nodes refuse to run if the profile did not apply (transport_check)
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",

@@ -149,10 +149,15 @@ def strict_json(x: Any) -> Any:
     return x
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``path`` under a temporary name in its directory, then rename it (raises OSError)."""
+def write_atomic(path: Path, data: bytes, *, mode: int | None = None) -> None:
+    """Write ``path`` under a temporary name in its directory, then rename it (raises OSError).
+
+    The file gets ``mode``, or by default what the user's umask gives any new file (0666 & ~umask),
+    like every other output; mkstemp alone would leave it 0600.
+    """
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, _umask_mode() if mode is None else mode)
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
@@ -161,6 +166,21 @@ def write_atomic(path: Path, data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _umask_mode() -> int:
+    """0666 & ~umask: the mode ``open(path, "w")`` gives a new file.
+
+    The umask is read from /proc (setting it to read it would race with other threads creating files);
+    where /proc has no ``Umask:`` line, by setting and restoring it.
+    """
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            mask = next(int(line.split()[1], 8) for line in fh if line.startswith("Umask:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return 0o666 & ~mask
 
 
 def write_json(path: Path, obj: Any) -> None:

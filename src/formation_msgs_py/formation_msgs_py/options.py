@@ -104,6 +104,17 @@ def discovery(text: str) -> Discovery:
     return Discovery("server", host, int(port))
 
 
+def byte_count(text: str) -> int:
+    """A size in bytes, an integer > 0 (``--max-bag-size``, as ``ros2 bag record -b``)."""
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer number of bytes") from None
+    if x <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return x
+
+
 @dataclass(frozen=True)
 class Option:
     """One command-line option: ``kind`` is a converter, ``flag`` (store_true), or ``bool`` (--x/--no-x)."""
@@ -152,6 +163,8 @@ OPTIONS: tuple[Option, ...] = (
     Option("--bag", "write the run's bag into DIR (must not exist) in this process: every message the simulator "
            "publishes, every wrench and /diagnostics it receives; log time = simulation time in lockstep, the wall "
            "clock in realtime (what formation-launch does when it records)", frozenset({SIM}), Path),
+    Option("--max-bag-size", "split the run's bag into files of at most about this many bytes, as ros2 bag record "
+           "-b (default: one file, which a viewer opens whole)", ROS, byte_count, forward=True),
     Option("--wait-recorder", "wait until a bag recorder (formation-record --formation FILE) subscribes before the "
            "first step", frozenset({SIM})),
     Option("--lag-budget", "realtime: stop INCOMPLETE (exit 4) when a tick lags more than this many wall s behind "
@@ -220,6 +233,7 @@ class RunOptions:
     settle: float = 0.3
     resend: float = 0.25
     bag: Path | None = None
+    max_bag_size: int | None = None
     wait_recorder: bool = False
     lag_budget: float = 1.0
     ground_truth_rate: float | None = None

@@ -21,7 +21,7 @@ def agent_frame(agent_id: str) -> str:
 
 
 def relative_pose(observer: str, target: str) -> str:
-    """Relative pose of ``target`` measured by ``observer`` (TransformStamped)."""
+    """Relative pose of ``target`` measured by ``observer`` (PoseStamped in observer's body frame)."""
     return f"agent_{observer}/relative_pose/agent_{target}"
 
 

@@ -24,9 +24,16 @@ def stamp_ns(stamp: Any) -> int:
 
 
 def relative_pose_from_msg(msg: Any) -> tuple[list[float], list[list[float]]]:
-    """(p_i_j_in_i, R_i_j) as Python lists, the form the controller reads fastest."""
-    tr = msg.transform.translation
-    q = msg.transform.rotation
+    """(p_i_j_in_i, R_i_j) as Python lists, the form the controller reads fastest.
+
+    A geometry_msgs/PoseStamped (position, orientation); a TransformStamped (translation,
+    rotation: how bags recorded before the relative poses became PoseStamped hold them) is read too.
+    """
+    pose = getattr(msg, "pose", None)
+    if pose is None:
+        tr, q = msg.transform.translation, msg.transform.rotation
+    else:
+        tr, q = pose.position, pose.orientation
     return [tr.x, tr.y, tr.z], matrix_from_quaternion(q.x, q.y, q.z, q.w)
 
 
@@ -69,8 +76,9 @@ class StampedCodec:
     """Encode/decode one stamped message type with fixed strings: stamp + ``n_doubles`` float64.
 
     ``strings`` are the message's string fields in order (header.frame_id, then e.g.
-    child_frame_id); the doubles follow in declaration order (TwistStamped: linear xyz, angular
-    xyz; WrenchStamped: force, torque; TransformStamped: translation xyz, rotation xyzw).
+    TransformStamped's child_frame_id); the doubles follow in declaration order (TwistStamped:
+    linear xyz, angular xyz; WrenchStamped: force, torque; PoseStamped: position xyz,
+    orientation xyzw).
     """
 
     def __init__(self, strings: Sequence[str], n_doubles: int) -> None:
@@ -129,9 +137,10 @@ def wrench_codec(agent_id: str) -> StampedCodec:
     return StampedCodec([topics.agent_frame(agent_id)], 6)
 
 
-def relative_pose_codec(observer: str, target: str) -> StampedCodec:
-    """TransformStamped ``agent_<observer>`` -> ``agent_<target>``: translation xyz, quaternion xyzw."""
-    return StampedCodec([topics.agent_frame(observer), topics.agent_frame(target)], 7)
+def relative_pose_codec(observer: str) -> StampedCodec:
+    """PoseStamped in frame ``agent_<observer>`` (the target is in the topic name): position xyz,
+    quaternion xyzw."""
+    return StampedCodec([topics.agent_frame(observer)], 7)
 
 
 def clock_bytes(ns: int) -> bytes:
@@ -159,22 +168,35 @@ def _cdr_align(off: int, a: int) -> int:
     return 4 + ((off - 4 + a - 1) // a) * a
 
 
-def ground_truth_from_bytes(data: bytes | memoryview) -> tuple[int, list[list[float]], list[list[list[float]]]]:
-    """(stamp ns, p_world (N,3), R_world_body (N,3,3)) of little-endian CDR bytes of a
-    geometry_msgs/PoseArray: the inverse of :func:`ground_truth_bytes` (any frame name)."""
+def ground_truth_values(data: bytes | memoryview) -> tuple[int, tuple[float, ...]]:
+    """(stamp ns, 7 doubles per pose: position x, y, z, quaternion x, y, z, w) of little-endian CDR
+    bytes of a geometry_msgs/PoseArray (any frame name)."""
     ns = stamp_of(data)
     off = _cdr_align(16 + _U32.unpack_from(data, 12)[0], 4)  # after header.frame_id (length, bytes)
     n = _U32.unpack_from(data, off)[0]
     off = _cdr_align(off + 4, 8)
+    return ns, struct.unpack_from(f"<{7 * n}d", data, off)
+
+
+def ground_truth_from_values(values: Sequence[float]) -> tuple[list[list[float]], list[list[list[float]]]]:
+    """(p_world (N,3), R_world_body (N,3,3)) as Python lists from :func:`ground_truth_values`' doubles."""
     p, R = [], []
-    for x, y, z, qx, qy, qz, qw in struct.iter_unpack("<7d", data[off : off + 56 * n]):
+    for k in range(0, len(values), 7):
+        x, y, z, qx, qy, qz, qw = values[k : k + 7]
         p.append([x, y, z])
         R.append(matrix_from_quaternion(qx, qy, qz, qw))
-    return ns, p, R
+    return p, R
+
+
+def ground_truth_from_bytes(data: bytes | memoryview) -> tuple[int, list[list[float]], list[list[list[float]]]]:
+    """(stamp ns, p_world (N,3), R_world_body (N,3,3)) of little-endian CDR bytes of a
+    geometry_msgs/PoseArray: the inverse of :func:`ground_truth_bytes` (any frame name)."""
+    ns, values = ground_truth_values(data)
+    return (ns, *ground_truth_from_values(values))
 
 
 def relative_pose_values(p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]) -> tuple[float, ...]:
-    """The 7 doubles of a relative pose: translation (m, frame agent_i) and quaternion (x, y, z, w)."""
+    """The 7 doubles of a relative pose: position (m, frame agent_i) and quaternion (x, y, z, w)."""
     return (*p_i_j_in_i, *quaternion_from_matrix(R_i_j))
 
 

@@ -11,8 +11,6 @@ STORAGE_NAMES = ("mcap", "sqlite3")
 #: custom_data keys of a run's bag: the formation file's text and name (analysis needs no other input)
 KEY_FORMATION_YAML = "formation_yaml"
 KEY_FORMATION_FILE = "formation_file"
-#: default segment size [MiB]: a killed writer loses at most the open segment
-SEGMENT_MB = 100.0
 #: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time): their log
 #: time in simulation time is that stamp; other types (markers, funnel values, /tf) take the latest one
 STAMPED_TYPES = frozenset(
@@ -20,7 +18,7 @@ STAMPED_TYPES = frozenset(
     for pkg, name in (
         ("geometry_msgs", "TwistStamped"),
         ("geometry_msgs", "WrenchStamped"),
-        ("geometry_msgs", "TransformStamped"),
+        ("geometry_msgs", "PoseStamped"),
         ("geometry_msgs", "PoseArray"),
         ("rosgraph_msgs", "Clock"),
         ("diagnostic_msgs", "DiagnosticArray"),

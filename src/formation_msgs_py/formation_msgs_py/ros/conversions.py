@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import topics
@@ -48,15 +48,15 @@ def seconds_from_stamp(stamp: Time) -> float:
 
 
 def relative_pose_to_msg(
-    t: float, observer: str, target: str, p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]
-) -> TransformStamped:
-    msg = TransformStamped()
+    t: float, observer: str, p_i_j_in_i: Sequence[float], R_i_j: Sequence[Sequence[float]]
+) -> PoseStamped:
+    """The pose of a neighbour in ``agent_<observer>``'s body frame (the neighbour is in the topic name)."""
+    msg = PoseStamped()
     msg.header.stamp = stamp_from_seconds(t)
     msg.header.frame_id = topics.agent_frame(observer)
-    msg.child_frame_id = topics.agent_frame(target)
-    tr = msg.transform.translation
-    tr.x, tr.y, tr.z = (float(c) for c in p_i_j_in_i)
-    q = msg.transform.rotation
+    pos = msg.pose.position
+    pos.x, pos.y, pos.z = (float(c) for c in p_i_j_in_i)
+    q = msg.pose.orientation
     q.x, q.y, q.z, q.w = quaternion_from_matrix(R_i_j)
     return msg
 

@@ -203,7 +203,7 @@ class RunRecorder:
     def summary(
         self,
         *,
-        wall_time: float,
+        wall_time: float | None,
         requested_duration: float | None = None,
         incomplete: Incomplete | None = None,
         extra: dict[str, Any] | None = None,
@@ -224,7 +224,7 @@ class RunRecorder:
             "duration": duration,
             "samples": j.samples,
             "wall_time": wall_time,
-            "real_time_factor": duration / wall_time if wall_time > 0 else None,
+            "real_time_factor": duration / wall_time if wall_time else None,  # None: wall time unknown
             # None (unknown) when the run is INCOMPLETE without a violation
             "funnels_held": {Verdict.PASS: True, Verdict.FAIL: False}.get(result.verdict),
             "first_violation": None if j.first_violation is None else j.first_violation.as_dict(),

@@ -6,8 +6,9 @@ CDR bytes it sent, and every wrench and /diagnostics message it receives as the 
 the wall clock (system time) when the simulator sent or received it, i.e. the order in which
 wrenches reached the simulator between its ticks. No second copy of any message crosses DDS and
 nothing needs acknowledging; a message cannot be lost between publication and bag. The bag is what ``formation-record
---formation FILE`` leaves (segmented, metadata.yaml version 9, the formation file and the run's
-settings in custom_data, ``recorder_counts``), so every bag tool reads both alike.
+--formation FILE`` leaves (one file unless ``--max-bag-size`` splits it, metadata.yaml version 9,
+the formation file and the run's settings in custom_data, ``recorder_counts`` and the wall time
+from its first to its last message, ``wall_time``), so every bag tool reads both alike.
 
 A write or close that fails (disk full, I/O error) stops the writing: :attr:`RunBag.failed` says
 why and the simulator ends the run INCOMPLETE; the messages it could not write are counted.
@@ -23,25 +24,27 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from formation_msgs_py.bag import SEGMENT_MB, STAMPED_TYPES
+from formation_msgs_py.bag import STAMPED_TYPES
 from formation_msgs_py.bag.writer import SegmentedBagWriter
 from formation_msgs_py.errors import BagError
 from formation_msgs_py.wire import stamp_of
 
-MIB = 1024 * 1024
-
 
 class RunBag:
-    """The bag at ``path`` (must not exist); topics are added before their first message."""
+    """The bag at ``path`` (must not exist); topics are added before their first message.
+
+    One file, or files of about ``max_bytes`` each (``--max-bag-size``, as ``ros2 bag record -b``).
+    """
 
     def __init__(
-        self, path: Path, custom_data: dict[str, str], *, wall_log_time: bool = False, segment_mb: float = SEGMENT_MB
+        self, path: Path, custom_data: dict[str, str], *, wall_log_time: bool = False, max_bytes: int | None = None
     ) -> None:
         self.path = path
         self.wall_log_time = wall_log_time
-        self.writer = SegmentedBagWriter(
-            path, segment_seconds=None, segment_bytes=round(segment_mb * MIB), custom_data=custom_data
-        )
+        self.writer = SegmentedBagWriter(path, segment_seconds=None, segment_bytes=max_bytes, custom_data=custom_data)
+        #: monotonic wall clock [s] of the first and the latest message written: the run's wall time
+        self.first_wall: float | None = None
+        self.last_wall = 0.0
         #: log time [ns] of messages without a stamp of their own (markers, funnels, /tf) and of
         #: malformed ones: the latest stamp the simulator published (the step being published)
         self.now_ns = 0
@@ -75,6 +78,9 @@ class RunBag:
             else:
                 if topic in self.own and ns > self.now_ns:
                     self.now_ns = ns  # not a received stamp: a bad wrench may claim any time
+        self.last_wall = time.monotonic()
+        if self.first_wall is None:
+            self.first_wall = self.last_wall
         if self.failed is None:
             try:
                 self.writer.write(topic, ns, data)
@@ -134,6 +140,9 @@ class RunBag:
         """Close the bag with its counts in custom_data; the run summary's ``recorder`` entry."""
         counts = self.counts()
         self.writer.custom_data["recorder_counts"] = json.dumps(counts, sort_keys=True)
+        if self.first_wall is not None:
+            # formation-analyze reports the run's real-time factor from it (lockstep log times are sim time)
+            self.writer.custom_data["wall_time"] = repr(self.last_wall - self.first_wall)
         try:
             self.writer.close()
         except (OSError, BagError) as exc:

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, TransformStamped, TwistStamped, WrenchStamped
+from geometry_msgs.msg import PoseArray, PoseStamped, TwistStamped, WrenchStamped
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
@@ -153,8 +153,8 @@ class SimNode(Node):
         self.links: dict[tuple[str, str], tuple[Any, conversions.StampedCodec]] = {}
         for e in spec.edges:
             for obs, tgt in ((e.tail, e.head), (e.head, e.tail)):
-                pub = self.create_publisher(TransformStamped, topics.relative_pose(obs, tgt), meas_qos)
-                self.links[(obs, tgt)] = (pub, conversions.relative_pose_codec(obs, tgt))
+                pub = self.create_publisher(PoseStamped, topics.relative_pose(obs, tgt), meas_qos)
+                self.links[(obs, tgt)] = (pub, conversions.relative_pose_codec(obs))
         ends = measurement_ends(simulator_view(spec))
         self.agent_ends: list[list[tuple[int, Any, conversions.StampedCodec]]] = [[] for _ in self.ids]
         for k, (obs, tgt) in enumerate(zip(ends.observer, ends.target)):
@@ -584,7 +584,8 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
     bag = None
     if args.bag is not None:
         try:
-            bag = RunBag(args.bag, bag_custom_data(spec, args), wall_log_time=args.mode == "realtime")
+            realtime = args.mode == "realtime"
+            bag = RunBag(args.bag, bag_custom_data(spec, args), wall_log_time=realtime, max_bytes=args.max_bag_size)
         except (BagError, OSError) as exc:
             print(f"formation-sim: {exc}", file=sys.stderr, flush=True)
             return ExitCode.INVALID

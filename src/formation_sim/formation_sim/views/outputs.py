@@ -79,10 +79,15 @@ def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.nd
 def format_summary(summary: dict[str, Any]) -> str:
     """A short human-readable summary of a run (printed by every command): the verdict line, the
     margins per edge and agent, and every fault kind with its first and last occurrence."""
+    wall = summary["wall_time"]
+    timing = (
+        ", wall time not recorded"  # a bag whose writer did not note it
+        if wall is None
+        else f" in {wall:.2f} s wall, real-time factor {summary['real_time_factor'] or 0:.3g}"
+    )
     lines = [
         f"formation {summary['formation']} ({summary['mode']}, control {summary['control_rate']:g} Hz, "
-        f"{summary['duration']:g} s simulated in {summary['wall_time']:.2f} s wall, "
-        f"real-time factor {summary['real_time_factor'] or 0:.3g})"
+        f"{summary['duration']:g} s simulated{timing})"
     ]
     lines.append(verdict_line(summary))
     lines.append("  edge     min margin e   min margin psi   settle e [s]   settle psi [s]")

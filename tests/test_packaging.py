@@ -75,8 +75,11 @@ DEPENDENCIES = {
 KNOWN_KEYS = {key for key, _ in DEPENDENCIES.values()} | set(PACKAGES) | {"python3-pytest"}
 
 #: Modules only an optional feature imports: declared as a setup.py extra, not in package.xml
-#: (rosdistro has no key for dask's distributed).
-OPTIONAL = {"distributed": "dask"}  # formation-campaign --scheduler
+#: (rosdistro has no key for dask's distributed nor for foxglove-sdk): module -> (extra, requirement).
+OPTIONAL = {
+    "distributed": ("dask", "distributed"),  # formation-campaign --scheduler
+    "foxglove": ("live", "foxglove-sdk"),  # the live view, --foxglove
+}
 
 
 def imported_modules(pkg: str) -> set[str]:
@@ -119,7 +122,8 @@ def test_every_import_is_declared(pkg: str) -> None:
     requires = set(setup["install_requires"])
     for module in sorted(imported_modules(pkg)):
         if module in OPTIONAL:
-            assert module in setup["extras_require"][OPTIONAL[module]], f"{pkg}/setup.py: extra {OPTIONAL[module]!r}"
+            extra, requirement = OPTIONAL[module]
+            assert requirement in setup["extras_require"][extra], f"{pkg}/setup.py: {extra!r} lacks {requirement!r}"
             continue
         key, requirement = (module, module) if module in PACKAGES else DEPENDENCIES.get(module, (None, None))
         assert key is not None, f"{pkg} imports {module}: add it to DEPENDENCIES with its rosdistro key"

@@ -186,13 +186,17 @@ def test_every_shell_script_has_help(script: str) -> None:
     assert res.stdout.strip()
 
 
-def colcon(tmp_path: Path, *args: str, symlink: bool = False) -> None:
+def colcon(tmp_path: Path, *args: str, symlink: bool = False, from_workspace: bool = False) -> str:
+    """colcon build into ``tmp_path`` of the packages under src/ (``from_workspace``: found as a user
+    finds them, from ros2_ws/ with no base path); its output."""
+    where = [] if from_workspace else ["--base-paths", str(REPO / "src")]
     res = subprocess.run(
         [
             str(REPO / ".venv" / "bin" / "colcon"),
+            "--log-base",
+            str(tmp_path / "log"),
             "build",
-            "--base-paths",
-            str(REPO / "src"),
+            *where,
             "--build-base",
             str(tmp_path / "build"),
             "--install-base",
@@ -202,12 +206,13 @@ def colcon(tmp_path: Path, *args: str, symlink: bool = False) -> None:
             *(["--symlink-install"] if symlink else []),
             *args,
         ],
-        cwd=tmp_path,
+        cwd=REPO / "ros2_ws" if from_workspace else tmp_path,
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return res.stdout + res.stderr
 
 
 def test_colcon_test_covers_every_test_directory() -> None:
@@ -222,11 +227,15 @@ def test_colcon_test_covers_every_test_directory() -> None:
     assert wanted == covered, (sorted(map(str, wanted - covered)), sorted(map(str, covered - wanted)))
 
 
-def test_colcon_symlink_install_builds(tmp_path: Path) -> None:
-    """`colcon build --symlink-install` works with the pinned setuptools (below 80: develop --editable)."""
-    colcon(tmp_path, "--packages-select", "formation_msgs_py", symlink=True)
-    installed = tmp_path / "install" / "formation_msgs_py" / "share" / "formation_msgs_py" / "package.xml"
-    assert installed.is_symlink() and installed.resolve() == REPO / "src" / "formation_msgs_py" / "package.xml"
+def test_colcon_symlink_install_builds_every_package_from_ros2_ws(tmp_path: Path) -> None:
+    """`cd ros2_ws && colcon build --symlink-install` finds the packages (ros2_ws/src links to ../src) and
+    builds all of them with the pinned setuptools (below 80: develop --editable)."""
+    assert (REPO / "ros2_ws" / "src").resolve() == REPO / "src"
+    output = colcon(tmp_path, symlink=True, from_workspace=True)
+    assert f"Summary: {len(PACKAGES)} packages finished" in output, output[-3000:]
+    for pkg in PACKAGES:
+        installed = tmp_path / "install" / pkg / "share" / pkg / "package.xml"
+        assert installed.is_symlink() and installed.resolve() == REPO / "src" / pkg / "package.xml"
 
 
 def test_colcon_install_runs_a_formation(tmp_path: Path, ros_domain_id: int) -> None:

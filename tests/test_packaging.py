@@ -6,6 +6,7 @@ import ast
 import configparser
 import os
 import re
+import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -184,6 +185,18 @@ def test_every_shell_script_has_help(script: str) -> None:
     res = subprocess.run([str(REPO / "ros2_ws" / script), "--help"], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip()
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (REPO / "ros2_ws").glob("*.sh")))
+def test_shell_script_help_installs_nothing(script: str, tmp_path: Path) -> None:
+    """--help of every script in a fresh clone (no .venv): prints, creates no environment, and a script
+    that runs a command says how to see that command's options."""
+    shutil.copytree(REPO / "ros2_ws", tmp_path / "ros2_ws", symlinks=True, ignore=shutil.ignore_patterns("src"))
+    res = subprocess.run([str(tmp_path / "ros2_ws" / script), "--help"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() and not (tmp_path / ".venv").exists(), res.stdout + res.stderr
+    if script in ("run.sh", "sim.sh", "record.sh", "replay.sh"):
+        assert "once the project is installed: ros2_ws/setup.sh" in res.stdout, res.stdout
 
 
 def colcon(tmp_path: Path, *args: str, symlink: bool = False, from_workspace: bool = False) -> str:

@@ -22,8 +22,10 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case "${1:-}" in
   -h|--help)
     awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "$0"
-    "$ROOT/ros2_ws/setup.sh"
-    exec "$ROOT/.venv/bin/formation-record" --help ;;
+    # shellcheck source=lib/help.sh
+    . "$ROOT/ros2_ws/lib/help.sh"
+    formation_command_help formation-record
+    exit 0 ;;
 esac
 "$ROOT/ros2_ws/setup.sh"
 # shellcheck source=lib/network.sh

@@ -2,7 +2,7 @@
 # Replay a bag with its recorded timing and /clock (installs the environment on first use).
 #
 #   ros2_ws/replay.sh BAG [--rate R] [--topics T …] [--loop] [--start S] [--end S]
-#                     [--clock-hz HZ] [--wait any|all|none] [--wait-timeout S] [--quiet]
+#                     [--clock-hz HZ] [--wait any|all|none] [--wait-timeout S] [--foxglove [HOST:]PORT] [--quiet]
 #
 # Waits for a subscriber before it starts, shows progress once a second. Replaying a run's
 # relative poses and velocities into an agent (agent.sh FILE ID) re-runs that agent live.
@@ -15,8 +15,10 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case "${1:-}" in
   -h|--help)
     awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "$0"
-    "$ROOT/ros2_ws/setup.sh"
-    exec "$ROOT/.venv/bin/formation-replay" --help ;;
+    # shellcheck source=lib/help.sh
+    . "$ROOT/ros2_ws/lib/help.sh"
+    formation_command_help formation-replay
+    exit 0 ;;
 esac
 "$ROOT/ros2_ws/setup.sh"
 # shellcheck source=lib/network.sh

@@ -26,9 +26,10 @@ case "${1:-}" in
   -h|--help)
     awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"
     echo
-    "$ROOT/ros2_ws/setup.sh"
+    # shellcheck source=lib/help.sh
+    . "$ROOT/ros2_ws/lib/help.sh"
     echo "Options (formation-launch):"
-    "$ROOT/.venv/bin/formation-launch" --help | sed -n '/^options:/,$p' | tail -n +2
+    formation_command_help formation-launch | sed -n '/^options:/,$p;/^The options/,$p' | sed '/^options:/d'
     exit 0 ;;
 esac
 "$ROOT/ros2_ws/setup.sh"

@@ -20,8 +20,10 @@ case "${1:-}" in
   -h|--help)
     awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"
     echo
-    "$ROOT/ros2_ws/setup.sh"
-    exec "$ROOT/.venv/bin/formation-sim" --help ;;
+    # shellcheck source=lib/help.sh
+    . "$ROOT/ros2_ws/lib/help.sh"
+    formation_command_help formation-sim
+    exit 0 ;;
 esac
 "$ROOT/ros2_ws/setup.sh"
 # shellcheck source=lib/network.sh

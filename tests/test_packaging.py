@@ -6,6 +6,7 @@ import ast
 import configparser
 import os
 import re
+import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -75,8 +76,11 @@ DEPENDENCIES = {
 KNOWN_KEYS = {key for key, _ in DEPENDENCIES.values()} | set(PACKAGES) | {"python3-pytest"}
 
 #: Modules only an optional feature imports: declared as a setup.py extra, not in package.xml
-#: (rosdistro has no key for dask's distributed).
-OPTIONAL = {"distributed": "dask"}  # formation-campaign --scheduler
+#: (rosdistro has no key for dask's distributed nor for foxglove-sdk): module -> (extra, requirement).
+OPTIONAL = {
+    "distributed": ("dask", "distributed"),  # formation-campaign --scheduler
+    "foxglove": ("live", "foxglove-sdk"),  # the live view, --foxglove
+}
 
 
 def imported_modules(pkg: str) -> set[str]:
@@ -119,7 +123,8 @@ def test_every_import_is_declared(pkg: str) -> None:
     requires = set(setup["install_requires"])
     for module in sorted(imported_modules(pkg)):
         if module in OPTIONAL:
-            assert module in setup["extras_require"][OPTIONAL[module]], f"{pkg}/setup.py: extra {OPTIONAL[module]!r}"
+            extra, requirement = OPTIONAL[module]
+            assert requirement in setup["extras_require"][extra], f"{pkg}/setup.py: {extra!r} lacks {requirement!r}"
             continue
         key, requirement = (module, module) if module in PACKAGES else DEPENDENCIES.get(module, (None, None))
         assert key is not None, f"{pkg} imports {module}: add it to DEPENDENCIES with its rosdistro key"
@@ -182,13 +187,29 @@ def test_every_shell_script_has_help(script: str) -> None:
     assert res.stdout.strip()
 
 
-def colcon(tmp_path: Path, *args: str, symlink: bool = False) -> None:
+@pytest.mark.parametrize("script", sorted(p.name for p in (REPO / "ros2_ws").glob("*.sh")))
+def test_shell_script_help_installs_nothing(script: str, tmp_path: Path) -> None:
+    """--help of every script in a fresh clone (no .venv): prints, creates no environment, and a script
+    that runs a command says how to see that command's options."""
+    shutil.copytree(REPO / "ros2_ws", tmp_path / "ros2_ws", symlinks=True, ignore=shutil.ignore_patterns("src"))
+    res = subprocess.run([str(tmp_path / "ros2_ws" / script), "--help"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() and not (tmp_path / ".venv").exists(), res.stdout + res.stderr
+    if script in ("run.sh", "sim.sh", "record.sh", "replay.sh"):
+        assert "once the project is installed: ros2_ws/setup.sh" in res.stdout, res.stdout
+
+
+def colcon(tmp_path: Path, *args: str, symlink: bool = False, from_workspace: bool = False) -> str:
+    """colcon build into ``tmp_path`` of the packages under src/ (``from_workspace``: found as a user
+    finds them, from ros2_ws/ with no base path); its output."""
+    where = [] if from_workspace else ["--base-paths", str(REPO / "src")]
     res = subprocess.run(
         [
             str(REPO / ".venv" / "bin" / "colcon"),
+            "--log-base",
+            str(tmp_path / "log"),
             "build",
-            "--base-paths",
-            str(REPO / "src"),
+            *where,
             "--build-base",
             str(tmp_path / "build"),
             "--install-base",
@@ -198,12 +219,13 @@ def colcon(tmp_path: Path, *args: str, symlink: bool = False) -> None:
             *(["--symlink-install"] if symlink else []),
             *args,
         ],
-        cwd=tmp_path,
+        cwd=REPO / "ros2_ws" if from_workspace else tmp_path,
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return res.stdout + res.stderr
 
 
 def test_colcon_test_covers_every_test_directory() -> None:
@@ -218,11 +240,15 @@ def test_colcon_test_covers_every_test_directory() -> None:
     assert wanted == covered, (sorted(map(str, wanted - covered)), sorted(map(str, covered - wanted)))
 
 
-def test_colcon_symlink_install_builds(tmp_path: Path) -> None:
-    """`colcon build --symlink-install` works with the pinned setuptools (below 80: develop --editable)."""
-    colcon(tmp_path, "--packages-select", "formation_msgs_py", symlink=True)
-    installed = tmp_path / "install" / "formation_msgs_py" / "share" / "formation_msgs_py" / "package.xml"
-    assert installed.is_symlink() and installed.resolve() == REPO / "src" / "formation_msgs_py" / "package.xml"
+def test_colcon_symlink_install_builds_every_package_from_ros2_ws(tmp_path: Path) -> None:
+    """`cd ros2_ws && colcon build --symlink-install` finds the packages (ros2_ws/src links to ../src) and
+    builds all of them with the pinned setuptools (below 80: develop --editable)."""
+    assert (REPO / "ros2_ws" / "src").resolve() == REPO / "src"
+    output = colcon(tmp_path, symlink=True, from_workspace=True)
+    assert f"Summary: {len(PACKAGES)} packages finished" in output, output[-3000:]
+    for pkg in PACKAGES:
+        installed = tmp_path / "install" / pkg / "share" / pkg / "package.xml"
+        assert installed.is_symlink() and installed.resolve() == REPO / "src" / pkg / "package.xml"
 
 
 def test_colcon_install_runs_a_formation(tmp_path: Path, ros_domain_id: int) -> None:

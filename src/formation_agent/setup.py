@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "formation_msgs_py", "numpy"],
+    install_requires=["setuptools", "formation_msgs_py", "numpy", "PyYAML"],
     extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
     maintainer="formation developers",
@@ -20,6 +20,7 @@ setup(
     entry_points={
         "console_scripts": [
             "formation-agent = formation_agent.process:main",
+            "formation-param = formation_agent.param_cli:main",
         ],
     },
 )

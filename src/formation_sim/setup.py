@@ -22,8 +22,9 @@ setup(
         "pillow",
         "numba",
     ],
-    # colcon test runs pytest when "test" lists it; "dask": formation-campaign --scheduler
-    extras_require={"test": ["pytest"], "dask": ["distributed"]},
+    # colcon test runs pytest when "test" lists it; "dask": formation-campaign --scheduler; "live": the
+    # live view (--foxglove), whose foxglove-sdk has no rosdep key
+    extras_require={"test": ["pytest"], "dask": ["distributed"], "live": ["foxglove-sdk"]},
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",

@@ -292,6 +292,7 @@ class AgentNode(Node):
         self.inputs = InputCheck(view.sensing_radius, round(view.controller.measurement_timeout * _NS))
         self.sync.set_gains(**live_gains(self.agent_id, gains))
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._log_parameters)
         # hot path: CDR bytes in and out (formation_msgs_py.ros.conversions), no message objects
         self._wrench_codec = conversions.wrench_codec(view.agent_id)
         self._twist_codec = conversions.twist_codec(view.agent_id)
@@ -346,6 +347,11 @@ class AgentNode(Node):
         if "diagnostics_period" in values:
             self.diag_period = float(values["diagnostics_period"])
         return SetParametersResult(successful=True)
+
+    def _log_parameters(self, params: list) -> None:
+        """Log every accepted change (called once the whole set is applied)."""
+        for p in params:
+            self.get_logger().info(f"parameter {p.name} set to {p.value!r}")
 
     # callbacks: messages -> synchroniser
     def _on_velocity(self, data: bytes) -> None:

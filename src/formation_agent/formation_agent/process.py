@@ -27,6 +27,7 @@ parameters (ros2 param describe /agent_<ID>/formation_agent NAME):
   diagnostics_period   wall s between /diagnostics messages (default 0.5, minimum 0.1)         live
   delta, gamma         the controller's gains (default: the formation file's); checked like the
                        file (> 0); applied from the next step                                  live
+Change a live one while it runs: formation-param set /agent_<ID>/formation_agent gamma 12 (the agent logs it).
 A parameters file may hold every agent: a /** section for what they share and one
 /agent_<ID>/formation_agent section per agent (docs/ros2.md, "Parameters").
 environment: ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS: see docs/ros2.md

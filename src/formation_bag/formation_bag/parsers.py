@@ -14,6 +14,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from formation_msgs_py import options
 from formation_msgs_py.bag import STORAGE_NAMES
 from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import byte_count
@@ -114,6 +115,15 @@ def replay_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.5,
         help="once a subscriber is seen, wait S s more so discovery completes on its side (default 0.5)",
+    )
+    p.add_argument(
+        "--foxglove",
+        type=options.endpoint,
+        metavar="[HOST:]PORT",
+        help="live view: also serve the replayed /formation/markers, /formation/funnels, /diagnostics and /clock "
+        "(at most 30 Hz of bag time, /diagnostics as recorded) over the Foxglove WebSocket protocol (subprotocol "
+        'foxglove.sdk.v1) on [HOST:]PORT; host 127.0.0.1 unless given (docs/ros2.md, "Live view"). With no ROS '
+        "subscriber, add --wait none",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p

@@ -5,7 +5,8 @@ serialized data), each at ``t0 + (log_time − start) / rate`` on the wall clock
 then a short spin for sub-millisecond accuracy). ``/clock`` is replayed as recorded when the bag
 has it; otherwise ``--clock-hz`` generates it from the bag's log time (as ``ros2 bag play --clock``).
 Before starting, the node waits for subscribers (``--wait``) so that the first messages are
-not lost, then shows progress once a second on stderr.
+not lost, then shows progress once a second on stderr. ``--foxglove [HOST:]PORT`` serves the
+replayed display topics to a live view as well (:mod:`formation_sim.views.live_view`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from formation_bag.record_node import msg_class
 from formation_msgs_py import topics
 from formation_msgs_py.errors import BagError, BagTopicError
 from formation_msgs_py.ros import qos as fqos
+from formation_msgs_py.wire import clock_bytes
+from formation_sim.views.live_view import DEFAULT_RATE, SUBPROTOCOL, LiveView, LiveViewError, display_topics
 
 SPIN_BEFORE = 0.003  # s: sleep until this close to a deadline, then spin (scheduler wake-up latency)
 
@@ -67,10 +70,12 @@ def sleep_until(deadline: float) -> None:
 
 
 class Replayer(Node):
-    def __init__(self, bag: Bag, selected: list[str], *, clock_hz: float) -> None:
+    def __init__(self, bag: Bag, selected: list[str], *, clock_hz: float, live: LiveView | None = None) -> None:
         super().__init__(topics.REPLAY_NODE_NAME)
         self.bag = bag
         infos = bag.topics
+        self.live = live
+        self.live_topics: frozenset[str] = frozenset()
         self.pubs: dict[str, Any] = {}
         #: relative poses of an older bag (TransformStamped): published as PoseStamped, what agents take
         self.convert: dict[str, str] = {}
@@ -90,6 +95,11 @@ class Replayer(Node):
             self.clock_pub = self.create_publisher(Clock, topics.CLOCK, fqos.CLOCK)
             self.clock_hz = clock_hz
             self._Clock = Clock
+        if live is not None:  # the display topics replayed, or generated (/clock)
+            generated = {topics.CLOCK} if self.clock_pub is not None else set()
+            served = {t: ty for t, ty in display_topics().items() if t in self.pubs or t in generated}
+            live.open(served)
+            self.live_topics = frozenset(served)
 
     def wait_for_subscribers(self, mode: str, timeout: float, settle: float) -> bool:
         """Wait until ``any``/``all`` publishers have a subscriber (at most ``timeout`` s), then ``settle`` s."""
@@ -123,11 +133,15 @@ class Replayer(Node):
         clock_period = None if not self.clock_hz else round(m.NS_PER_S / self.clock_hz)
         next_clock = t_first
         ok = self.context.ok
+        if self.live is not None:
+            self.live.rewind()
         for msg in self.bag.messages(self.pubs, start=start, stop=None if stop is None else stop + 1):
             if clock_period is not None:
                 while next_clock <= msg.log_time:
                     sleep_until(send_time(t0, next_clock, t_first, rate))
                     self.clock_pub.publish(self._Clock(clock=_time(next_clock)))
+                    if self.live is not None:
+                        self.live.send(topics.CLOCK, clock_bytes(next_clock), next_clock)
                     next_clock += clock_period
             sleep_until(send_time(t0, msg.log_time, t_first, rate))
             if not ok():
@@ -135,6 +149,8 @@ class Replayer(Node):
             observer = self.convert.get(msg.topic)
             data = bytes(msg.data) if observer is None else m.pose_stamped_from_transform(msg.data, observer)
             self.pubs[msg.topic].publish(data)
+            if msg.topic in self.live_topics:
+                self.live.send(msg.topic, data, msg.log_time)  # type: ignore[union-attr]  # live_topics: with live
             count += 1
             if progress and time.perf_counter() >= next_progress:
                 done = (msg.log_time - t_first) / span
@@ -185,10 +201,19 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     start = None if args.start is None else bag.start_time + round(args.start * m.NS_PER_S)
     stop = None if args.end is None else bag.start_time + round(args.end * m.NS_PER_S)
+    live = None
+    if args.foxglove is not None:
+        try:
+            live = LiveView(args.foxglove, name="formation-replay", rate=DEFAULT_RATE)
+        except LiveViewError as exc:
+            print(f"formation-replay: {exc}", file=sys.stderr)
+            bag.close()
+            return 2
+        print(f"formation-replay: live view on {live.url} (Foxglove WebSocket, {SUBPROTOCOL})", flush=True)
     rclpy.init(args=None)
     node = None
     try:
-        node = Replayer(bag, selected, clock_hz=args.clock_hz)
+        node = Replayer(bag, selected, clock_hz=args.clock_hz, live=live)
         if not node.wait_for_subscribers(args.wait, args.wait_timeout, args.wait_settle):
             print(f"formation-replay: no subscriber after {args.wait_timeout:g} s; starting anyway", file=sys.stderr)
         print(f"formation-replay: replaying {len(selected)} topics of {args.bag} at rate {args.rate:g}", flush=True)
@@ -202,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         pass
     finally:
         bag.close()
+        if live is not None:
+            live.close()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -54,6 +54,38 @@ def nonnegative(text: str) -> float:
     return x
 
 
+DEFAULT_HOST = "127.0.0.1"
+
+
+def split_endpoint(text: str) -> tuple[str, int]:
+    """``[HOST:]PORT`` as (host, port): host 127.0.0.1 when omitted; port 0 picks a free one.
+
+    An IPv6 host is written in brackets: ``[::1]:8765``. Raises ValueError naming the value.
+    """
+    host, sep, port_text = text.rpartition(":")
+    if not sep:
+        host = DEFAULT_HOST
+    elif not host:
+        raise ValueError(f"{text!r}: empty host (write PORT alone for {DEFAULT_HOST})")
+    host = host.removeprefix("[").removesuffix("]")
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise ValueError(f"{text!r}: port {port_text!r} is not an integer") from None
+    if not 0 <= port <= 65535:
+        raise ValueError(f"{text!r}: port {port} is not in 0..65535")
+    return host, port
+
+
+def endpoint(text: str) -> str:
+    """``[HOST:]PORT`` (:func:`split_endpoint`), kept as given."""
+    try:
+        split_endpoint(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def seed(text: str) -> int:
     """An integer ≥ 0 (numpy's seeds)."""
     try:
@@ -184,6 +216,10 @@ OPTIONS: tuple[Option, ...] = (
            frozenset({LAUNCH}), Path),
     Option("--marker-rate", "display rate of /formation/markers, /formation/funnels (and /tf) [Hz, sim time; 0: off]; "
            "also the live parameter marker_rate", ROS, nonnegative, 30.0, forward=True),
+    Option("--foxglove", "live view: serve /formation/markers, /formation/funnels, /diagnostics and /clock at the "
+           "display rate over the Foxglove WebSocket protocol (subprotocol foxglove.sdk.v1) on [HOST:]PORT; host "
+           "127.0.0.1 unless given, port 0 picks a free one (docs/ros2.md, \"Live view\")", ROS, endpoint,
+           forward=True),
     Option("--record", "record a bag into OUT/bag (default: on; --no-record to skip), written by the simulator "
            "(formation-sim --bag). While recording, ground truth is published at every control step unless "
            "--ground-truth-rate is given, so that formation-analyze OUT/bag reproduces the run's summary",
@@ -241,6 +277,7 @@ class RunOptions:
     measurement_qos: str = "reliable"
     intruder_policy: str = "report"
     marker_rate: float = 30.0
+    foxglove: str | None = None
     secure: bool = False
     keys: Path | None = None
     record: bool = True

@@ -37,6 +37,7 @@ from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, de
 from formation_sim.core.preflight import preflight
 from formation_sim.launch import dds_env, discovery_server
 from formation_sim.launch.supervisor import Child, LogFollower, Supervisor
+from formation_sim.views.live_view import endpoint_problem
 
 if TYPE_CHECKING:
     from formation_msgs_py.spec import FormationSpec
@@ -397,6 +398,13 @@ def main(argv: list[str] | None = None) -> int:
     # a discovery server's clients do not announce themselves to one another: no per-host limit to avoid
     crowded = participants > dds_env.NETNS_THRESHOLD and not args.discovery.server
     want_netns = args.netns == "on" or (args.netns == "auto" and crowded)
+    if want_netns and args.foxglove is not None:
+        print(
+            f"formation-launch: INVALID: --foxglove: {participants} DDS participants run in a private network "
+            'namespace, whose ports this host cannot reach; use --netns off (docs/ros2.md, "Live view")',
+            file=sys.stderr,
+        )
+        return ExitCode.INVALID
     if not dds_env.in_netns() and want_netns:
         reason = dds_env.netns_available()
         if reason is not None:
@@ -416,6 +424,9 @@ def main(argv: list[str] | None = None) -> int:
     if problem is not None:
         print(f"formation-launch: INCOMPLETE: nothing started: {problem}", file=sys.stderr)
         return ExitCode.INCOMPLETE
+    if args.foxglove is not None and (problem := endpoint_problem(args.foxglove)) is not None:
+        print(f"formation-launch: INVALID: nothing started: {problem}", file=sys.stderr)
+        return ExitCode.INVALID
     env = dds_env.run_environment(dict(os.environ), log_dir=out / "logs" / "ros")
     discovery = None
     if args.discovery.server:

@@ -9,6 +9,9 @@ At ``marker_rate`` Hz of simulation time (default 30; 0 turns it off) the simula
 - ``/tf`` (tf2_msgs/TFMessage) ``world → agent_<id>``, only where tf2_msgs is importable: an apt
   install of ROS 2 has it, the PyPI wheels of ``ros2_ws/requirements.txt`` do not.
 
+With ``--foxglove`` the same bytes of markers and funnels, ``/clock`` at each display instant and
+every ``/diagnostics`` received are served to the live view too (:mod:`formation_sim.views.live_view`).
+
 Nothing here is read by an agent (docs/topics.md).
 """
 
@@ -17,6 +20,7 @@ from __future__ import annotations
 import importlib
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, TransformStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -27,7 +31,9 @@ from formation_msgs_py import topics
 from formation_msgs_py.options import RunOptions
 from formation_msgs_py.ros import conversions, parameters, qos
 from formation_msgs_py.spec import FormationSpec
+from formation_msgs_py.wire import clock_bytes
 from formation_sim.views.display_wire import FUNNEL_FIELDS, FunnelsWire, MarkerArrayWire
+from formation_sim.views.live_view import LiveView, display_topics
 from formation_sim.views.markers import FormationScene, Shape
 
 DEFAULT_MARKER_RATE = 30.0
@@ -61,9 +67,12 @@ def marker_message(shape: Shape, ns: int, frame: str = topics.WORLD_FRAME) -> Ma
 
 
 class DisplayPublisher:
-    """Publishes the display topics of ``spec`` on ``node`` every 1/``rate`` s of simulation time."""
+    """Publishes the display topics of ``spec`` on ``node`` every 1/``rate`` s of simulation time
+    (and serves them to ``live``, if given)."""
 
-    def __init__(self, node: Node, spec: FormationSpec, rate: float = DEFAULT_MARKER_RATE) -> None:
+    def __init__(
+        self, node: Node, spec: FormationSpec, rate: float = DEFAULT_MARKER_RATE, live: LiveView | None = None
+    ) -> None:
         self.scene = FormationScene(spec)
         # both topics are written as CDR bytes into a template (display_wire: ~0.4 ms per frame for
         # 20 agents instead of ~20 ms as rclpy messages)
@@ -78,6 +87,16 @@ class DisplayPublisher:
         self.rate = 0.0
         self.next_t = 0.0
         self.set_rate(rate)
+        self.live = live
+        self.last_ns = 0  # of the last display instant: the live view's log time of /diagnostics
+        if live is not None:
+            live.open(display_topics(self.markers_pub.topic_name, self.funnels_pub.topic_name))
+            self.diagnostics_sub = node.create_subscription(
+                DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, qos.DIAGNOSTICS, raw=True
+            )
+
+    def _on_diagnostics(self, data: bytes) -> None:
+        self.live.send(topics.DIAGNOSTICS, data, self.last_ns)  # type: ignore[union-attr]  # only with live
 
     def set_rate(self, rate: float) -> None:
         """Display rate [Hz, simulation time]; 0 stops publishing."""
@@ -93,8 +112,15 @@ class DisplayPublisher:
         self.next_t = (np.floor(t * self.rate + 1e-6) + 1.0) / self.rate  # on the grid k/rate: no drift
         ns = round(t * conversions.NS_PER_S)
         f = self.scene.frame(t, p, R, u)
-        self.markers_pub.publish(self.markers.encode(ns, f))
-        self.funnels_pub.publish(self.funnels.encode(np.stack([f.funnels[name] for name in FUNNEL_FIELDS], axis=1)))
+        markers = self.markers.encode(ns, f)
+        self.markers_pub.publish(markers)
+        funnels = self.funnels.encode(np.stack([f.funnels[name] for name in FUNNEL_FIELDS], axis=1))
+        self.funnels_pub.publish(funnels)
+        if self.live is not None:  # the bytes just published: the live view costs a step its sends only
+            self.last_ns = ns
+            self.live.send(self.markers_pub.topic_name, markers, ns)
+            self.live.send(self.funnels_pub.topic_name, funnels, ns)
+            self.live.send(topics.CLOCK, clock_bytes(ns), ns)
         if self.tf_pub is not None:
             stamp = conversions.stamp_from_seconds(t)
             frame = topics.WORLD_FRAME
@@ -112,7 +138,9 @@ class DisplayPublisher:
             self.tf_pub.publish(self.tf_class(transforms=transforms))
 
 
-def declare_simulator_parameters(node: Node, spec: FormationSpec, args: RunOptions) -> DisplayPublisher:
+def declare_simulator_parameters(
+    node: Node, spec: FormationSpec, args: RunOptions, live: LiveView | None = None
+) -> DisplayPublisher:
     """The simulator's parameters and its display publisher.
 
     The settings of :data:`SETTING_DOCS` are declared read-only: they show what the command line
@@ -127,7 +155,7 @@ def declare_simulator_parameters(node: Node, spec: FormationSpec, args: RunOptio
     for name, doc in SETTING_DOCS.items():
         parameters.declare(node, name, settings[name], doc, read_only=True)
     rate = parameters.declare(node, "marker_rate", float(args.marker_rate), MARKER_RATE_DOC, low=0.0, high=1000.0)
-    display = DisplayPublisher(node, spec, rate)
+    display = DisplayPublisher(node, spec, rate, live)
 
     def on_set(params: list) -> SetParametersResult:
         for prm in params:

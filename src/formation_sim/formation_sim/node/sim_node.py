@@ -84,6 +84,7 @@ from formation_sim.node.stepping import (
     WrenchBook,
 )
 from formation_sim.node.timing import Timing
+from formation_sim.views.live_view import SUBPROTOCOL, LiveView, LiveViewError
 from formation_sim.views.outputs import format_summary, write_outputs
 
 #: default /clock rate in realtime [Hz]: the agents' measurement-age checks need no more
@@ -581,6 +582,14 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         f"(physics {s.physics_rate:g} Hz), {s.duration:g} s; outputs in {out}/",
         flush=True,
     )
+    live = None
+    if args.foxglove is not None:  # before anything is written: a port in use is an invalid input
+        try:
+            live = LiveView(args.foxglove, name="formation-sim")
+        except LiveViewError as exc:
+            print(f"formation-sim: {exc}", file=sys.stderr, flush=True)
+            return ExitCode.INVALID
+        print(f"formation-sim: live view on {live.url} (Foxglove WebSocket, {SUBPROTOCOL})", flush=True)
     bag = None
     if args.bag is not None:
         try:
@@ -597,7 +606,7 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         stopping.init(raw)
         node = SimNode(spec, args.measurement_qos, args.intruder_policy, bag)
         check_secure_transport()
-        node.display = declare_simulator_parameters(node, spec, args)
+        node.display = declare_simulator_parameters(node, spec, args, live)
         executor = EventsExecutor(context=node.context)
         executor.add_node(node)
         runner = Runner(node, executor, spec, args)
@@ -636,6 +645,8 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             rclpy.try_shutdown()
         except RCLError:
             pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
+        if live is not None:
+            live.close()
         if bag is not None:
             extra["recorder"] = bag.close()
             if bag.failed is not None and incomplete is None:

@@ -13,7 +13,7 @@
 # environment; NAME is the process's key name (simulator, agent_<id>).
 formation_network_options() {
   local name="$1" file="$2"; shift 2
-  local network="" keys="" hosts="" port_base="" host_args=()
+  local network="" keys="" hosts="" port_base="" duration="" host_args=()
   REST=()
   while [ $# -gt 0 ]; do
     case "$1" in
@@ -24,6 +24,8 @@ formation_network_options() {
       --hosts) hosts="${2:?--hosts needs a file}"; shift 2 ;;
       --port-base) port_base="${2:?--port-base needs a number}"; shift 2 ;;
       --host) host_args+=(--host "${2:?--host needs NAME=ADDR}"); shift 2 ;;
+      --duration) duration="${2:-}"; REST+=("$1" "${2:-}"); shift; [ $# -gt 0 ] && shift ;;  # the certificates' check
+      --duration=*) duration="${1#*=}"; REST+=("$1"); shift ;;
       --ros-args) REST+=("$@"); break ;;
       *) REST+=("$1"); shift ;;
     esac
@@ -41,6 +43,7 @@ formation_network_options() {
     local args=(profile "$keys" "$name" --formation "$file" --out "${FORMATION_PROFILE_DIR:-$keys/profiles}")
     [ -n "$hosts" ] && args+=(--hosts "$hosts")
     [ -n "$port_base" ] && args+=(--port-base "$port_base")
+    [ -n "$duration" ] && args+=(--duration "$duration")
     args+=("${host_args[@]+"${host_args[@]}"}")
     local lines
     lines="$("$ROOT/.venv/bin/formation-keys" "${args[@]}")" || return 2

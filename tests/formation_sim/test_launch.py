@@ -14,7 +14,7 @@ import pytest
 
 from formation_deploy.keys import init_keys, process_names
 from formation_msgs_py.faults import FaultLog, write_json
-from formation_sim.launch.launcher import agent_faults_file, merge_agent_faults
+from formation_sim.launch.launcher import RESERVE_BYTES, SpaceReserve, agent_faults_file, merge_agent_faults
 
 
 def test_agent_fault_files_are_merged_and_missing_ones_named(tmp_path: Path) -> None:
@@ -114,3 +114,12 @@ def test_secure_run_with_a_bad_certificate_exits_2_before_anything_starts(
     out.mkdir()
     _refused(_launch(paper_path, "--secure", "--keys", str(keys), "--out", str(out), "--duration", "0.1"), expected)
     assert list(out.iterdir()) == []
+
+
+def test_space_reserve_is_never_a_file_in_out(tmp_path: Path) -> None:
+    """The reserve for the final summary holds its bytes without a name in OUT (a SIGKILLed launcher leaves none)."""
+    reserve = SpaceReserve(tmp_path, size=RESERVE_BYTES)
+    assert list(tmp_path.iterdir()) == []
+    assert reserve.allocated >= RESERVE_BYTES  # written out, not sparse: the bytes are really held
+    reserve.release()
+    assert list(tmp_path.iterdir()) == []

@@ -115,6 +115,11 @@ class SpaceReserve:
             self._file.close()
             raise
 
+    @property
+    def allocated(self) -> int:
+        """Bytes the reserve holds on disk."""
+        return os.fstat(self._file.fileno()).st_blocks * 512
+
     def release(self) -> None:
         self._file.close()
 
@@ -489,18 +494,23 @@ def _checked(opts: RunOptions, argv: list[str]) -> tuple[Prepared, dict[str, str
         secure = _secure(run, env)
         existed = out.exists()
         prepare_out_dir(out, run.options.force, launch_outputs(run.options))
-    except FormationError as exc:
+    except BaseException as exc:
         if secure is not None:
-            secure.close()
-        raise RefusedError(ExitCode.INVALID, f"INVALID: {exc}") from None
+            secure.close()  # its temporary keys and profiles
+        if isinstance(exc, FormationError):
+            raise RefusedError(ExitCode.INVALID, f"INVALID: {exc}") from None
+        raise
     try:
         (out / "logs").mkdir(exist_ok=True)
         reserve = SpaceReserve(out)
-    except OSError as exc:
+    except BaseException as exc:
         _remove_created(out, existed)
         if secure is not None:
             secure.close()
-        raise RefusedError(ExitCode.INCOMPLETE, f"INCOMPLETE: nothing started: {out}: {exc.strerror or exc}") from None
+        if isinstance(exc, OSError):
+            message = f"INCOMPLETE: nothing started: {out}: {exc.strerror or exc}"
+            raise RefusedError(ExitCode.INCOMPLETE, message) from None
+        raise
     if secure is not None:
         env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
     return replace(run, out=out), env, secure, reserve

@@ -227,6 +227,17 @@ def test_orientation_funnel_from_defaults_names_the_edge(tmp_path) -> None:
     )
 
 
+def test_agent_constraint_broken_through_defaults_names_the_agent(tmp_path) -> None:
+    """defaults.agent.controller.max_force above agent b's actuators only: agent b is named with its line."""
+    text = MINIMAL.replace("agents:\n", "defaults:\n  agent:\n    controller: {max_force: 30}\nagents:\n")
+    text = text.replace("inertia: [0.1, 0.1, 0.1]}\nedges", "inertia: [0.1, 0.1, 0.1], max_force: 20}\nedges")
+    path = write(tmp_path, text)
+    assert str(error_of(path)) == (
+        f"{path}:7:18: defaults.agent.controller.max_force: 30 exceeds the actuators' dynamics.max_force 20: "
+        f"the simulator would refuse it; broken by agents[1] (id b) at {path}:14:5"
+    )
+
+
 def test_unknown_key_gets_the_nearest_valid_key(tmp_path) -> None:
     path = write(tmp_path, MINIMAL.replace("  control_rate:", "  contol_rate:"))
     err = error_of(path)

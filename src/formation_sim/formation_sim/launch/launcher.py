@@ -340,8 +340,9 @@ class Launcher:
         incomplete = self.stop
         if incomplete is None and self.agent_died:
             incomplete = Incomplete(ExitCode.PROCESS_DIED, "; ".join(self.agent_died))
-        untrusted = untrusted_input(summary.get("security"))
-        if incomplete is not None or untrusted is not None:
+        if incomplete is not None:
+            # the simulator's own verdict counts its intruders already; this one replaces it
+            untrusted = untrusted_input(summary.get("security"))
             result = decide(summary.get("first_violation") is not None, incomplete, untrusted)
             summary.update(
                 verdict=result.verdict.value,

@@ -18,7 +18,7 @@
 # DISCOVERY to the --discovery value (the recorder is a super client: it sees the whole graph).
 formation_network_options() {
   local name="$1" file="$2"; shift 2
-  local network="" keys="" hosts="" port_base="" host_args=()
+  local network="" keys="" hosts="" port_base="" duration="" host_args=()
   REST=()
   DISCOVERY=simple
   while [ $# -gt 0 ]; do
@@ -32,6 +32,8 @@ formation_network_options() {
       --host) host_args+=(--host "${2:?--host needs NAME=ADDR}"); shift 2 ;;
       --discovery) DISCOVERY="${2:?--discovery needs simple or server[:HOST:PORT]}"; shift 2 ;;
       --discovery=*) DISCOVERY="${1#*=}"; shift ;;
+      --duration) duration="${2:-}"; REST+=("$1" "${2:-}"); shift; [ $# -gt 0 ] && shift ;;  # the certificates' check
+      --duration=*) duration="${1#*=}"; REST+=("$1"); shift ;;
       --ros-args) REST+=("$@"); break ;;
       *) REST+=("$1"); shift ;;
     esac
@@ -61,6 +63,7 @@ formation_network_options() {
     local args=(profile "$keys" "$name" --formation "$file" --out "${FORMATION_PROFILE_DIR:-$keys/profiles}")
     [ -n "$hosts" ] && args+=(--hosts "$hosts")
     [ -n "$port_base" ] && args+=(--port-base "$port_base")
+    [ -n "$duration" ] && args+=(--duration "$duration")
     args+=("${host_args[@]+"${host_args[@]}"}")
     local lines
     lines="$("$ROOT/.venv/bin/formation-keys" "${args[@]}")" || return 2

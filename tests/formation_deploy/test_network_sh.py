@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import os
 import subprocess
 from pathlib import Path
@@ -63,3 +64,30 @@ def test_secure_selects_the_profile_and_drops_static_peers(tmp_path: Path) -> No
     profile = Path(v["FASTRTPS_DEFAULT_PROFILES_FILE"])
     assert profile == (keys / "profiles" / "agent_1.xml").resolve()
     assert "<port>9101</port>" in profile.read_text() and Path(v["OPENSSL_CONF"]).is_file()
+
+
+def test_secure_with_an_expired_or_loose_key_exits_2_naming_the_file(tmp_path: Path) -> None:
+    """--secure KEYS whose agent_1 certificate expired yesterday, or whose key is mode 0644: exit 2, one line
+    naming the file and the problem, no profile written; a certificate valid for 1 day refuses a 2-day --duration."""
+    issued = dt.datetime.now(dt.UTC) - dt.timedelta(days=2)
+    old = tmp_path / "old"
+    init_keys(old, process_names(["1", "2", "3", "4", "5"]), days=1, now=issued)
+    r = _options("--secure", str(old))
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert f"{old / 'agent_1.pem'}: expired on " in r.stderr or f"{old / 'ca.pem'}: expired on " in r.stderr
+    assert not (old / "profiles").exists()
+    loose = tmp_path / "loose"
+    init_keys(loose, process_names(["1", "2", "3", "4", "5"]))
+    (loose / "agent_1.key").chmod(0o644)
+    r = _options("--secure", str(loose))
+    assert r.returncode == 2, r.stderr
+    assert (
+        r.stderr
+        == f"formation-keys: {loose / 'agent_1.key'}: private key readable by others (mode 0644, expected 0600)\n"
+    )
+    short = tmp_path / "short"
+    init_keys(short, process_names(["1", "2", "3", "4", "5"]), days=1)
+    assert _options("--secure", str(short), "--duration", "60").returncode == 0
+    r = _options("--secure", str(short), "--duration", "172800")
+    assert r.returncode == 2 and "before the end of the run" in r.stderr, r.stderr
+    assert _vars(_options("--secure", str(short), "--duration=60"))["REST"] == "--duration=60"

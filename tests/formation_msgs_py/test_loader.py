@@ -190,6 +190,54 @@ def test_bad_value_in_defaults_points_at_the_defaults(tmp_path) -> None:
     assert str(error_of(path)) == f"{path}:7:5: defaults.agent.radius: -1 must be > 0"
 
 
+THIRD_AGENT = """\
+  - id: c
+    radius: 0.5
+    sensing_radius: 3.0
+    position: [0, 2, 0]
+    dynamics: {mass: 1.0, inertia: [0.1, 0.1, 0.1]}
+edges:
+  - {tail: a, head: b, distance: 1.5}
+  - {tail: a, head: c, distance: 1.5}
+"""
+
+
+def test_constraint_broken_through_defaults_names_every_edge(tmp_path) -> None:
+    """defaults.edge.d_con above the agents' sensing radius: at the default, and each edge it breaks with its line."""
+    text = MINIMAL.replace("agents:\n", "defaults:\n  edge:\n    d_con: 4\nagents:\n")
+    text = text.replace("edges:\n  - {tail: a, head: b, distance: 1.5}\n", THIRD_AGENT)
+    path = write(tmp_path, text)
+    assert str(error_of(path)) == (
+        f"{path}:7:5: defaults.edge.d_con: 4 exceeds the sensing radius 3 of its agents: the edge would be lost "
+        f"inside its funnel; broken by edges[0] (a, b) at {path}:25:5, edges[1] (a, c) at {path}:26:5"
+    )
+
+
+def test_orientation_funnel_from_defaults_names_the_edge(tmp_path) -> None:
+    """defaults.edge.orientation_funnel.rho_0 below ψ(0) of one edge: that edge (and only it) is named."""
+    text = MINIMAL.replace("agents:\n", "defaults:\n  edge:\n    orientation_funnel: {rho_0: 1.99}\nagents:\n")
+    text = text.replace("edges:\n  - {tail: a, head: b, distance: 1.5}\n", THIRD_AGENT)
+    text = text.replace(
+        "    position: [2, 0, 0]\n", "    position: [2, 0, 0]\n    orientation: {rpy: [0, 0, 3.0992]}\n"
+    )
+    path = write(tmp_path, text)
+    assert str(error_of(path)) == (
+        f"{path}:7:26: defaults.edge.orientation_funnel.rho_0: 1.99 must exceed the initial orientation error "
+        f"psi(0)=1.9991; broken by edges[0] (a, b) at {path}:26:5"
+    )
+
+
+def test_agent_constraint_broken_through_defaults_names_the_agent(tmp_path) -> None:
+    """defaults.agent.controller.max_force above agent b's actuators only: agent b is named with its line."""
+    text = MINIMAL.replace("agents:\n", "defaults:\n  agent:\n    controller: {max_force: 30}\nagents:\n")
+    text = text.replace("inertia: [0.1, 0.1, 0.1]}\nedges", "inertia: [0.1, 0.1, 0.1], max_force: 20}\nedges")
+    path = write(tmp_path, text)
+    assert str(error_of(path)) == (
+        f"{path}:7:18: defaults.agent.controller.max_force: 30 exceeds the actuators' dynamics.max_force 20: "
+        f"the simulator would refuse it; broken by agents[1] (id b) at {path}:14:5"
+    )
+
+
 def test_unknown_key_gets_the_nearest_valid_key(tmp_path) -> None:
     path = write(tmp_path, MINIMAL.replace("  control_rate:", "  contol_rate:"))
     err = error_of(path)
@@ -244,6 +292,10 @@ def test_directory_and_oversized_file(tmp_path) -> None:
     assert "is a directory" in str(error_of(tmp_path))
     big = write(tmp_path, b"#" * (loader.MAX_BYTES + 1), "big.yaml")
     assert "more than any formation file" in str(error_of(big))
+    huge = tmp_path / "huge.yaml"
+    with huge.open("wb") as fh:  # sparse: 100 MB on paper, nothing on disk
+        fh.truncate(100_000_000)
+    assert f"{huge}: 100000000 bytes is more than any formation file" in str(error_of(huge))  # its real size
 
 
 @pytest.mark.parametrize(

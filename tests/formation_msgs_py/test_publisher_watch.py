@@ -11,6 +11,7 @@ from formation_msgs_py.publisher_watch import (
     PublisherInfo,
     PublisherWatch,
     expected_publishers,
+    untrusted_input,
 )
 
 SIM = PublisherInfo("formation_sim", "/", "aa01")
@@ -173,3 +174,30 @@ def test_named_late_twin_of_a_pinned_publisher_stays_an_intruder() -> None:
     assert w.observe("/agent_3/velocity", [SIM, named], 2.0) == []
     assert list(w.intruders) == [("/agent_3/velocity", "ff02")] and w.withdrawn == []
     assert not w.accept("/agent_3/velocity", 2)
+
+
+def test_report_policy_counts_what_it_applies_beside_an_intruder() -> None:
+    """Report: messages taken while an intruder is present are counted as applied; before it, not."""
+    w = _watch("report")
+    topic = "/agent_3/wrench"
+    w.observe(topic, [AGENT3], 0.0)
+    assert w.accept(topic, 1)
+    w.observe(topic, [AGENT3, OUTSIDER], 0.2)
+    assert w.accept(topic, 1) and w.accept(topic, 1)
+    assert w.report()["applied_while_intruder"] == {topic: 2}
+
+
+def test_untrusted_input_names_every_intruder_with_its_counts() -> None:
+    """No intruder: trusted (None); each intruder: node, GID, topic, messages applied and refused."""
+    w = _watch("refuse")
+    assert untrusted_input(w.report()) is None
+    assert untrusted_input(None) is None
+    w.observe("/agent_3/wrench", [AGENT3, OUTSIDER], 0.0)
+    w.observe("/agent_1/relative_pose/agent_3", [SIM, PublisherInfo("spy", "/", "dd02")], 0.0)
+    for _ in range(3):
+        w.accept("/agent_3/wrench", 1)
+    assert untrusted_input(w.report()) == (
+        "untrusted input: 2 intruder(s) (policy refuse): "
+        "node /tools/outsider gid ee99 on /agent_3/wrench (0 applied, 3 refused); "
+        "node /spy gid dd02 on /agent_1/relative_pose/agent_3 (0 applied, 0 refused)"
+    )

@@ -50,6 +50,13 @@ def test_invalid_file_exits_2_naming_the_field(paper_doc, tmp_path, capsys) -> N
     assert "edges[2].distance: 4.5 is not inside (d_col=2.0, d_con=4.0)" in capsys.readouterr().err
 
 
+def test_duration_without_a_control_step_is_invalid(paper_path, capsys) -> None:
+    """--duration 1e-12 at 10 kHz takes no step: exit 2 (invalid, not merely unsafe), the option named."""
+    assert check.main([str(paper_path), "--duration", "1e-12"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("formation-check: INVALID: --duration 1e-12 s is shorter than one control period: ")
+
+
 def test_spanning_tree_option_prints_dropped_edges(paper_doc, tmp_path, capsys) -> None:
     paper_doc["edges"].append({"tail": 2, "head": 3})
     path = tmp_path / "cyclic.yaml"

@@ -1,11 +1,20 @@
-"""formation-launch's own part of summary.json (no processes): the agents' fault counts merged in."""
+"""formation-launch without ROS processes: its own part of summary.json (the agents' fault counts merged
+in), and every run it refuses before anything starts (exit 2, one line, OUT untouched)."""
 
 from __future__ import annotations
 
+import datetime as dt
+import os
+import re
+import subprocess
+import sys
 from pathlib import Path
 
+import pytest
+
+from formation_deploy.keys import init_keys, process_names
 from formation_msgs_py.faults import FaultLog, write_json
-from formation_sim.launch.launcher import agent_faults_file, merge_agent_faults
+from formation_sim.launch.launcher import RESERVE_BYTES, SpaceReserve, agent_faults_file, merge_agent_faults
 
 
 def test_agent_fault_files_are_merged_and_missing_ones_named(tmp_path: Path) -> None:
@@ -23,3 +32,94 @@ def test_agent_fault_files_are_merged_and_missing_ones_named(tmp_path: Path) -> 
     refused = summary["faults"]["1"]["refused_bad_quaternion"]
     assert (refused["count"], refused["first_t"], refused["last_t"]) == (2, 0.3, 0.4)
     assert summary["agent_faults_unknown"] == ["3"]  # killed before it could write its counts
+
+
+BIN = Path(sys.executable).parent
+
+
+def _launch(paper_path: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    cmd = [str(BIN / "formation-launch"), str(paper_path), "--quiet", "--no-plots", *args]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+
+
+def _refused(r: subprocess.CompletedProcess, expected: str) -> None:
+    """Exit 2, nothing on stdout, one line on stderr that matches ``expected``, no traceback."""
+    assert (r.returncode, r.stdout) == (2, ""), (r.returncode, r.stdout, r.stderr)
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr, r.stderr
+    assert re.match(rf"formation-launch: INVALID: {expected}", r.stderr), r.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["--duration", "1e-12"], r"--duration 1e-12 s is shorter than one control period"),
+        (["--duration", "1e12"], r"--duration 1e\+12 s is longer than any run"),
+        (["--control-rate", "1e12", "--allow-low-rate"], r"simulation.duration in .* at a physics rate of 1e\+12 Hz "
+         r"\(--control-rate\) is 5e\+12 steps"),
+    ],
+)  # fmt: skip
+def test_impossible_durations_and_rates_exit_2_and_leave_out_untouched(
+    paper_path: Path, tmp_path: Path, args: list[str], expected: str
+) -> None:
+    """Each impossible duration or rate: exit 2 with one line naming the option; OUT (new or empty) untouched."""
+    new, empty = tmp_path / "new", tmp_path / "empty"
+    empty.mkdir()
+    _refused(_launch(paper_path, *args, "--out", str(new)), expected)
+    _refused(_launch(paper_path, *args, "--out", str(empty)), expected)
+    assert not new.exists() and list(empty.iterdir()) == []
+
+
+def test_out_that_is_a_file_or_unwritable_exits_2_in_one_line(paper_path: Path, tmp_path: Path) -> None:
+    """--out FILE says it is a file; a place nobody may write (/proc/sys) says so: no traceback, nothing made."""
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    _refused(_launch(paper_path, "--out", str(afile)), rf"output directory {afile} is a file, not a directory$")
+    _refused(_launch(paper_path, "--out", "/proc/sys/formation-out"), r".*/proc/sys is not writable")
+    assert afile.read_text() == "mine"
+
+
+def test_read_only_out_exits_2_in_one_line(paper_path: Path, tmp_path: Path) -> None:
+    """An existing empty OUT on a read-only file system (a read-only bind mount): exit 2, one line, no traceback."""
+    out = tmp_path / "ro"
+    out.mkdir()
+    if subprocess.run(["mount", "--bind", "-o", "ro", str(out), str(out)], capture_output=True).returncode != 0:
+        pytest.skip("a read-only bind mount needs CAP_SYS_ADMIN")
+    try:
+        _refused(
+            _launch(paper_path, "--out", str(out)), rf"output directory {out}: {out} is on a read-only file system$"
+        )
+    finally:
+        subprocess.run(["umount", str(out)], check=True)
+    assert list(out.iterdir()) == []
+
+
+@pytest.mark.parametrize("case", ["expired", "key 0644"])
+def test_secure_run_with_a_bad_certificate_exits_2_before_anything_starts(
+    paper_path: Path, tmp_path: Path, case: str
+) -> None:
+    """--secure --keys with expired certificates (the directory issued 2 days ago for 1 day: the CA first, 8 more)
+    or agent 3's key of mode 0644: exit 2 naming the file, OUT left empty (no logs/), no process started."""
+    keys = tmp_path / "keys"
+    if case == "expired":
+        init_keys(
+            keys, process_names(["1", "2", "3", "4", "5"]), days=1, now=dt.datetime.now(dt.UTC) - dt.timedelta(days=2)
+        )
+        expected = rf"--secure: {keys}/ca\.pem: expired on .* \(and 8 more: formation-keys check {keys}\)$"
+    else:
+        init_keys(keys, process_names(["1", "2", "3", "4", "5"]))
+        (keys / "agent_3.key").chmod(0o644)
+        expected = rf"--secure: {keys}/agent_3\.key: private key readable by others \(mode 0644, expected 0600\)$"
+    out = tmp_path / "out"
+    out.mkdir()
+    _refused(_launch(paper_path, "--secure", "--keys", str(keys), "--out", str(out), "--duration", "0.1"), expected)
+    assert list(out.iterdir()) == []
+
+
+def test_space_reserve_is_never_a_file_in_out(tmp_path: Path) -> None:
+    """The reserve for the final summary holds its bytes without a name in OUT (a SIGKILLed launcher leaves none)."""
+    reserve = SpaceReserve(tmp_path, size=RESERVE_BYTES)
+    assert list(tmp_path.iterdir()) == []
+    assert reserve.allocated >= RESERVE_BYTES  # written out, not sparse: the bytes are really held
+    reserve.release()
+    assert list(tmp_path.iterdir()) == []

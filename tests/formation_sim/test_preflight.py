@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
 
-from formation_sim.core.preflight import InvalidRunError, prepare_out_dir
+from formation_msgs_py.options import LAUNCH, RunOptions
+from formation_sim.core import preflight
+from formation_sim.core.preflight import (
+    InvalidRunError,
+    check_out_dir,
+    duration_problem,
+    load_spec,
+    prepare_out_dir,
+)
 
 
 def _earlier_run(out: Path) -> None:
@@ -45,3 +54,49 @@ def test_force_without_a_readable_summary_still_removes_the_run_outputs(tmp_path
     (out / "summary.json").write_text("{truncated")  # a full disk cut it short
     prepare_out_dir(out, force=True)
     assert sorted(p.name for p in out.iterdir()) == ["errors.png"]  # only the summary named it
+
+
+def _options(paper_path: Path, **kw) -> RunOptions:
+    return RunOptions(command=LAUNCH, file=paper_path, **kw)
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ({"duration": 1e-12}, r"^--duration 1e-12 s is shorter than one control period: 0\.0001 s at 10000 Hz "),
+        ({"duration": 1e12}, r"^--duration 1e\+12 s is longer than any run \(at most 604800 s, a week\)$"),
+        ({"control_rate": 1e12}, r"^simulation\.duration in .*paper_5agents\.yaml 5 s at a physics rate of 1e\+12 Hz "
+         r"\(--control-rate\) is 5e\+12 steps, more than any run takes \(at most 1e\+09\)$"),
+        ({"duration": 5e4, "record_rate": 1e4}, r"^--duration 50000 s recorded at 10000 Hz \(--record-rate\) keeps "
+         r"5e\+08 trajectory rows \(544 GB\), more than this machine's memory \(8 GB\)$"),
+    ],
+)  # fmt: skip
+def test_durations_no_run_can_take_are_refused_naming_the_option(
+    paper_path: Path, given: dict, expected: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No step, longer than a week, more than 1e9 physics steps, a trajectory beyond the machine's memory (8 GB
+    here; a row is 5 agents × 192 B + 4 edges × 32 B)."""
+    monkeypatch.setattr(preflight, "physical_memory", lambda: 8_000_000_000)
+    options = _options(paper_path, **given)
+    problem = duration_problem(load_spec(options), options)
+    assert problem is not None and re.search(expected, problem), problem
+
+
+def test_a_run_of_one_control_period_is_valid(paper_path: Path) -> None:
+    """Exactly one control period (10 kHz: 1e-4 s) takes one step: accepted."""
+    options = _options(paper_path, duration=1e-4)
+    assert duration_problem(load_spec(options), options) is None
+
+
+def test_out_that_cannot_be_a_directory_is_named_and_left_alone(tmp_path: Path) -> None:
+    """--out FILE, a path below a file, a non-empty directory, an unwritable place: one reason each, nothing made."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(InvalidRunError, match=r"output directory .*afile is a file, not a directory$"):
+        check_out_dir(afile, force=True)
+    with pytest.raises(InvalidRunError, match=r"output directory .*afile/sub: .*afile is a file, not a directory$"):
+        prepare_out_dir(afile / "sub", force=False)
+    with pytest.raises(InvalidRunError, match=r"/proc/sys is not writable \(permission denied\)$"):
+        check_out_dir(Path("/proc/sys/formation-out"), force=False)
+    check_out_dir(tmp_path / "new" / "out", force=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]

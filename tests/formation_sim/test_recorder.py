@@ -20,7 +20,7 @@ from formation_msgs_py.spec import FormationSpec, load_formation
 from formation_sim.core.loop import initial_rho_v0
 from formation_sim.core.rates import rate_needs
 from formation_sim.core.recorder import RunRecorder
-from formation_sim.views.outputs import write_outputs
+from formation_sim.views.outputs import format_summary, verdict_line, write_outputs
 
 T = np.array([0.0, 0.1, 0.2, 0.3, 0.4])
 #: the margins are formed from e/ρ_e with a few float operations: equal to 1e-12
@@ -217,6 +217,72 @@ def test_verdicts_and_strict_json(spec: FormationSpec, tmp_path: Path) -> None:
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text)["outputs"] == ["trajectory.npz", "summary.json"]
     assert sorted(x.name for x in tmp_path.iterdir()) == ["summary.json", "trajectory.npz"]  # no temporaries
+
+
+#: summary.json ``security`` of a realtime run with an outsider on agent 3's wrench (report policy)
+SECURITY = {
+    "policy": "report",
+    "intruders": [
+        {
+            "topic": "/agent_3/wrench",
+            "agent": "3",
+            "node": "/outsider",
+            "gid": "010f2a",
+            "first_seen": 1.0,
+            "last_seen": 4.0,
+            "reason": "unexpected node",
+        }
+    ],
+    "intruders_per_agent": {"3": 1},
+    "refused_messages": {},
+    "applied_while_intruder": {"/agent_3/wrench": 7},
+    "withdrawn": [],
+}
+
+
+def test_an_intruder_makes_a_pass_untrusted_input(spec: FormationSpec) -> None:
+    """Every funnel held beside an intruder: INCOMPLETE, exit 4, the reason and verdict line name it."""
+    s = _recorder(spec, len(T)).summary(wall_time=1.0, requested_duration=0.4, extra={"security": SECURITY})
+    assert (s["verdict"], s["exit_status"], s["funnels_held"]) == ("INCOMPLETE", 4, None)
+    assert s["incomplete_reason"] == (
+        "untrusted input: 1 intruder(s) (policy report): node /outsider gid 010f2a on /agent_3/wrench "
+        "(7 applied, 0 refused)"
+    )
+    assert verdict_line(s).splitlines() == [
+        "INCOMPLETE: untrusted input: 1 intruder(s) (policy report) "
+        "(no violation in the 0.4 s checked, worst margin 1)",
+        "  intruder: node /outsider gid 010f2a on /agent_3/wrench (7 applied, 0 refused)",
+    ]
+    assert "  intruder: node /outsider" in format_summary(s)
+    clean = _recorder(spec, len(T)).summary(
+        wall_time=1.0, requested_duration=0.4, extra={"security": {**SECURITY, "intruders": []}}
+    )
+    assert (clean["verdict"], clean["exit_status"]) == ("PASS", 0)
+
+
+def test_an_intruder_turns_a_violation_into_untrusted_input(spec: FormationSpec) -> None:
+    """A violation beside an intruder (refuse: the agent's own wrenches refused) is no FAIL: INCOMPLETE, exit 4;
+    an interrupted run keeps 130."""
+    p, R = trajectory(spec)
+    set_distance_error(spec, p[2], 0, 1.01 * spec.edges[0].c_con * rho_e(spec, 0, 0.2))
+    refused = {**SECURITY, "policy": "refuse", "refused_messages": {"/agent_3/wrench": 268}}
+    refused["applied_while_intruder"] = {}
+
+    def run(incomplete: Incomplete | None = None) -> dict:
+        rec = RunRecorder(spec, control_rate=10.0)
+        for s in range(len(T)):
+            rec.add(float(T[s]), p[s], R[s], np.zeros((len(spec.agents), 6)), np.ones((len(spec.agents), 6)))
+        return rec.summary(wall_time=1.0, requested_duration=0.4, incomplete=incomplete, extra={"security": refused})
+
+    s = run()
+    assert (s["verdict"], s["exit_status"]) == ("INCOMPLETE", 4)
+    assert s["first_violation"]["t"] == 0.2  # kept: the data shows it, the verdict does not rest on it
+    assert "(0 applied, 268 refused)" in s["incomplete_reason"]
+    line = verdict_line(s).splitlines()[0]
+    assert line.startswith("INCOMPLETE: untrusted input: 1 intruder(s) (policy refuse) (a violation seen at t=0.2000 s")
+    stopped = run(Incomplete(ExitCode.INTERRUPTED, "interrupted (SIGINT)"))
+    assert (stopped["verdict"], stopped["exit_status"]) == ("INCOMPLETE", 130)
+    assert stopped["incomplete_reason"].startswith("interrupted (SIGINT); untrusted input: ")
 
 
 def test_faults_are_counted_with_first_and_last(spec: FormationSpec) -> None:

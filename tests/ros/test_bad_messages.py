@@ -185,9 +185,13 @@ def test_realtime_run_with_injected_faults_finishes_and_reports_them(procs, ros_
             stop.set()
             spinner.join(timeout=5)
     log = read_log(sim)
-    assert code == 0, log  # nothing refused is integrated: the realtime preset holds its funnels
+    # the injector is an intruder: no verdict on the controller (untrusted input, exit 4)
+    assert code == 4, log
     assert "Traceback" not in log
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["incomplete_reason"].startswith("untrusted input: "), summary["incomplete_reason"]
+    assert "node /bad_input_injector" in summary["incomplete_reason"]
+    assert summary["first_violation"] is None, log  # nothing refused is integrated: the funnels held
     assert summary["duration"] == 4.0, summary
     refused = _refused_wrenches(summary)
     rw = refused["1"]
@@ -233,8 +237,9 @@ def test_lockstep_run_is_not_stalled_by_a_future_stamped_wrench(procs, ros_env, 
             wrench.publish(codec.encode((2**31 - 1) * NS, (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)))
             wrench.publish(codec.encode(latest[0], (math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)))
     log = read_log(sim)
-    assert sim.returncode in (0, 1), log
+    assert sim.returncode == 4, log  # the injector is an intruder: untrusted input
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["incomplete_reason"].startswith("untrusted input: "), summary["incomplete_reason"]
     assert summary["duration"] == 1.0 and summary["steps"] == 100, summary
     refused = _refused_wrenches(summary)
     assert refused["2"]["future_step"]["count"] >= 1, refused

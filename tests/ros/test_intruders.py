@@ -116,7 +116,8 @@ def test_simulator_applies_an_outsiders_wrench_only_when_reporting(
 ) -> None:
     """Realtime run with an outsider answering each of agent 3's velocities with 50 N on /agent_3/wrench
     (the same stamp: plausible): the simulator names it in summary.json; report applies its 50 N (the
-    threat), refuse never does and counts what it refused."""
+    threat), refuse never does and counts what it refused; either way never PASS (nor a FAIL blamed on
+    the controller): INCOMPLETE, untrusted input, exit 4, the verdict block naming the outsider."""
     out = tmp_path / "out"
     cmd = [str(BIN / "formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     # the lag budget is not what this test is about: a loaded machine must not end the run INCOMPLETE
@@ -149,13 +150,19 @@ def test_simulator_applies_an_outsiders_wrench_only_when_reporting(
             os.killpg(launch.pid, signal.SIGINT)
             launch.wait(timeout=60)
     log = launch.stdout.read().decode(errors="replace") if launch.stdout else ""
-    assert launch.returncode in (0, 1), log  # the verdict may be FAIL: agent 3's command is lost or wrong
+    assert launch.returncode == 4, log
     summary = json.loads((out / "summary.json").read_text())
     assert ("/agent_3/wrench", "/outsider") in {(i["topic"], i["node"]) for i in summary["security"]["intruders"]}
+    assert summary["verdict"] == "INCOMPLETE" and summary["incomplete_reason"].startswith("untrusted input: "), log
+    gid = next(i["gid"] for i in summary["security"]["intruders"] if i["node"] == "/outsider")
+    assert re.search(
+        rf"^  intruder: node /outsider gid {gid} on /agent_3/wrench \(\d+ applied, \d+ refused\)$", log, re.M
+    ), log
     u = np.load(out / "trajectory.npz")["u"]
     applied = np.any(u[:, load_formation(REALTIME).agent_ids.index("3"), 0] == 50.0)
     if policy == "report":
         assert applied, log
+        assert summary["security"]["applied_while_intruder"]["/agent_3/wrench"] > 0
     else:
         assert not applied, log
         assert summary["security"]["refused_messages"]["/agent_3/wrench"] > 0

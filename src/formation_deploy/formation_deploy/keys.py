@@ -144,17 +144,27 @@ def _load_cert(path: Path) -> x509.Certificate:
 
 
 def _check_mode(path: Path) -> list[Problem]:
-    mode = stat.S_IMODE(path.stat().st_mode)
+    try:
+        mode = stat.S_IMODE(path.stat().st_mode)
+    except OSError as exc:
+        return [Problem(path, f"cannot be read ({exc.strerror})")]
     if mode & 0o077:
         return [Problem(path, f"private key readable by others (mode {mode:04o}, expected 0600)")]
     return []
 
 
 def check_keys(
-    keys: Path, names: Sequence[str], *, min_days: float = 7.0, now: dt.datetime | None = None
+    keys: Path,
+    names: Sequence[str],
+    *,
+    min_days: float = 7.0,
+    now: dt.datetime | None = None,
+    run_s: float | None = None,
 ) -> list[Problem]:
-    """Every problem of ``keys`` for ``names`` (empty: valid for at least ``min_days`` more days)."""
+    """Every problem of ``keys`` for ``names`` (empty: valid for at least ``min_days`` more days,
+    or with ``run_s``, for the ``run_s`` wall seconds a run is expected to last)."""
     now = now or dt.datetime.now(dt.UTC)
+    need = dt.timedelta(days=min_days) if run_s is None else dt.timedelta(seconds=run_s)
     problems: list[Problem] = []
     ca_file = cert_path(keys, CA_NAME)
     if not ca_file.is_file():
@@ -173,7 +183,7 @@ def check_keys(
         if name != CA_NAME:
             try:
                 ca_public.verify(cert.signature, cert.tbs_certificate_bytes, ec.ECDSA(cert.signature_hash_algorithm))
-            except InvalidSignature:
+            except (InvalidSignature, ValueError, TypeError):  # TypeError: an RSA or Ed25519 signature
                 problems.append(Problem(cfile, "not signed by this directory's CA (ca.pem)"))
             if cert.issuer != ca.subject:
                 problems.append(Problem(cfile, f"issuer {cert.issuer.rfc4514_string()} is not the CA"))
@@ -181,13 +191,25 @@ def check_keys(
                 problems.append(Problem(kfile, "missing"))
             else:
                 problems += _check_mode(kfile)
-                key = serialization.load_pem_private_key(kfile.read_bytes(), password=None)
-                if key.public_key() != cert.public_key():
-                    problems.append(Problem(kfile, f"does not match {cfile.name}"))
+                try:
+                    key = serialization.load_pem_private_key(kfile.read_bytes(), password=None)
+                except (OSError, ValueError, TypeError) as exc:
+                    problems.append(Problem(kfile, f"not a readable unencrypted PEM private key ({exc})"))
+                else:
+                    if key.public_key() != cert.public_key():
+                        problems.append(Problem(kfile, f"does not match {cfile.name}"))
         left = cert.not_valid_after_utc - now
         if left <= dt.timedelta(0):
             problems.append(Problem(cfile, f"expired on {cert.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"))
-        elif left < dt.timedelta(days=min_days):
+        elif left < need and run_s is not None:
+            problems.append(
+                Problem(
+                    cfile,
+                    f"expires on {cert.not_valid_after_utc:%Y-%m-%d %H:%M:%S} UTC, in {left.total_seconds():.0f} s: "
+                    f"before the end of the run (expected within {run_s:.0f} s)",
+                )
+            )
+        elif left < need:
             problems.append(Problem(cfile, f"expires in {left.total_seconds() / 86400:.1f} days (< {min_days:g})"))
         if cert.not_valid_before_utc > now:
             problems.append(Problem(cfile, f"not valid before {cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC"))

@@ -14,7 +14,9 @@ certificate against the CA, that each key matches its certificate, the modes, an
 (exit 1 if one expires within ``--min-days``). Rotation: ``init`` a new directory and restart
 every process with it (a certificate of the old CA is refused by the new one). ``profile``
 writes one process's transport profile (formation_deploy.secure_transport) and prints the shell
-lines that select it; ``sim.sh`` and ``agent.sh --secure`` use it.
+lines that select it, after checking that process's certificate and key for the run (signed by
+the CA, valid now and until the run's expected end, key mode 0600: exit 2 naming the file
+otherwise); ``sim.sh``, ``agent.sh``, ``record.sh`` and ``replay.sh --secure`` use it.
 
 Exit status: 0 valid, 1 a check failed, 2 invalid input (file, directory).
 """
@@ -38,7 +40,13 @@ from formation_deploy.keys import (
     key_path,
     process_names,
 )
-from formation_deploy.secure_transport import DEFAULT_PORT_BASE, exports, peers_of, write_process_config
+from formation_deploy.secure_transport import (
+    DEFAULT_PORT_BASE,
+    check_run_keys,
+    exports,
+    peers_of,
+    write_process_config,
+)
 from formation_msgs_py.errors import FormationSpecError
 
 
@@ -75,12 +83,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     profile.add_argument("--port-base", type=int, help="first port, the same on every host (default 7700)")
     profile.add_argument("--listen", help="local address to listen on (default: this process's host)")
+    profile.add_argument(
+        "--duration",
+        type=float,
+        help="the run's simulated duration [s] (default: the formation file's): the process's certificate "
+        "must stay valid for the run's expected wall time",
+    )
     return p
 
 
-def _profile(args: argparse.Namespace, agent_ids: Sequence[str]) -> str:
+def _profile(args: argparse.Namespace, agent_ids: Sequence[str], duration_s: float) -> str:
     import yaml
 
+    # before anything starts: a certificate refused later is a TLS handshake failure seen only in logs
+    check_run_keys(args.dir, [args.name], duration_s)
     hosts: dict[str, str] = {}
     if args.hosts is not None:
         try:
@@ -107,10 +123,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     from formation_msgs_py.spec import load_formation  # numpy: not for --help
 
     try:
-        agent_ids = load_formation(args.formation).agent_ids
+        spec = load_formation(args.formation)
+        agent_ids = spec.agent_ids
         names = process_names(agent_ids)
         if args.command == "profile":
-            print(_profile(args, agent_ids), end="")
+            duration = spec.simulation.duration if args.duration is None else args.duration
+            print(_profile(args, agent_ids, duration), end="")
             return EXIT_OK
         if args.command == "init":
             init_keys(args.dir, names, days=args.days)

@@ -15,6 +15,11 @@ Every process of a secure run gets, through its environment:
 - ``ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT``: under ``LOCALHOST`` the rmw adds its own UDP
   and shared-memory transports to the profile's; ``ROS_STATIC_PEERS`` is dropped for the same reason.
 
+Before anything starts, :func:`check_run_keys` checks every process's certificate and key
+(present, signed by the formation's CA, valid now and for the run's expected wall time, key mode
+0600) and names the first file with a problem: a certificate refused later is a TLS handshake
+failure that only the processes' logs show.
+
 Ports are derived from the formation: ``base`` for the simulator, ``base + 1 + k`` for the k-th
 agent of the file, then the recorder and the replay. The hosts default to 127.0.0.1 (one
 machine); a multi-host run gives each process's address (docs/security.md).
@@ -22,6 +27,8 @@ machine); a multi-host run gives each process's address (docs/security.md).
 
 from __future__ import annotations
 
+import datetime as dt
+import math
 import os
 import shutil
 import socket
@@ -31,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import escape
 
-from formation_deploy.keys import cert_path, init_keys, key_path, process_names
+from formation_deploy.keys import KeysError, cert_path, check_keys, init_keys, key_path, process_names
 from formation_msgs_py.faults import write_atomic
 from formation_msgs_py.transport_check import SECURE_FLAG
 
@@ -61,6 +68,33 @@ MinProtocol = TLSv1.2
 
 class SecureTransportError(ValueError):
     """Secure mode cannot be configured (the message names the option or file)."""
+
+
+#: a run's expected wall time is at most this many times its simulated duration (a lockstep run
+#: on a busy machine runs slower than real time) …
+RUN_TIME_FACTOR = 3.0
+#: … plus this long for discovery and writing the outputs [wall s]
+RUN_TIME_EXTRA_S = 600.0
+
+
+def expected_run_s(duration_s: float) -> float:
+    """The wall seconds a run of ``duration_s`` simulated seconds is expected to take at most."""
+    return RUN_TIME_FACTOR * duration_s + RUN_TIME_EXTRA_S
+
+
+def check_run_keys(keys: Path, names: Sequence[str], duration_s: float, *, now: dt.datetime | None = None) -> None:
+    """The pre-flight of a secure run: SecureTransportError naming the first file with a problem
+    (missing, not signed by ``keys``'s CA, expired, not yet valid, expiring before the run's
+    expected end, a private key readable by others), and how many more there are."""
+    if not keys.is_dir():
+        raise SecureTransportError(f"{keys}: not a key directory (formation-keys init {keys} --formation FILE)")
+    try:
+        problems = check_keys(keys, names, now=now, run_s=expected_run_s(duration_s))
+    except KeysError as exc:
+        raise SecureTransportError(str(exc)) from None
+    if problems:
+        more = f" (and {len(problems) - 1} more: formation-keys check {keys})" if len(problems) > 1 else ""
+        raise SecureTransportError(f"{problems[0]}{more}")
 
 
 @dataclass(frozen=True)
@@ -225,20 +259,36 @@ class SecureRun:
 
     @classmethod
     def prepare(
-        cls, agent_ids: Sequence[str], base_env: Mapping[str, str], *, keys: Path | None, port_start: int
+        cls,
+        agent_ids: Sequence[str],
+        base_env: Mapping[str, str],
+        *,
+        keys: Path | None,
+        port_start: int,
+        duration_s: float,
     ) -> SecureRun:
-        workdir = Path(tempfile.mkdtemp(prefix="formation-secure-"))  # mode 0700
-        ephemeral = keys is None
-        if keys is None:
-            keys = workdir / "keys"
-            init_keys(keys, process_names(agent_ids), days=2)
+        """Check ``keys`` (:func:`check_run_keys`) for a run of ``duration_s`` simulated seconds, then
+        write every process's profile; raises SecureTransportError (nothing left behind) or OSError."""
         names = process_names(agent_ids)
-        base = free_port_base(len(names), port_start)
-        peers = peers_of(agent_ids, port_base=base)
-        envs = {
-            n: secure_environment(base_env, write_process_config(n, peers, keys, workdir / "profiles", listen=LOOPBACK))
-            for n in names
-        }
+        ephemeral = keys is None
+        if keys is not None:
+            check_run_keys(keys, names, duration_s)
+        workdir = Path(tempfile.mkdtemp(prefix="formation-secure-"))  # mode 0700
+        try:
+            if keys is None:
+                keys = workdir / "keys"
+                days = 2 + math.ceil(expected_run_s(duration_s) / 86400)
+                init_keys(keys, names, days=days)
+            base = free_port_base(len(names), port_start)
+            peers = peers_of(agent_ids, port_base=base)
+            profiles = workdir / "profiles"
+            envs = {
+                n: secure_environment(base_env, write_process_config(n, peers, keys, profiles, listen=LOOPBACK))
+                for n in names
+            }
+        except BaseException:
+            shutil.rmtree(workdir, ignore_errors=True)
+            raise
         return cls(envs, peers, workdir, ephemeral)
 
     def describe(self) -> dict[str, object]:

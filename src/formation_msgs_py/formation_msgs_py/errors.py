@@ -16,6 +16,9 @@ class FormationSpecError(FormationError, ValueError):
     """A formation file is invalid; ``path`` names the field (``edges[2].distance``).
 
     ``location`` is ``FILE:LINE:COL`` of the offending YAML node once the loader knows it.
+    ``elements``: when the value was set under ``defaults`` (``path`` names it there), each agent or
+    edge that breaks the check with it, as [label, path, location] (``edges[0] (1, 2)``,
+    ``edges[0]``, its ``FILE:LINE:COL`` once the loader knows it).
     """
 
     def __init__(self, path: str, message: str, value: Any = None) -> None:
@@ -23,10 +26,15 @@ class FormationSpecError(FormationError, ValueError):
         self.message = message
         self.value = value
         self.location = ""
+        self.elements: list[list[str]] = []
         super().__init__(path, message)
 
     def __str__(self) -> str:
         text = f"{self.path}: {self.message}" if self.path else self.message
+        if self.elements:
+            text += "; broken by " + ", ".join(
+                f"{label} at {where}" if where else label for label, _, where in self.elements
+            )
         return f"{self.location}: {text}" if self.location else text
 
 

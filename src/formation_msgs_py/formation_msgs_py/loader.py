@@ -16,7 +16,9 @@ The one reader of formation files (:func:`read_document`, :func:`parse_document`
 
 from __future__ import annotations
 
+import os
 import re
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -179,10 +181,13 @@ def _format_path(key: PathKey) -> str:
     return out
 
 
-def parse_document(raw: bytes, source: str) -> Document:
-    """Bytes of a formation file -> :class:`Document`; raises FormationSpecError(s) with FILE:LINE:COL."""
+def parse_document(raw: bytes, source: str, *, size: int | None = None) -> Document:
+    """Bytes of a formation file -> :class:`Document`; raises FormationSpecError(s) with FILE:LINE:COL.
+
+    ``size``: the file's size [bytes] when ``raw`` holds only its first :data:`MAX_BYTES` + 1."""
     if len(raw) > MAX_BYTES:
-        raise _error(source, None, "", f"{len(raw)} bytes is more than any formation file (limit {MAX_BYTES})")
+        whole = f"{size} bytes" if size is not None and size >= len(raw) else f"more than {MAX_BYTES} bytes"
+        raise _error(source, None, "", f"{whole} is more than any formation file (limit {MAX_BYTES} bytes)")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -217,14 +222,16 @@ def read_document(path: str | Path) -> Document:
     path = Path(path)
     try:
         with path.open("rb") as fh:
-            raw = fh.read(MAX_BYTES + 1)
+            info = os.fstat(fh.fileno())
+            size = info.st_size if stat.S_ISREG(info.st_mode) else None  # a pipe has no size
+            raw = fh.read(MAX_BYTES + 1)  # no more: a 100 GB file given by mistake is not read
     except FileNotFoundError:
         raise FormationSpecError("", f"formation file {str(path)!r} does not exist", str(path)) from None
     except IsADirectoryError:
         raise FormationSpecError("", f"{str(path)!r} is a directory, not a formation file", str(path)) from None
     except OSError as exc:
         raise FormationSpecError("", f"cannot read {str(path)!r}: {exc.strerror}", str(path)) from None
-    return parse_document(raw, str(path))
+    return parse_document(raw, str(path), size=size)
 
 
 def locate(error: FormationSpecError, document: Document) -> FormationSpecError:
@@ -232,4 +239,6 @@ def locate(error: FormationSpecError, document: Document) -> FormationSpecError:
     for e in error.errors if isinstance(error, CollectedFormationSpecError) else [error]:
         if not e.location:
             e.location = document.location(e.path)
+        for element in e.elements:
+            element[2] = element[2] or document.location(element[1])
     return error

@@ -6,12 +6,14 @@
 | ``FAIL``       | a funnel was violated (edge or agent, channel, time)                     | 1    |
 | (no verdict) | invalid input (formation file, option): nothing was started              | 2    |
 | ``INCOMPLETE`` | a process died or an agent stopped answering                             | 3    |
-| ``INCOMPLETE`` | any other reason: I/O error, disk full, lag budget, data missing, internal | 4    |
+| ``INCOMPLETE`` | any other reason: I/O error, disk full, lag budget, data missing, internal, untrusted input | 4    |
 | ``INCOMPLETE`` | interrupted (SIGINT/SIGTERM)                                             | 130  |
 
 A crash never exits 1: 1 means a funnel was violated and nothing else. A violation seen before a
 run stopped early is still FAIL (exit 1, or 130 when interrupted): the data shows it. Missing
-data is never a violation.
+data is never a violation. A run with untrusted input (a publisher the formation does not expect
+on its topics) is INCOMPLETE whatever its funnels did: its evidence says nothing about the
+controller (a violation may be the intruder's doing, a pass its luck).
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ class ExitCode(enum.IntEnum):
 EXIT_STATUS_HELP = (
     "exit status: 0 PASS (every funnel held, complete data), 1 FAIL (a funnel was violated), "
     "2 invalid input (nothing started), 3 a process died or an agent stopped answering, "
-    "4 incomplete for another reason (I/O error, disk full, lag budget, data missing, internal error), "
+    "4 incomplete for another reason (I/O error, disk full, lag budget, data missing, internal error, "
+    "untrusted input), "
     "130 interrupted"
 )
 
@@ -69,9 +72,17 @@ class Outcome:
     reason: str | None = None
 
 
-def decide(violated: bool, incomplete: Incomplete | None) -> Outcome:
+def decide(violated: bool, incomplete: Incomplete | None, untrusted: str | None = None) -> Outcome:
     """The verdict of a run: a violation seen is FAIL even if the run stopped early; missing data
-    or an early stop without a violation is INCOMPLETE. An interrupted run exits 130 either way."""
+    or an early stop without a violation is INCOMPLETE. An interrupted run exits 130 either way.
+
+    ``untrusted`` (the reason, e.g. :func:`formation_msgs_py.publisher_watch.untrusted_input`):
+    INCOMPLETE, exit 4, whatever the funnels did; an early stop keeps its own exit status (a
+    process died: 3, interrupted: 130) and both reasons are given."""
+    if untrusted is not None:
+        if incomplete is None:
+            return Outcome(Verdict.INCOMPLETE, ExitCode.INCOMPLETE, untrusted)
+        return Outcome(Verdict.INCOMPLETE, incomplete.code, f"{incomplete.reason}; {untrusted}")
     if violated:
         interrupted = incomplete is not None and incomplete.code == ExitCode.INTERRUPTED
         code = ExitCode.INTERRUPTED if interrupted else ExitCode.FAIL

@@ -13,6 +13,12 @@ has a publisher other than the pinned one: rclpy 7.1.6 does not give the publish
 taken message (its message info holds timestamps and sequence numbers only), so the message of
 an intruder cannot be told from the expected one's and the topic as a whole is refused: a fail-safe
 (the formation sees a missing measurement or wrench) instead of a command from an outsider.
+Under ``report`` the messages a topic takes while an intruder is present are counted as applied
+(any of them may be the intruder's).
+
+Either way a run with an intruder is no evidence about the controller: :func:`untrusted_input`
+turns the report into the reason of its INCOMPLETE verdict (``untrusted input``, exit 4), naming
+every intruder with the messages applied or refused on its topic.
 
 An endpoint is nameless until its participant's ROS node information arrives; after
 :data:`NAME_GRACE` it is reported. If it then turns out to be the topic's one publisher with the
@@ -112,6 +118,8 @@ class PublisherWatch:
     pinned: dict[str, str] = field(default_factory=dict)
     intruders: dict[tuple[str, str], Intruder] = field(default_factory=dict)
     refused: dict[str, int] = field(default_factory=dict)
+    #: messages accepted (``report``) while an intruder was present on their topic
+    applied: dict[str, int] = field(default_factory=dict)
     #: nameless sightings withdrawn: the topic's expected publisher, whose name came late
     withdrawn: list[Intruder] = field(default_factory=list)
     _present: dict[str, set[str]] = field(default_factory=dict)
@@ -184,6 +192,8 @@ class PublisherWatch:
         matched publishers than the one expected (one the graph poll has not classified yet) is refused.
         """
         if self.policy == "report":
+            if self._present.get(topic):
+                self.applied[topic] = self.applied.get(topic, 0) + 1
             return True
         if self._present.get(topic) or topic not in self.pinned or publisher_count > 1:
             self.refused[topic] = self.refused.get(topic, 0) + 1
@@ -200,8 +210,51 @@ class PublisherWatch:
             "intruders": [i.as_dict() for i in self.intruders.values()],
             "intruders_per_agent": per_agent,
             "refused_messages": dict(self.refused),
+            "applied_while_intruder": dict(self.applied),
             "withdrawn": [i.as_dict() for i in self.withdrawn],
         }
+
+
+UNTRUSTED = "untrusted input"
+
+
+def untrusted_input(security: Mapping[str, object] | None) -> str | None:
+    """The INCOMPLETE reason of a run whose :meth:`PublisherWatch.report` is ``security``, or None
+    when no intruder was seen.
+
+    Any intruder makes the run's evidence untrusted: under ``report`` its messages were applied
+    (rclpy cannot tell them from the expected publisher's), under ``refuse`` an agent's own messages
+    were refused while it was there. Each intruder is named with its node, GID, topic and the
+    messages applied or refused on that topic as this watch counted them (a topic the watching node
+    does not subscribe to counts in the agent that does).
+    """
+    lines = intruder_lines(security)
+    if not lines:
+        return None
+    assert security is not None
+    return f"{untrusted_header(security)}: " + "; ".join(lines)
+
+
+def untrusted_header(security: Mapping[str, object]) -> str:
+    """``untrusted input: N intruder(s) (policy P)``: the reason without the intruders' names."""
+    intruders = security.get("intruders") or []
+    n = len(intruders) if isinstance(intruders, list) else 0
+    return f"{UNTRUSTED}: {n} intruder(s) (policy {security.get('policy')})"
+
+
+def intruder_lines(security: Mapping[str, object] | None) -> list[str]:
+    """One line per intruder of a :meth:`PublisherWatch.report`: node, GID, topic, messages applied and refused."""
+    intruders = (security or {}).get("intruders") or []
+    refused = (security or {}).get("refused_messages") or {}
+    applied = (security or {}).get("applied_while_intruder") or {}
+    if not isinstance(intruders, list) or not isinstance(refused, Mapping) or not isinstance(applied, Mapping):
+        return []
+    return [
+        f"node {i.get('node')} gid {i.get('gid')} on {i.get('topic')} "
+        f"({applied.get(i.get('topic'), 0)} applied, {refused.get(i.get('topic'), 0)} refused)"
+        for i in intruders
+        if isinstance(i, Mapping)
+    ]
 
 
 def describe(intruder: Intruder) -> str:

@@ -437,6 +437,10 @@ class _Collector:
             if key not in self._seen:
                 self._seen.add(key)
                 self.errors.append(e)
+            elif e.elements:  # the same default value breaks another agent or edge's check: name it too
+                first = next(x for x in self.errors if (x.path, x.message) == key)
+                if first.elements:  # (not a value error of the defaults block itself: that names no item)
+                    first.elements += [x for x in e.elements if x not in first.elements]
 
     def extend(self, errs: list[FormationSpecError]) -> None:
         for e in errs:
@@ -460,11 +464,19 @@ class _Collector:
                 if e.path.startswith(path + ".") and not _given(raw, split_path(e.path[len(path) + 1 :])):
                     if not e.message == "is required":
                         e.path = defaults_path + e.path[len(path) :]
+                        e.elements.append([_label(path, raw), path, ""])  # which agent or edge breaks it
                 self.add(e)
 
     def raise_if_any(self) -> None:
         if self.errors:
             raise self.errors[0] if len(self.errors) == 1 else CollectedFormationSpecError(self.errors)
+
+
+def _label(path: str, raw: Mapping[str, Any]) -> str:
+    """``edges[0] (1, 2)``, ``agents[3] (id 4)``: an item's path and what names it in the file."""
+    if "tail" in raw and "head" in raw:
+        return f"{path} ({raw['tail']}, {raw['head']})"
+    return f"{path} (id {raw['id']})" if "id" in raw else path
 
 
 def _given(raw: Any, key: tuple[Any, ...]) -> bool:

@@ -84,5 +84,5 @@ class GraphWatch:
     def accept(self, topic: str, subscription: Subscription) -> bool:
         """Whether to apply a message just taken from ``subscription`` of ``topic`` (see PublisherWatch.accept)."""
         if self.watch.policy == "report":
-            return True
+            return self.watch.accept(topic, 1)  # always True; counts what is applied beside an intruder
         return self.watch.accept(topic, subscription.get_publisher_count())

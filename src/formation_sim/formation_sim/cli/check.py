@@ -111,10 +111,13 @@ def main(argv: list[str] | None = None) -> int:
         return ExitCode.PASS
     if opts.file is None:
         parser.error("a formation file is required (or --schema)")
-    from formation_sim.core.preflight import load_spec
+    from formation_sim.core.preflight import InvalidRunError, duration_problem, load_spec
 
     try:
         spec = load_spec(opts)
+        problem = duration_problem(spec, opts)  # no run can take it: invalid, not merely unsafe
+        if problem is not None:
+            raise InvalidRunError(problem)
     except FormationError as exc:
         print(f"formation-check: INVALID: {exc}", file=sys.stderr)
         return ExitCode.INVALID

@@ -3,9 +3,11 @@
 One function, :func:`preflight`, used by formation-headless, formation-sim and
 formation-launch: load the formation file with the command-line overrides, refuse QoS settings
 that cannot work (lockstep needs reliable measurements), refuse a control rate below what the
-velocity loop needs (docs/controller.md, "Sampled-data implementation") unless asked to warn, and prepare the output
-directory (never overwrite a non-empty one without ``--force``; with it, an earlier run's
-outputs are removed first).
+velocity loop needs (docs/controller.md, "Sampled-data implementation") unless asked to warn, refuse a duration that
+takes no control step or that no run can take (:func:`duration_problem`), check the output
+directory (:func:`check_out_dir`: a writable directory, never a non-empty one without
+``--force``) and then prepare it (with ``--force``, an earlier run's outputs are removed first).
+Nothing is created or removed before every check has passed.
 """
 
 from __future__ import annotations
@@ -59,6 +61,64 @@ def load_spec(options: RunOptions) -> FormationSpec:
     return load_formation(options.file, overrides=over or None)
 
 
+#: The longest simulated duration a run accepts [s]: a week (longer is a slip: 1e12 for 1e2).
+MAX_DURATION_S = 7 * 86400.0
+#: The most physics steps a run accepts (~14 h of a headless run at 50 µs a step).
+MAX_PHYSICS_STEPS = 1_000_000_000
+#: Bytes a trajectory row holds per agent (p, R, v, u) and per edge (e, ψ, ρ_e, ρ_ψ) in memory.
+_ROW_BYTES_AGENT, _ROW_BYTES_EDGE = (3 + 9 + 6 + 6) * 8, 4 * 8
+
+
+def _named(options: RunOptions, dest: str, key: str) -> str:
+    """How the user set a value: the option, or the formation file's key."""
+    if getattr(options, dest) is not None:
+        return "--" + dest.replace("_", "-")
+    return f"simulation.{key} in {options.file}"
+
+
+def physical_memory() -> int | None:
+    """This machine's memory [bytes], None if unknown."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError):
+        return None
+
+
+def duration_problem(spec: FormationSpec, options: RunOptions) -> str | None:
+    """Why the run's duration and rates make no run (none: they do): shorter than one control
+    period (no step), longer than :data:`MAX_DURATION_S`, more than :data:`MAX_PHYSICS_STEPS`, or
+    a trajectory larger than this machine's memory. Names the option or file key that set it."""
+    s = spec.simulation
+    duration = f"{_named(options, 'duration', 'duration')} {s.duration:g} s"
+    period = 1.0 / s.control_rate
+    if s.duration < period * (1 - 1e-9):
+        rate = _named(options, "control_rate", "control_rate")
+        return (
+            f"{duration} is shorter than one control period: {period:g} s at {s.control_rate:g} Hz ({rate}); "
+            "the run would take no step"
+        )
+    if s.duration > MAX_DURATION_S:
+        return f"{duration} is longer than any run (at most {MAX_DURATION_S:g} s, a week)"
+    steps = s.duration * s.physics_rate
+    if steps > MAX_PHYSICS_STEPS:
+        given = "physics_rate" if options.physics_rate is not None or options.control_rate is None else "control_rate"
+        rate = _named(options, given, given)
+        return (
+            f"{duration} at a physics rate of {s.physics_rate:g} Hz ({rate}) is {steps:.3g} steps, more than any "
+            f"run takes (at most {MAX_PHYSICS_STEPS:.0e})"
+        )
+    rows = s.duration * s.record_rate + 1
+    need = rows * (len(spec.agents) * _ROW_BYTES_AGENT + len(spec.edges) * _ROW_BYTES_EDGE)
+    memory = physical_memory()
+    if memory is not None and need > memory:
+        rate = _named(options, "record_rate", "record_rate")
+        return (
+            f"{duration} recorded at {s.record_rate:g} Hz ({rate}) keeps {rows:.3g} trajectory rows "
+            f"({need / 1e9:.3g} GB), more than this machine's memory ({memory / 1e9:.3g} GB)"
+        )
+    return None
+
+
 def rate_problems(spec: FormationSpec) -> list[str]:
     """One message per agent whose velocity loop needs more than the configured control rate."""
     from formation_sim.core.loop import initial_rho_v0
@@ -90,16 +150,44 @@ def earlier_outputs(out: Path, extra: tuple[str, ...] = ()) -> list[Path]:
     return sorted(out / n for n in names if os.path.lexists(out / n))
 
 
-def prepare_out_dir(out: Path, force: bool, extra: tuple[str, ...] = ()) -> None:
-    """Create ``out``; refuse a non-empty one unless ``force``, which removes an earlier run's
-    outputs first (:func:`earlier_outputs`, with the command's own ``extra`` names): a run that
-    stops before writing its own summary must not leave the earlier run's to be read as its own.
-    Other files in ``out`` stay. InvalidRunError on failure."""
+def _kind(path: Path) -> str:
+    return "a file" if path.is_file() else "a symbolic link" if path.is_symlink() else "not a directory"
+
+
+def check_out_dir(out: Path, force: bool) -> None:
+    """InvalidRunError if ``out`` cannot be a run's output directory: not a directory, inside a
+    file, not writable (read-only file system, permission), or not empty without ``force``.
+    Creates and changes nothing."""
     try:
-        if out.exists() and (not out.is_dir() or any(out.iterdir())):
-            if not force:
+        if out.exists() or out.is_symlink():
+            if not out.is_dir():
+                raise InvalidRunError(f"output directory {out} is {_kind(out)}, not a directory")
+            if not force and any(out.iterdir()):
                 raise InvalidRunError(f"output directory {out} exists and is not empty (use --force to overwrite)")
-            if out.is_dir():
+        base = out
+        while not base.exists():  # the directory the run would create OUT in
+            if base.is_symlink():
+                raise InvalidRunError(f"output directory {out}: {base} is a broken symbolic link")
+            base = base.parent
+        if not base.is_dir():
+            raise InvalidRunError(f"output directory {out}: {base} is {_kind(base)}, not a directory")
+        if os.statvfs(base).f_flag & os.ST_RDONLY:
+            raise InvalidRunError(f"output directory {out}: {base} is on a read-only file system")
+        if not os.access(base, os.W_OK | os.X_OK):
+            raise InvalidRunError(f"output directory {out}: {base} is not writable (permission denied)")
+    except OSError as exc:
+        raise InvalidRunError(f"output directory {out}: {exc.strerror or exc}") from None
+
+
+def prepare_out_dir(out: Path, force: bool, extra: tuple[str, ...] = ()) -> None:
+    """Create ``out`` after :func:`check_out_dir`; with ``force`` remove an earlier run's outputs first
+    (:func:`earlier_outputs`, with the command's own ``extra`` names): a run that stops before
+    writing its own summary must not leave the earlier run's to be read as its own. Other files in
+    ``out`` stay. InvalidRunError on failure."""
+    check_out_dir(out, force)
+    try:
+        if out.is_dir():
+            if force:
                 for path in earlier_outputs(out, extra):
                     if path.is_dir() and not path.is_symlink():
                         shutil.rmtree(path)
@@ -110,16 +198,30 @@ def prepare_out_dir(out: Path, force: bool, extra: tuple[str, ...] = ()) -> None
         raise InvalidRunError(f"output directory {out}: {exc.strerror or exc}") from None
 
 
+def launch_outputs(options: RunOptions) -> tuple[str, ...]:
+    """What ``--force`` removes besides :data:`RUN_OUTPUTS`: formation-launch's logs too (an earlier
+    run's agent fault files must not be merged into this run's summary; the simulator it starts,
+    with --force, must leave them)."""
+    return ("logs",) if options.command == LAUNCH else ()
+
+
 def preflight(
     options: RunOptions,
     default_out: Callable[[FormationSpec, RunOptions], Path] | None,
+    *,
+    prepare: bool = True,
 ) -> Prepared:
     """Everything checked before a run starts; raises FormationSpecError or InvalidRunError.
 
     ``default_out(spec, options)`` names OUT when ``--out`` is not given (None: no OUT).
+    ``prepare`` false: OUT is checked only (:func:`check_out_dir`), for a command with checks of its
+    own still to make, which then calls :func:`prepare_out_dir` itself.
     """
     spec = load_spec(options)
     sim = spec.simulation
+    problem = duration_problem(spec, options)
+    if problem is not None:
+        raise InvalidRunError(problem)
     options = options.replace(mode=sim.mode, controller=sim.controller)
     if options.command != HEADLESS and sim.mode == "lockstep" and options.measurement_qos != "reliable":
         raise InvalidRunError(
@@ -138,8 +240,9 @@ def preflight(
         warnings.append("spanning tree: dropped edges " + ", ".join(f"({a}, {b})" for a, b in spec.dropped_edges))
     out = options.out or (default_out(spec, options) if default_out is not None else None)
     if out is not None:
-        # the launcher's logs too: an earlier run's agent fault files must not be merged into this
-        # run's summary (the simulator it starts, with --force, must leave them)
-        prepare_out_dir(out, options.force, ("logs",) if options.command == LAUNCH else ())
+        if prepare:
+            prepare_out_dir(out, options.force, launch_outputs(options))
+        else:
+            check_out_dir(out, options.force)
         options = options.replace(out=out)
     return Prepared(spec, options, out, tuple(warnings))

@@ -16,6 +16,7 @@ import numpy as np
 from formation_msgs_py.faults import FaultLog, strict_json
 from formation_msgs_py.judge import CheckedSteps, EdgeSample, Judge, Violation
 from formation_msgs_py.outcome import ExitCode, Incomplete, Outcome, Verdict, decide
+from formation_msgs_py.publisher_watch import untrusted_input
 from formation_msgs_py.spec import FormationSpec
 
 #: samples :meth:`RunRecorder.add` queues before checking them together
@@ -189,8 +190,11 @@ class RunRecorder:
         self.flush()
         return {k: np.array(v) for k, v in self._rows.items()}
 
-    def outcome(self, requested_duration: float | None, incomplete: Incomplete | None = None) -> Outcome:
-        """The verdict: the funnels, the duration reached (to half a control period) and ``incomplete``."""
+    def outcome(
+        self, requested_duration: float | None, incomplete: Incomplete | None = None, untrusted: str | None = None
+    ) -> Outcome:
+        """The verdict: the funnels, the duration reached (to half a control period), ``incomplete``
+        and ``untrusted`` (the reason the run's input cannot be trusted: an intruder)."""
         self.flush()
         if incomplete is None and requested_duration is not None:
             tol = 0.5 / self.control_rate if self.control_rate > 0 else 1e-9
@@ -198,7 +202,7 @@ class RunRecorder:
                 incomplete = Incomplete(
                     ExitCode.INCOMPLETE, f"duration not reached: t={self.t_last:g} s of {requested_duration:g} s"
                 )
-        return decide(self.first_violation is not None, incomplete)
+        return decide(self.first_violation is not None, incomplete, untrusted)
 
     def summary(
         self,
@@ -208,9 +212,10 @@ class RunRecorder:
         incomplete: Incomplete | None = None,
         extra: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
-        """summary.json (docs/outputs.md); ``requested_duration`` None: whatever was fed is the run."""
+        """summary.json (docs/outputs.md); ``requested_duration`` None: whatever was fed is the run.
+        An ``extra["security"]`` that names an intruder makes the run INCOMPLETE (untrusted input)."""
         j = self.judge
-        result = self.outcome(requested_duration, incomplete)
+        result = self.outcome(requested_duration, incomplete, untrusted_input((extra or {}).get("security")))
         duration = self.t_last
         out: dict[str, Any] = {
             "formation": self.spec.name,

@@ -23,8 +23,10 @@ import os
 import shutil
 import signal
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -34,12 +36,14 @@ from formation_msgs_py.errors import FormationError
 from formation_msgs_py.faults import FaultLog
 from formation_msgs_py.options import Discovery, OptionParser, RunOptions
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
-from formation_sim.core.preflight import preflight
+from formation_msgs_py.publisher_watch import untrusted_input
+from formation_sim.core.preflight import InvalidRunError, Prepared, launch_outputs, preflight, prepare_out_dir
 from formation_sim.launch import dds_env, discovery_server
 from formation_sim.launch.supervisor import Child, LogFollower, Supervisor
 from formation_sim.views.live_view import endpoint_problem
 
 if TYPE_CHECKING:
+    from formation_deploy.secure_transport import SecureRun
     from formation_msgs_py.spec import FormationSpec
 
 #: child name -> formation-keys process name, where they differ
@@ -80,22 +84,47 @@ def expected_bag_bytes(spec: FormationSpec) -> int:
 
 
 def check_space(out: Path, spec: FormationSpec, record: bool) -> str | None:
-    """None if OUT is writable and has room for the run's outputs, else the reason."""
+    """None if OUT's file system has room for the run's outputs, else the reason (creates nothing:
+    :func:`formation_sim.core.preflight.check_out_dir` has checked that OUT can be written)."""
     s = spec.simulation
     rows = round(s.duration * s.record_rate) + 1
     need = rows * len(spec.agents) * 24 * 8 + 5_000_000  # trajectory.npz, figures, logs
     if record:
         need += expected_bag_bytes(spec)
+    base = out
+    while not base.exists() and base != base.parent:
+        base = base.parent
     try:
-        probe = out / ".write_probe"
-        probe.write_bytes(b"x")
-        probe.unlink()
-        free = shutil.disk_usage(out).free
+        free = shutil.disk_usage(base).free
     except OSError as exc:
-        return f"{out} is not writable: {exc}"
+        return f"{out}: {exc.strerror or exc}"
     if free < need:
         return f"{out} has {free / 1e6:.0f} MB free, the run needs about {need / 1e6:.0f} MB"
     return None
+
+
+class SpaceReserve:
+    """Room kept on OUT's file system for the final summary and process table, should the disk fill
+    up during the run: an unnamed file (O_TMPFILE) of ``size`` bytes, released by :meth:`release`
+    or by the process's end, even SIGKILL: it never appears in OUT."""
+
+    def __init__(self, directory: Path, size: int = RESERVE_BYTES) -> None:
+        self._file: Any = tempfile.TemporaryFile(dir=directory)
+        try:
+            self._file.write(b"\0" * size)
+            self._file.flush()
+            os.fsync(self._file.fileno())
+        except OSError:
+            self._file.close()
+            raise
+
+    @property
+    def allocated(self) -> int:
+        """Bytes the reserve holds on disk."""
+        return os.fstat(self._file.fileno()).st_blocks * 512
+
+    def release(self) -> None:
+        self._file.close()
 
 
 def agent_faults_file(logs: Path, agent_id: str) -> Path:
@@ -335,7 +364,9 @@ class Launcher:
         if incomplete is None and self.agent_died:
             incomplete = Incomplete(ExitCode.PROCESS_DIED, "; ".join(self.agent_died))
         if incomplete is not None:
-            result = decide(summary.get("first_violation") is not None, incomplete)
+            # the simulator's own verdict counts its intruders already; this one replaces it
+            untrusted = untrusted_input(summary.get("security"))
+            result = decide(summary.get("first_violation") is not None, incomplete, untrusted)
             summary.update(
                 verdict=result.verdict.value,
                 incomplete_reason=result.reason,
@@ -373,104 +404,85 @@ def _last_error(log: Path) -> str:
     return ""
 
 
-@guarded("formation-launch")
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    opts = options.parse(options.LAUNCH, build_parser(), argv)
-    try:
-        run = preflight(opts, lambda spec, o: _default_out(spec, o.mode))
-    except FormationError as exc:
-        print(f"formation-launch: INVALID: {exc}", file=sys.stderr)
-        return ExitCode.INVALID
-    spec, out, args = run.spec, run.out, run.options
-    mode = args.mode
-    for msg in run.warnings:
-        print(f"formation-launch: warning: {msg}", file=sys.stderr)
-    if args.discovery.server and args.secure:
-        print(
-            "formation-launch: INVALID: --discovery server with --secure: the secure transport is TLS over TCP "
-            "with every other transport off, and the discovery server listens on UDP; a client would either "
-            "reach it in clear text or not at all (docs/security.md). Use one or the other.",
-            file=sys.stderr,
-        )
-        return ExitCode.INVALID
-    participants = len(spec.agents) + 1
+def _netns(run: Prepared, argv: list[str], given_out: Path | None) -> None:
+    """Re-execute this command in a private network namespace when the run needs one (does not
+    return), or InvalidRunError when it needs one and none can be made."""
+    args = run.options
+    participants = len(run.spec.agents) + 1
     # a discovery server's clients do not announce themselves to one another: no per-host limit to avoid
     crowded = participants > dds_env.NETNS_THRESHOLD and not args.discovery.server
-    want_netns = args.netns == "on" or (args.netns == "auto" and crowded)
-    if want_netns and args.foxglove is not None:
-        print(
-            f"formation-launch: INVALID: --foxglove: {participants} DDS participants run in a private network "
-            'namespace, whose ports this host cannot reach; use --netns off (docs/ros2.md, "Live view")',
-            file=sys.stderr,
+    want = args.netns == "on" or (args.netns == "auto" and crowded)
+    if want and args.foxglove is not None:
+        raise InvalidRunError(
+            f"--foxglove: {participants} DDS participants run in a private network namespace, whose ports "
+            'this host cannot reach; use --netns off (docs/ros2.md, "Live view")'
         )
-        return ExitCode.INVALID
-    if not dds_env.in_netns() and want_netns:
-        reason = dds_env.netns_available()
-        if reason is not None:
-            print(
-                f"formation-launch: {participants} DDS participants need a private network namespace "
-                f"(Fast DDS matches about 32 per host under LOCALHOST discovery), but {reason}. "
-                "Run as root, or use --netns off with a discovery server / ROS_STATIC_PEERS (docs/ros2.md).",
-                file=sys.stderr,
-            )
-            return ExitCode.INVALID
-        if opts.out is None:  # fix the output directory before re-executing
-            argv += ["--out", str(out)]
-        dds_env.reexec_in_netns("formation_sim.launch.launcher", argv)
-    out = out.resolve()
-    (out / "logs").mkdir(parents=True, exist_ok=True)
-    problem = check_space(out, spec, args.record)
-    if problem is not None:
-        print(f"formation-launch: INCOMPLETE: nothing started: {problem}", file=sys.stderr)
-        return ExitCode.INCOMPLETE
-    if args.foxglove is not None and (problem := endpoint_problem(args.foxglove)) is not None:
-        print(f"formation-launch: INVALID: nothing started: {problem}", file=sys.stderr)
-        return ExitCode.INVALID
-    env = dds_env.run_environment(dict(os.environ), log_dir=out / "logs" / "ros")
-    discovery = None
-    if args.discovery.server:
-        discovery = discovery_server.with_port(args.discovery)
-        env = dds_env.discovery_client_environment(env, discovery)
-    secure = None
-    if args.secure:
-        from formation_deploy.secure_transport import SecureRun, SecureTransportError, single_host_port_start
+    if dds_env.in_netns() or not want:
+        return
+    reason = dds_env.netns_available()
+    if reason is not None:
+        raise InvalidRunError(
+            f"{participants} DDS participants need a private network namespace "
+            f"(Fast DDS matches about 32 per host under LOCALHOST discovery), but {reason}. "
+            "Run as root, or use --netns off with a discovery server / ROS_STATIC_PEERS (docs/ros2.md)"
+        )
+    if given_out is None:  # fix the output directory before re-executing
+        argv = [*argv, "--out", str(run.out)]
+    dds_env.reexec_in_netns("formation_sim.launch.launcher", argv)
 
-        try:
-            port_start = single_host_port_start(int(env["ROS_DOMAIN_ID"]))
-            secure = SecureRun.prepare(spec.agent_ids, env, keys=args.keys, port_start=port_start)
-        except (SecureTransportError, OSError) as exc:
-            print(f"formation-launch: --secure: {exc}", file=sys.stderr)
-            return ExitCode.INVALID
-        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
-    s = spec.simulation
+
+def _secure(run: Prepared, env: dict[str, str]) -> SecureRun | None:
+    """Secure mode's per-process environments, once every certificate and key passed its check
+    (InvalidRunError naming the file otherwise); None without --secure."""
+    if not run.options.secure:
+        return None
+    from formation_deploy.secure_transport import SecureRun, SecureTransportError, single_host_port_start
+
+    try:
+        port_start = single_host_port_start(int(env["ROS_DOMAIN_ID"]))
+        return SecureRun.prepare(
+            run.spec.agent_ids,
+            env,
+            keys=run.options.keys,
+            port_start=port_start,
+            duration_s=run.spec.simulation.duration,
+        )
+    except (SecureTransportError, OSError) as exc:
+        raise InvalidRunError(f"--secure: {exc}") from None
+
+
+def _announce(run: Prepared, env: dict[str, str], secure: SecureRun | None, discovery: Discovery | None) -> None:
+    spec, args, s = run.spec, run.options, run.spec.simulation
     transport = f"secure: TLS over TCP ports {secure.describe()['ports']}" if secure else None
     print(
         f"formation-launch: {spec.name}: simulator + {len(spec.agents)} agent processes"
-        f"{', recorded' if args.record else ''}, {mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
+        f"{', recorded' if args.record else ''}, {args.mode} at {s.control_rate:g} Hz for {s.duration:g} s; "
         f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, "
         f"{transport or _discovery_text(discovery, env)}"
-        f"{' in a private network namespace' if dds_env.in_netns() else ''}; logs in {out / 'logs'}/",
+        f"{' in a private network namespace' if dds_env.in_netns() else ''}; logs in {run.out}/logs/",
         flush=True,
     )
-    # room kept for the final summary and process table, should the disk fill up during the run
-    reserve = out / ".space_reserve"
-    reserve.write_bytes(b"\0" * RESERVE_BYTES)
-    launcher = Launcher(spec, args, out, env, discovery)
-    if secure is not None:
-        launcher.sup.process_env = secure.environments
-    try:
-        launcher.run()
-    finally:
-        if secure is not None:
-            secure.close()
+
+
+def _remove_created(out: Path, existed: bool) -> None:
+    """Undo what the launcher made in OUT before any process started: logs/, and OUT if it made it."""
+    shutil.rmtree(out / "logs", ignore_errors=True)
+    if not existed:
+        try:
+            out.rmdir()  # only if empty: never what was there before
+        except OSError:
+            pass
+
+
+def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
+    """Complete and write summary.json and processes.json, print the verdict; the exit status."""
     from formation_msgs_py.faults import write_json
     from formation_sim.views.outputs import format_summary, report_animation, verdict_line  # numba: not for --help
 
+    out, args = launcher.out, launcher.args
     summary = launcher.summary()
     if secure is not None:
         summary["launch"]["secure"] = secure.describe()
-    reserve.unlink(missing_ok=True)
     code = int(summary.get("exit_status", ExitCode.INCOMPLETE))
     try:
         write_json(out / "logs" / "processes.json", launcher.sup.process_table(out))
@@ -483,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
         import numpy as np
 
         with np.load(out / "trajectory.npz") as data:
-            report_animation(out, spec, dict(data))
+            report_animation(out, launcher.spec, dict(data))
     print(f"outputs in {out}/ (exit status {code})", flush=True)
     return code
 
@@ -492,6 +504,91 @@ def _discovery_text(discovery: Discovery | None, env: dict[str, str]) -> str:
     if discovery is None:
         return f"discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
     return f"discovery server {discovery.address()} ({discovery_server.SERVER})"
+
+
+class RefusedError(Exception):
+    """The run does not start: the exit status and the one line that says why."""
+
+    def __init__(self, code: ExitCode, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def _checked(
+    opts: RunOptions, argv: list[str]
+) -> tuple[Prepared, dict[str, str], SecureRun | None, SpaceReserve, Discovery | None]:
+    """Every check of the run (file, options, network namespace, room, certificates) before OUT is
+    prepared; then OUT, its logs/ and the space reserve. Raises :class:`RefusedError`, leaving nothing behind."""
+    secure = None
+    try:
+        run = preflight(opts, lambda spec, o: _default_out(spec, o.mode), prepare=False)
+        for msg in run.warnings:
+            print(f"formation-launch: warning: {msg}", file=sys.stderr)
+        if run.options.discovery.server and run.options.secure:
+            raise InvalidRunError(
+                "--discovery server with --secure: the secure transport is TLS over TCP with every other "
+                "transport off, and the discovery server listens on UDP; a client would either reach it in "
+                "clear text or not at all (docs/security.md). Use one or the other"
+            )
+        _netns(run, argv, opts.out)
+        assert run.out is not None
+        out = run.out.resolve()
+        problem = check_space(out, run.spec, run.options.record)
+        if problem is not None:
+            raise RefusedError(ExitCode.INCOMPLETE, f"INCOMPLETE: nothing started: {problem}")
+        if run.options.foxglove is not None and (problem := endpoint_problem(run.options.foxglove)) is not None:
+            raise RefusedError(ExitCode.INVALID, f"INVALID: nothing started: {problem}")
+        env = dds_env.run_environment(dict(os.environ), log_dir=out / "logs" / "ros")
+        discovery = None
+        if run.options.discovery.server:
+            discovery = discovery_server.with_port(run.options.discovery)
+            env = dds_env.discovery_client_environment(env, discovery)
+        secure = _secure(run, env)
+        existed = out.exists()
+        prepare_out_dir(out, run.options.force, launch_outputs(run.options))
+    except BaseException as exc:
+        if secure is not None:
+            secure.close()  # its temporary keys and profiles
+        if isinstance(exc, FormationError):
+            raise RefusedError(ExitCode.INVALID, f"INVALID: {exc}") from None
+        raise
+    try:
+        (out / "logs").mkdir(exist_ok=True)
+        reserve = SpaceReserve(out)
+    except BaseException as exc:
+        _remove_created(out, existed)
+        if secure is not None:
+            secure.close()
+        if isinstance(exc, OSError):
+            message = f"INCOMPLETE: nothing started: {out}: {exc.strerror or exc}"
+            raise RefusedError(ExitCode.INCOMPLETE, message) from None
+        raise
+    if secure is not None:
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
+    return replace(run, out=out), env, secure, reserve, discovery
+
+
+@guarded("formation-launch")
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    opts = options.parse(options.LAUNCH, build_parser(), argv)
+    try:
+        run, env, secure, reserve, discovery = _checked(opts, argv)
+    except RefusedError as exc:
+        print(f"formation-launch: {exc}", file=sys.stderr)
+        return exc.code
+    assert run.out is not None
+    _announce(run, env, secure, discovery)
+    launcher = Launcher(run.spec, run.options, run.out, env, discovery)
+    if secure is not None:
+        launcher.sup.process_env = secure.environments
+    try:
+        launcher.run()
+    finally:
+        reserve.release()  # room for summary.json and processes.json
+        if secure is not None:
+            secure.close()
+    return _finish(launcher, secure)
 
 
 def _default_out(spec: FormationSpec, mode: str) -> Path:

@@ -15,6 +15,7 @@ import numpy as np
 
 from formation_msgs_py.faults import fault_lines, fault_meanings, write_atomic, write_json
 from formation_msgs_py.outcome import ExitCode, Verdict
+from formation_msgs_py.publisher_watch import intruder_lines
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.views.foxglove_layout import write_layout
@@ -105,7 +106,7 @@ def format_summary(summary: dict[str, Any]) -> str:
 
 
 def verdict_line(summary: dict[str, Any]) -> str:
-    """``PASS: …``, ``FAIL: first violation …`` or ``INCOMPLETE: reason``."""
+    """``PASS: …``, ``FAIL: first violation …`` or ``INCOMPLETE: reason``, then one line per intruder."""
     verdict = summary["verdict"]
     fv = summary["first_violation"]
     if verdict == Verdict.PASS.value:
@@ -115,10 +116,17 @@ def verdict_line(summary: dict[str, Any]) -> str:
         text = f"FAIL: first violation at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
         reason = summary.get("incomplete_reason")
         return text + (f"; then the run stopped early: {reason}" if reason else "")
-    return (
-        f"INCOMPLETE: {summary.get('incomplete_reason')} (no violation in the {_f(summary['duration'])} s checked, "
-        f"worst margin {_f(summary['worst_margin'])})"
-    )
+    reason = str(summary.get("incomplete_reason"))
+    intruders = intruder_lines(summary.get("security"))
+    if intruders:  # the reason names them on one line; here one line each
+        reason = reason.replace(": " + "; ".join(intruders), "")
+    if fv:  # untrusted input: a violation seen is no evidence about the controller
+        where = fv.get("edge") or fv.get("agent")
+        seen = f"a violation seen at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
+    else:
+        seen = f"no violation in the {_f(summary['duration'])} s checked"
+    text = f"INCOMPLETE: {reason} ({seen}, worst margin {_f(summary['worst_margin'])})"
+    return "\n".join([text, *(f"  intruder: {line}" for line in intruders)])
 
 
 def _f(x: float | None) -> str:

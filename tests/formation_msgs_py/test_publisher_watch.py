@@ -201,3 +201,25 @@ def test_untrusted_input_names_every_intruder_with_its_counts() -> None:
         "node /tools/outsider gid ee99 on /agent_3/wrench (0 applied, 3 refused); "
         "node /spy gid dd02 on /agent_1/relative_pose/agent_3 (0 applied, 0 refused)"
     )
+
+
+def test_sole_publisher_nameless_to_the_end_is_withdrawn_at_the_report() -> None:
+    """A topic's only endpoint, whose node name never arrived, is the expected one: withdrawn, not untrusted."""
+    w = _watch()
+    nameless = PublisherInfo(UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_", "bb03")
+    w.observe("/agent_3/wrench", [nameless], 0.0)
+    assert len(w.observe("/agent_3/wrench", [nameless], NAME_GRACE)) == 1  # reported during the run
+    report = w.report()
+    assert report["intruders"] == [] and untrusted_input(report) is None
+    (withdrawn,) = report["withdrawn"]  # type: ignore[misc]
+    assert withdrawn["gid"] == "bb03" and "nameless to the end" in withdrawn["reason"]
+
+
+def test_nameless_beside_another_publisher_stays_an_intruder() -> None:
+    """A nameless endpoint that ever shared its topic with another publisher is still reported at the end."""
+    w = _watch()
+    nameless = PublisherInfo(UNKNOWN_NODE, "_NODE_NAMESPACE_UNKNOWN_", "dd11")
+    w.observe("/agent_3/wrench", [AGENT3, nameless], 0.0)
+    w.observe("/agent_3/wrench", [AGENT3, nameless], NAME_GRACE)
+    w.observe("/agent_3/wrench", [nameless], 2 * NAME_GRACE)  # the agent's endpoint gone: still not the only one ever
+    assert [i["gid"] for i in w.report()["intruders"]] == ["dd11"]  # type: ignore[union-attr]

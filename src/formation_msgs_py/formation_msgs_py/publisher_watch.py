@@ -24,6 +24,11 @@ An endpoint is nameless until its participant's ROS node information arrives; af
 :data:`NAME_GRACE` it is reported. If it then turns out to be the topic's one publisher with the
 expected node name, the report is withdrawn (kept under ``withdrawn``) and it is pinned: on a busy
 machine a name can take longer than the grace, and a refused simulator or agent would stop the run.
+A name can also never arrive (seen about once in a few hundred runs on a loaded machine, most often
+under TLS): an endpoint that stayed nameless for the whole run and was its topic's only publisher
+from start to end is the expected one (the formation's own process is alive and publishes there, and
+an outsider would be a second publisher), so its report is withdrawn when the watch reports
+(:meth:`PublisherWatch.report`), with that reason.
 """
 
 from __future__ import annotations
@@ -123,6 +128,8 @@ class PublisherWatch:
     #: nameless sightings withdrawn: the topic's expected publisher, whose name came late
     withdrawn: list[Intruder] = field(default_factory=list)
     _present: dict[str, set[str]] = field(default_factory=dict)
+    #: every publisher GID ever seen per topic
+    _seen: dict[str, set[str]] = field(default_factory=dict)
     _nameless_since: dict[tuple[str, str], float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -133,6 +140,7 @@ class PublisherWatch:
         """Record the publishers of ``topic`` seen at ``wall``; return the intruders seen for the first time."""
         exp = self.expected[topic]
         gids = {p.gid for p in publishers}
+        self._seen.setdefault(topic, set()).update(gids)
         if self.pinned.get(topic) not in gids:  # never pinned, or the pinned one left (a restart)
             self.pinned.pop(topic, None)
             claimants = [
@@ -200,8 +208,18 @@ class PublisherWatch:
             return False
         return True
 
+    def _withdraw_sole_nameless(self) -> None:
+        """Withdraw the report of every nameless endpoint that was its topic's only publisher throughout."""
+        for key, intruder in list(self.intruders.items()):
+            topic, gid = key
+            if UNKNOWN_NODE in intruder.node and topic not in self.pinned and self._seen.get(topic) == {gid}:
+                del self.intruders[key]
+                intruder.reason = "the topic's only publisher, nameless to the end: its node information never arrived"
+                self.withdrawn.append(intruder)
+
     def report(self) -> dict[str, object]:
         """For summary.json: the policy, every intruder, counts per agent and refused messages per topic."""
+        self._withdraw_sole_nameless()
         per_agent: dict[str, int] = {}
         for intruder in self.intruders.values():
             per_agent[intruder.agent] = per_agent.get(intruder.agent, 0) + 1

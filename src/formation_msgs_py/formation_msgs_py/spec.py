@@ -36,8 +36,8 @@ from formation_msgs_py.schema import (
     TOP_FIELDS,
     block,
     check_partial,
+    documented,
     parse_mapping,
-    record,
     record_values,
     short,
     unknown_key,
@@ -52,20 +52,37 @@ _SIGNALS = ("disturbance", "velocity_noise")
 # --- result objects ---------------------------------------------------------------------------
 
 
-# Every object a block of the file builds is a record of the schema (one declaration: schema.py).
-VelocityFunnel = record(
-    "VelocityFunnel",
-    block(AGENT_FIELDS, "controller", "velocity_funnel"),
-    "ρ_v per channel [vx, vy, vz, wx, wy, wz]; ``rho_0 is None`` means auto.",
-    module=__name__,
-)
-ControllerGains = record(
-    "ControllerGains",
-    block(AGENT_FIELDS, "controller"),
-    "What agent i knows of itself (paper: δ_i, γ_i, ρ_v,i); max_force / max_torque resolved (N, N·m; "
-    "never above the actuators').",
-    module=__name__,
-)
+# Every object a block of the file builds is a frozen dataclass whose attributes are the block's fields
+# in the schema (schema.py, the one declaration): same names, order and types (a test checks it), no
+# defaults (the loader fills every attribute; the schema holds the defaults). ``documented`` appends
+# the schema's description of each attribute to the docstring.
+
+
+@documented(block(AGENT_FIELDS, "controller", "velocity_funnel"))
+@dataclass(frozen=True)
+class VelocityFunnel:
+    """ρ_v per channel [vx, vy, vz, wx, wy, wz]; ``rho_0 is None`` means auto."""
+
+    rho_0: tuple[float, ...] | None
+    auto_scale: float
+    auto_offset: float
+    rho_inf: tuple[float, ...]
+    decay: tuple[float, ...]
+
+
+@documented(block(AGENT_FIELDS, "controller"))
+@dataclass(frozen=True)
+class ControllerGains:
+    """What agent i knows of itself (paper: δ_i, γ_i, ρ_v,i); max_force / max_torque resolved (N, N·m;
+    never above the actuators')."""
+
+    delta: float
+    gamma: float
+    velocity_funnel: VelocityFunnel
+    saturation_margin: float
+    max_force: float
+    max_torque: float
+    measurement_timeout: float
 
 
 @dataclass(frozen=True)
@@ -76,17 +93,38 @@ class SignalModel:
     params: Mapping[str, Any]
 
 
-Dynamics = record(
-    "Dynamics",
-    block(AGENT_FIELDS, "dynamics"),
-    "True plant of one agent (simulator only): inertia a 3×3 array (body frame, kg·m²), disturbance and "
-    "velocity_noise SignalModels.",
-    module=__name__,
-)
+@documented(block(AGENT_FIELDS, "dynamics"))
+@dataclass(frozen=True)
+class Dynamics:
+    """True plant of one agent (simulator only): inertia a 3×3 array (body frame, kg·m²), disturbance
+    and velocity_noise SignalModels."""
+
+    mass: float
+    inertia: np.ndarray
+    max_force: float
+    max_torque: float
+    disturbance: SignalModel
+    velocity_noise: SignalModel
 
 
-class _Agent:
-    """What an agent derives from its fields."""
+@documented(AGENT_FIELDS, derived=(("index", "position in the file's list of agents"),))
+@dataclass(frozen=True)
+class AgentSpec:
+    """One agent: geometry, initial state (world position and R_world_body as numpy arrays, body twist),
+    controller (ControllerGains), plant (Dynamics)."""
+
+    index: int
+    id: str
+    radius: float
+    sensing_radius: float
+    position: np.ndarray
+    R_world_body: np.ndarray
+    linear_velocity: tuple[float, ...]
+    angular_velocity: tuple[float, ...]
+    controller: ControllerGains
+    dynamics: Dynamics
+    position_noise_std: float
+    rotation_noise_std: float
 
     @property
     def twist(self) -> np.ndarray:
@@ -94,19 +132,24 @@ class _Agent:
         return np.array(self.linear_velocity + self.angular_velocity)
 
 
-AgentSpec = record(
-    "AgentSpec",
-    AGENT_FIELDS,
-    "One agent: geometry, initial state (world position and R_world_body as numpy arrays, body twist), "
-    "controller (ControllerGains), plant (Dynamics).",
-    module=__name__,
-    derived=(("index", "int", "position in the file's list of agents"),),
-    base=_Agent,
-)
+@documented(EDGE_FIELDS, derived=(("index", "position among the kept edges"),))
+@dataclass(frozen=True)
+class EdgeSpec:
+    """Edge k = (tail k1, head k2) with its desired offsets (R_des a numpy array), bounds (d_col, d_con
+    resolved) and funnels."""
 
-
-class _Edge:
-    """What an edge derives from its fields."""
+    index: int
+    tail: str
+    head: str
+    d_des: float
+    R_des: np.ndarray
+    d_col: float
+    d_con: float
+    rho_e_inf: float
+    decay_e: float
+    rho_psi_0: float
+    rho_psi_inf: float
+    decay_psi: float
 
     @property
     def c_col(self) -> float:
@@ -122,40 +165,41 @@ class _Edge:
     def name(self) -> str:
         return f"{self.tail}-{self.head}"
 
-    def rho_e(self, t):
+    def rho_e(self, t: float) -> float:
         """Normalised distance performance function ρ_e(t)."""
         from formation_msgs_py import funnels  # compiled kernels: not on the path of loading a file
 
         return funnels.rho(t, 1.0, funnels.rho_e_floor(self.c_col, self.c_con, self.rho_e_inf), self.decay_e)
 
-    def rho_psi(self, t):
+    def rho_psi(self, t: float) -> float:
         """Orientation performance function ρ_ψ(t)."""
         from formation_msgs_py import funnels
 
         return funnels.rho(t, self.rho_psi_0, self.rho_psi_inf, self.decay_psi)
 
 
-EdgeSpec = record(
-    "EdgeSpec",
-    EDGE_FIELDS,
-    "Edge k = (tail k1, head k2) with its desired offsets (R_des a numpy array), bounds (d_col, d_con "
-    "resolved) and funnels.",
-    module=__name__,
-    derived=(("index", "int", "position among the kept edges"),),
-    base=_Edge,
-)
+@documented(SIMULATION_FIELDS)
+@dataclass(frozen=True)
+class SimulationSpec:
+    """Run settings (gravity a numpy 3-vector)."""
 
+    mode: str
+    duration: float
+    physics_rate: float
+    control_rate: float
+    controller: str
+    record_rate: float
+    seed: int
+    gravity: np.ndarray
+    spanning_tree: bool
+    rate_check: str
+    step_timeout: float
+    command_timeout: float
 
-class _Simulation:
     @property
     def substeps(self) -> int:
         """Integrator steps per control period."""
         return round(self.physics_rate / self.control_rate)
-
-
-SimulationSpec = record(
-    "SimulationSpec", SIMULATION_FIELDS, "Run settings (gravity a numpy 3-vector).", module=__name__, base=_Simulation
-)
 
 
 @dataclass(frozen=True)

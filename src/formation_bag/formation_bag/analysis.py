@@ -57,7 +57,7 @@ def _rate_from_stamps(stamps: list[int]) -> float | None:
     d = d[d > 0]
     if not d.size:
         return None
-    return float(m.NS_PER_S / np.median(d))
+    return m.NS_PER_S / float(np.median(d))
 
 
 def analyze_run(
@@ -150,7 +150,7 @@ def analyze_run(
                 if k is None and r is not None:
                     j = bisect.bisect_right(r.stamps, stamp) - 1
                     k = j if j >= 0 else None
-                outs.append(None if k is None else (r.outputs[k], r.faults[k], int(r.stamps[k]) == stamp))
+                outs.append(None if k is None or r is None else (r.outputs[k], r.faults[k], int(r.stamps[k]) == stamp))
         if realtime:
             u = np.array([held(a, kk) for a in ids])
         else:

@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from formation_msgs_py.errors import BagError
 
@@ -39,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "info":
             with Bag(args.bag) as bag:
-                info = {
+                info: dict[str, Any] = {
                     "path": str(args.bag),
                     "storage": bag.storage,
                     "segments": [s.name for s in bag.segments],

@@ -165,8 +165,9 @@ def load_run(
     with Bag(path) as bag:
         doc, name = formation_document(bag, formation)
         spec = spec_from_document(doc, name)
-        kinds = {t: m.classify(t, namespace) for t in bag.topics}
-        wanted = [t for t, k in kinds.items() if k is not None and k.kind != "diagnostics"]
+        # the topics of docs/topics.md this analysis reads (not diagnostics), by what they carry
+        kinds = {t: k for t in bag.topics if (k := m.classify(t, namespace)) is not None and k.kind != "diagnostics"}
+        wanted = list(kinds)
         gt = Series()
         clock = Series()
         vel: dict[str, Series] = {a.id: Series() for a in spec.agents}
@@ -185,11 +186,13 @@ def load_run(
                 clock.add(stamp, msg.log_time, None)
             elif k.kind == "ground_truth":
                 gt.add(stamp, msg.log_time, value)
+            elif k.agent is None:
+                continue  # every other kind names its agent (messages.classify)
             elif k.kind == "velocity" and k.agent in vel:
                 vel[k.agent].add(stamp, msg.log_time, value)
             elif k.kind == "wrench" and k.agent in wr:
                 wr[k.agent].add(stamp, msg.log_time, value)
-            elif k.kind == "relative_pose":
+            elif k.kind == "relative_pose" and k.target is not None:
                 rel.setdefault((k.agent, k.target), Series()).add(stamp, msg.log_time, value)
         lost, recovered = list(bag.lost), bag.recovered
         custom = dict(bag.custom_data)
@@ -200,10 +203,10 @@ def load_run(
             f"bag {path} has no {m.absolute('formation/ground_truth', namespace)} messages: cannot check the funnels"
         )
     n = len(spec.agents)
-    for k, s in enumerate(gt.values):
+    for i, s in enumerate(gt.values):
         if len(s[0]) != n:
             raise BagFormatError(
-                f"bag {path}: ground truth at stamp {gt.stamps[k]} ns has {len(s[0])} poses, "
+                f"bag {path}: ground truth at stamp {gt.stamps[i]} ns has {len(s[0])} poses, "
                 f"the formation file {name} has {n} agents"
             )
     return RunData(path, spec, doc, custom, gt, vel, wr, rel, clock, lost, recovered, first or 0, last or 0, counts)

@@ -10,12 +10,15 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from formation_msgs_py import topics, wire
 from formation_msgs_py.bag.writer import typestore
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.wire import NS_PER_S, stamp_ns
+
+if TYPE_CHECKING:
+    import numpy as np
 
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
@@ -184,7 +187,12 @@ class Encoder:
         return bytes(self.ts.serialize_cdr(self.Clock(clock=self.time(ns)), CLOCK))
 
     def relative_pose(
-        self, ns: int, observer: str, target: str, p: Sequence[float], R: Sequence[Sequence[float]]
+        self,
+        ns: int,
+        observer: str,
+        target: str,
+        p: Sequence[float] | np.ndarray,
+        R: Sequence[Sequence[float]] | np.ndarray,
     ) -> bytes:
         x, y, z, w = quaternion_from_matrix(R)
         msg = self.TransformStamped(

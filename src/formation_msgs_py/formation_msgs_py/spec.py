@@ -442,10 +442,11 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
             seen[pair] = k
             edges_parsed.append((k, e, path))
     errors.raise_if_any()
+    assert top is not None and sim is not None  # parsed: no error was found
 
     kept, dropped = _tree(list(ids), [(e["tail"], e["head"]) for _, e, _ in edges_parsed], sim["spanning_tree"])
     by_id = {a.id: a for a in agents}
-    edges = []
+    edges: list[EdgeSpec] = []
     for k, e, path in edges_parsed:
         if k not in kept:
             continue

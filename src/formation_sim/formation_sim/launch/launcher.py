@@ -128,6 +128,7 @@ def build_parser() -> OptionParser:
 
 
 def _sim_args(args: RunOptions, out: Path, spec: FormationSpec) -> list[str]:
+    assert args.file is not None  # preflight loaded it
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", *args.child_argv(options.SIM)]
     if args.record:
         cmd += ["--bag", str(out / "bag")]
@@ -161,6 +162,7 @@ class Launcher:
 
     def start_all(self) -> Child:
         spec, args = self.spec, self.args
+        assert args.file is not None and args.mode is not None  # preflight loaded the file and resolved the mode
         formation = str(args.file.resolve())
         sim = self.sup.start(
             "sim",
@@ -354,11 +356,12 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     opts = options.parse(options.LAUNCH, build_parser(), argv)
     try:
-        run = preflight(opts, lambda spec, o: _default_out(spec, o.mode))
+        run = preflight(opts, lambda spec, o: _default_out(spec, o.mode or spec.simulation.mode))
     except FormationError as exc:
         print(f"formation-launch: INVALID: {exc}", file=sys.stderr)
         return ExitCode.INVALID
     spec, out, args = run.spec, run.out, run.options
+    assert out is not None  # preflight names OUT from the default above
     mode = args.mode
     for msg in run.warnings:
         print(f"formation-launch: warning: {msg}", file=sys.stderr)

@@ -96,7 +96,7 @@ class DisplayPublisher:
         f = self.scene.frame(t, p, R, u)
         self.markers_pub.publish(self.markers.encode(ns, f))
         self.funnels_pub.publish(self.funnels.encode(np.stack([f.funnels[name] for name in FUNNEL_FIELDS], axis=1)))
-        if self.tf_pub is not None:
+        if self.tf_pub is not None and self.tf_class is not None:
             stamp = conversions.stamp_from_seconds(t)
             frame = topics.WORLD_FRAME
             transforms = []

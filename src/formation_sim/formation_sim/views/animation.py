@@ -154,13 +154,17 @@ def write_animation(
     frame_times = np.arange(t[0], t[-1] + 1e-9, 1.0 / fps)
     samples = np.minimum(np.searchsorted(t, frame_times), len(t) - 1)
     figure = RunFigure(spec, arrays)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     figure.fig.set_dpi(dpi)
     frames = []
     try:
         for s in samples:
             figure.draw(int(s))
-            figure.fig.canvas.draw()
-            rgba = np.asarray(figure.fig.canvas.buffer_rgba())
+            canvas = figure.fig.canvas
+            assert isinstance(canvas, FigureCanvasAgg)  # RunFigure selects the Agg backend
+            canvas.draw()
+            rgba = np.asarray(canvas.buffer_rgba())
             frames.append(Image.fromarray(rgba[..., :3]).quantize(colors=128))
     finally:
         figure.close()
@@ -175,7 +179,7 @@ def write_frame(path: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], 
     """The animation's frame at time ``t_frame`` [s] as a PNG (for documentation)."""
     figure = RunFigure(spec, arrays)
     try:
-        figure.draw(int(min(np.searchsorted(arrays["t"], t_frame), len(arrays["t"]) - 1)))
+        figure.draw(min(int(np.searchsorted(arrays["t"], t_frame)), len(arrays["t"]) - 1))
         figure.fig.savefig(path, dpi=dpi)
     finally:
         figure.close()

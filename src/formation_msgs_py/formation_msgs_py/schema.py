@@ -521,7 +521,7 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
         if not isinstance(value, Mapping) or "model" not in value:
             raise _fail(path, f"expected a mapping with a 'model' key, got {short(value)}", value)
         model = value["model"]
-        if model not in f.variants:
+        if not isinstance(model, str) or model not in f.variants:  # a mapping or list is no model name
             raise _fail(f"{path}.model", f"{short(model)} is not one of {', '.join(f.variants)}", model)
         rest = {k: v for k, v in value.items() if k != "model"}
         out = parse_mapping(rest, f.variants[model], path)

@@ -59,7 +59,7 @@ def test_built_records_have_the_declared_types_and_no_defaults() -> None:
             assert hints[name] == annotation, f"{cls.__name__}.{name}: {hints[name]} != {annotation}"
         for f in dataclasses.fields(cls):
             assert f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING, (cls, f.name)
-        assert cls.__dataclass_params__.frozen, cls  # type: ignore[attr-defined]
+        assert cls.__dataclass_params__.frozen, cls
 
 
 def test_built_records_document_every_attribute_from_the_schema() -> None:

@@ -59,7 +59,7 @@ class Field:
     variants: Mapping[str, tuple[Field, ...]] = field(default_factory=dict)
     #: ``positive``, ``nonnegative`` or ``""`` for numbers
     sign: str = ""
-    #: the attribute of the built object (:func:`record`) that holds the value; ``""``: ``name``
+    #: the attribute of the built object (:mod:`formation_msgs_py.spec`) that holds the value; ``""``: ``name``
     attr: str = ""
     #: a ``map`` whose fields are attributes of the enclosing object (not an object of their own)
     inline: bool = False

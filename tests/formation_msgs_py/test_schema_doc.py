@@ -3,12 +3,21 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 from pathlib import Path
 
 import yaml
 
 from formation_msgs_py import spec
-from formation_msgs_py.schema import AGENT_FIELDS, EDGE_FIELDS, SIMULATION_FIELDS, block, schema_markdown
+from formation_msgs_py.schema import (
+    AGENT_FIELDS,
+    EDGE_FIELDS,
+    SIMULATION_FIELDS,
+    attribute_type,
+    attributes,
+    block,
+    schema_markdown,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -19,25 +28,47 @@ def test_docs_reference_matches_schema() -> None:
     assert schema_markdown() in doc, "regenerate: formation-check --schema (see docs/formation_file.md)"
 
 
+_BUILT = [
+    (spec.SimulationSpec, SIMULATION_FIELDS, ()),
+    (spec.ControllerGains, block(AGENT_FIELDS, "controller"), ()),
+    (spec.VelocityFunnel, block(AGENT_FIELDS, "controller", "velocity_funnel"), ()),
+    (spec.Dynamics, block(AGENT_FIELDS, "dynamics"), ()),
+    (spec.AgentSpec, AGENT_FIELDS, ("index",)),
+    (spec.EdgeSpec, EDGE_FIELDS, ("index",)),
+]
+
+
 def test_built_records_have_exactly_the_declared_fields() -> None:
     """One declaration: every object a block builds has the schema's fields as attributes, in order
     (an ``attr`` renames, an ``inline`` map's fields belong to the agent or edge; ``index`` is derived)."""
-    pairs = [
-        (spec.SimulationSpec, SIMULATION_FIELDS, []),
-        (spec.ControllerGains, block(AGENT_FIELDS, "controller"), []),
-        (spec.VelocityFunnel, block(AGENT_FIELDS, "controller", "velocity_funnel"), []),
-        (spec.Dynamics, block(AGENT_FIELDS, "dynamics"), []),
-        (spec.AgentSpec, AGENT_FIELDS, ["index"]),
-        (spec.EdgeSpec, EDGE_FIELDS, ["index"]),
-    ]
-
-    def attributes(fields):
-        return [n for f in fields for n in (attributes(f.children) if f.inline else [f.attr or f.name])]
-
-    for cls, fields, derived in pairs:
-        assert [f.name for f in dataclasses.fields(cls)] == derived + attributes(fields), cls
-        assert cls.__module__ == "formation_msgs_py.spec" and "Attributes" in cls.__doc__
+    for cls, fields, derived in _BUILT:
+        names = [f.attr or f.name for _, f in attributes(fields)]
+        assert [f.name for f in dataclasses.fields(cls)] == [*derived, *names], cls
+        assert cls.__module__ == "formation_msgs_py.spec" and "Attributes" in (cls.__doc__ or "")
     assert [f.name for f in dataclasses.fields(spec.EdgeSpec)][3:5] == ["d_des", "R_des"]
+
+
+def test_built_records_have_the_declared_types_and_no_defaults() -> None:
+    """Each written attribute's annotation is the schema's type of its field (the kind's, or the field's
+    own where the loader converts further); no attribute has a default, so the schema's are the only ones."""
+    for cls, fields, derived in _BUILT:
+        hints = typing.get_type_hints(cls, vars(spec))
+        expected = {name: int for name in derived}
+        expected.update({f.attr or f.name: eval(attribute_type(f), vars(spec)) for _, f in attributes(fields)})
+        for name, annotation in expected.items():
+            assert hints[name] == annotation, f"{cls.__name__}.{name}: {hints[name]} != {annotation}"
+        for f in dataclasses.fields(cls):
+            assert f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING, (cls, f.name)
+        assert cls.__dataclass_params__.frozen, cls
+
+
+def test_built_records_document_every_attribute_from_the_schema() -> None:
+    """The docstring of each built class lists every attribute with the schema's unit and description."""
+    for cls, fields, _ in _BUILT:
+        doc = cls.__doc__ or ""
+        for key, f in attributes(fields):
+            line = f"    {f.attr or f.name}{f' [{f.unit}]' if f.unit else ''}: {f.doc}"
+            assert line + (f" (file: {key})" if f.attr else "") in doc.splitlines(), (cls.__name__, key)
 
 
 def test_every_number_of_the_file_reaches_its_attribute() -> None:

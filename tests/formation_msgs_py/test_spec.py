@@ -110,6 +110,12 @@ def test_matrix_not_a_rotation(paper_doc, tmp_path) -> None:
     expect_error(paper_doc, tmp_path, "agents[1].orientation.matrix", "is not a rotation")
 
 
+def test_model_that_is_not_a_name(paper_doc, tmp_path) -> None:
+    """A disturbance model given as a mapping is a field error, not a crash."""
+    paper_doc["agents"][0]["dynamics"]["disturbance"] = {"model": {"paper": 1}}
+    expect_error(paper_doc, tmp_path, "agents[0].dynamics.disturbance.model", "is not one of none, paper")
+
+
 def test_non_positive_mass(paper_doc, tmp_path) -> None:
     paper_doc["agents"][0]["dynamics"]["mass"] = 0
     expect_error(paper_doc, tmp_path, "agents[0].dynamics.mass", "must be > 0")

@@ -20,6 +20,7 @@ time) or malformed bytes name no step and are dropped.
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 import sys
@@ -125,7 +126,8 @@ class StepSynchroniser:
         old = self.controller
         if not gains:
             return
-        new = AgentController(replace(old.view, controller=replace(old.view.controller, **gains)))
+        changes: dict[str, Any] = dict(gains)  # floats only: the checker cannot tell them from velocity_funnel
+        new = AgentController(replace(old.view, controller=replace(old.view.controller, **changes)))
         new.rho_v0, new.t0 = old.rho_v0, old.t0
         self.controller = new
 
@@ -314,19 +316,20 @@ class AgentNode(Node):
             self._subs[topic] = self.create_subscription(
                 PoseStamped,
                 topic,
-                lambda data, j=j, codec=codec, topic=topic: self._on_pose(j, codec, topic, data),
+                functools.partial(self._on_pose, j, codec, topic),
                 meas_qos,
                 raw=True,
             )
-        self._clock = self.get_clock()
-        self._jump_handle = self._clock.create_jump_callback(
+        # not Node's own _clock (the same object, but ours to name)
+        self._ros_clock = self.get_clock()
+        self._jump_handle = self._ros_clock.create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=True),
             post_callback=self._on_jump,
         )
         self._use_sim_time = bool(self.get_parameter("use_sim_time").value)
         # sim time for the input check of every message: Clock.now() builds a Time object (~3 µs),
         # its handle reads the same clock for ~0.7 µs. Without sim time stamps are not judged (0).
-        handle = self._clock.handle
+        handle = self._ros_clock.handle
         self._clock_ns = (lambda: handle.get_now().nanoseconds) if self._use_sim_time else (lambda: 0)
         self._next_diag = time.monotonic() + self.diag_period
         self.get_logger().info(
@@ -386,7 +389,7 @@ class AgentNode(Node):
     def _refuse(self, ns: int, refusal: Refusal, neighbour: str | None = None) -> None:
         """A refused measurement (formation_agent.measurement_checks): ERROR, counted; a bad value answers zero."""
         n = self.inputs.counts[refusal.kind]
-        t = (ns or self._clock.now().nanoseconds) / _NS
+        t = (ns or self._ros_clock.now().nanoseconds) / _NS
         self.sync.fault(t, f"refused_{refusal.kind}", refusal.reason)
         if n & (n - 1) == 0:  # the 1st, 2nd, 4th, 8th, … of each kind: every kind shows, the log stays small
             self.get_logger().error(f"refused ({refusal.kind}, {n} so far): {refusal.reason}")
@@ -420,7 +423,7 @@ class AgentNode(Node):
         if info.delta.nanoseconds < 0 or (changed and self.sync.last_ns is not None):
             self.get_logger().warning("clock jumped back: controller and watchdogs reset")
             jump = f"/clock jumped by {info.delta.nanoseconds / _NS:.6f} s"
-            self.sync.reset(self._clock.now().nanoseconds / _NS, jump)
+            self.sync.reset(self._ros_clock.now().nanoseconds / _NS, jump)
 
     # the loop: spin, then deadlines (pose wait, diagnostics) on the wall clock
     def spin(self) -> None:
@@ -456,7 +459,7 @@ class AgentNode(Node):
         age = None if sync.last_measurement_wall is None else now - sync.last_measurement_wall
         stale_s = None
         if self._use_sim_time and sync.last_ns is not None:
-            clock_ns = self._clock.now().nanoseconds
+            clock_ns = self._ros_clock.now().nanoseconds
             stale_s = (clock_ns - sync.last_ns) / _NS
             if stale_s > self.view.controller.measurement_timeout:
                 level, message = ERROR, f"no measurements for {stale_s:.3f} s (sim time)"
@@ -477,7 +480,7 @@ class AgentNode(Node):
             values.append(KeyValue(key=f"margin_v/{ch}", value=_fmt(w.margin_v[c])))
         status.values = values
         arr = DiagnosticArray()
-        arr.header.stamp = self._clock.now().to_msg()
+        arr.header.stamp = self._ros_clock.now().to_msg()
         arr.status = [status]
         self._diag_pub.publish(arr)
         sync.window = Window.empty(len(sync.neighbours))

@@ -62,7 +62,7 @@ def _rate_from_stamps(stamps: Sequence[int]) -> float | None:
     d = d[d > 0]
     if not d.size:
         return None
-    return float(m.NS_PER_S / np.median(d))
+    return m.NS_PER_S / float(np.median(d))
 
 
 @dataclass(frozen=True)
@@ -160,7 +160,7 @@ class _StepReplay:
         if r.level[k] == ERROR:
             self.recorder.fault(t, "controller", a, r.messages.get(k, ""))
         if r.faults[k] is not None:
-            self.recorder.fault(t, "measurement", a, r.faults[k])
+            self.recorder.fault(t, "measurement", a, r.faults[k] or "")
             return False
         return True
 
@@ -316,7 +316,7 @@ def bag_report(
     }
 
 
-def stamp_gaps(stamps: list[int], rate: float, duration: float) -> list[tuple[int, int]]:
+def stamp_gaps(stamps: Sequence[int], rate: float, duration: float) -> list[tuple[int, int]]:
     """Missing stretches [first missing, last missing] (ns) of a series due every 1/rate s over [0, duration]."""
     step = m.NS_PER_S / rate
     have = sorted({round(s / step) for s in stamps})

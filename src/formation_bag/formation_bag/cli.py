@@ -7,6 +7,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from formation_msgs_py.errors import BagError
 
@@ -53,7 +54,7 @@ def _run(argv: list[str] | None) -> int:
     try:
         if args.command == "info":
             with Bag(args.bag) as bag:
-                info = {
+                info: dict[str, Any] = {
                     "path": str(args.bag),
                     "storage": bag.storage,
                     "segments": [s.name for s in bag.segments],

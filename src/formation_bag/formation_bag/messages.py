@@ -228,7 +228,13 @@ class Encoder:
     def clock(self, ns: int) -> bytes:
         return bytes(self.ts.serialize_cdr(self.Clock(clock=self.time(ns)), CLOCK))
 
-    def relative_pose(self, ns: int, observer: str, p: Sequence[float], R: Sequence[Sequence[float]]) -> bytes:
+    def relative_pose(
+        self,
+        ns: int,
+        observer: str,
+        p: Sequence[float] | np.ndarray,
+        R: Sequence[Sequence[float]] | np.ndarray,
+    ) -> bytes:
         """PoseStamped in frame ``agent_<observer>``: position p (m) and orientation R of the neighbour."""
         x, y, z, w = quaternion_from_matrix(R)
         msg = self.PoseStamped(

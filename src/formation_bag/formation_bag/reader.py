@@ -62,7 +62,7 @@ def segment_files(path: Path) -> list[Path]:
 
 def partial_files(path: Path) -> list[Path]:
     """Files of segments that were open when a recorder died (hidden ``.NAME_k/`` directories)."""
-    out = []
+    out: list[Path] = []
     for d in sorted(path.iterdir()):
         if d.is_dir() and d.name.startswith("."):
             out.extend(p for p in d.iterdir() if p.suffix in SUFFIXES)
@@ -313,7 +313,7 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
         text = metadata_yaml(
             storage=storage,
             segments=infos,
-            topics=[tuple(r) for r in topic_rows.values()],  # type: ignore[misc]
+            topics=[(topic, msgtype, qos, digest, count) for topic, msgtype, qos, digest, count in topic_rows.values()],
             custom_data=bag.custom_data,
         )
         lost = salvaged + list(bag.lost)

@@ -292,7 +292,7 @@ class Recorder(Node):
                 if n_active:
                     wait_set = _rclpy.WaitSet(n_active, 0, 0, 0, 0, 0, context.handle)
                 by_pointer = {sub.handle.pointer: entry for entry in self._active for sub in (entry[1],)}
-            if n_active:
+            if n_active and wait_set is not None:
                 wait_set.clear_entities()
                 for _, sub, _, _ in self._active:
                     wait_set.add_subscription(sub.handle)
@@ -328,7 +328,7 @@ class Recorder(Node):
 
         Does not wait for silence: the agents publish /diagnostics until they are stopped."""
         deadline = time.monotonic() + limit
-        while time.monotonic() < deadline and sum(self._take_all(*entry) for entry in self._active):
+        while time.monotonic() < deadline and sum(self._take_all(*entry) for entry in self._active) > 0:
             pass
 
     def _take_all(self, name: str, sub: Any, cls: Any, every: int) -> int:
@@ -456,7 +456,7 @@ def record(args: argparse.Namespace, plan: RecordPlan, writer: SegmentedBagWrite
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # until the node exists: KeyboardInterrupt
     node = None
     stats: dict[str, Any] = {}
-    code = ExitCode.PASS
+    code: int = ExitCode.PASS
     try:
         node = Recorder(
             writer,

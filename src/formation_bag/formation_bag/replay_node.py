@@ -136,7 +136,7 @@ class Replayer(Node):
         if self.live is not None:
             self.live.rewind()
         for msg in self.bag.messages(self.pubs, start=start, stop=None if stop is None else stop + 1):
-            if clock_period is not None:
+            if clock_period is not None and self.clock_pub is not None:  # both set by --clock
                 while next_clock <= msg.log_time:
                     sleep_until(send_time(t0, next_clock, t_first, rate))
                     self.clock_pub.publish(self._Clock(clock=_time(next_clock)))

@@ -181,9 +181,12 @@ def check_keys(
             continue
         cert = ca if name == CA_NAME else _load_cert(cfile)
         if name != CA_NAME:
+            hash_algorithm = cert.signature_hash_algorithm  # None for a signature scheme without one (Ed25519)
             try:
-                ca_public.verify(cert.signature, cert.tbs_certificate_bytes, ec.ECDSA(cert.signature_hash_algorithm))
-            except (InvalidSignature, ValueError, TypeError):  # TypeError: an RSA or Ed25519 signature
+                if hash_algorithm is None:
+                    raise InvalidSignature
+                ca_public.verify(cert.signature, cert.tbs_certificate_bytes, ec.ECDSA(hash_algorithm))
+            except (InvalidSignature, ValueError, TypeError):  # ValueError, TypeError: an RSA signature
                 problems.append(Problem(cfile, "not signed by this directory's CA (ca.pem)"))
             if cert.issuer != ca.subject:
                 problems.append(Problem(cfile, f"issuer {cert.issuer.rfc4514_string()} is not the CA"))

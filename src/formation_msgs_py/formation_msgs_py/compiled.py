@@ -87,7 +87,9 @@ def _import_numba() -> ModuleType:
     global _numba
     if _numba is None:
         hidden = [name for name in _NOT_NEEDED if name not in sys.modules]
-        sys.modules.update(dict.fromkeys(hidden))  # None in sys.modules: ``import`` fails at once
+        # None in sys.modules: ``import`` fails at once (the import system's documented blocker, which
+        # typeshed's dict[str, ModuleType] does not express)
+        sys.modules.update(dict.fromkeys(hidden))  # type: ignore[arg-type]
         try:
             import numba
             import numba.core.typing.cffi_utils

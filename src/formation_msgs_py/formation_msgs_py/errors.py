@@ -45,11 +45,11 @@ class CollectedFormationSpecError(FormationSpecError):
         flat: list[FormationSpecError] = []
         for e in errors:
             flat.extend(e.errors if isinstance(e, CollectedFormationSpecError) else [e])
-        self.errors = flat
+        self.errors: list[FormationSpecError] = flat
         first = flat[0]
         super().__init__(first.path, first.message, first.value)
 
-    @property  # type: ignore[override]
+    @property
     def location(self) -> str:
         return self.errors[0].location
 

@@ -159,7 +159,9 @@ class Judge:
             return EdgeSample(sample.e[0], sample.psi[0], sample.rho_e[0], sample.rho_psi[0])
         return sample
 
-    def _margins(self, t: np.ndarray, p: np.ndarray, R: np.ndarray) -> tuple[EdgeSample, np.ndarray, ...]:
+    def _margins(
+        self, t: np.ndarray, p: np.ndarray, R: np.ndarray
+    ) -> tuple[EdgeSample, np.ndarray, np.ndarray, np.ndarray]:
         """(e, ψ, ρ_e, ρ_ψ), ξ_e and the margins of every edge at samples t (T,) of p (T,N,3), R (T,N,3,3)."""
         e, psi = self.edges.errors(p, R)
         rho_e, rho_psi = self.edges.rho(t)

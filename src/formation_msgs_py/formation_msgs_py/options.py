@@ -347,7 +347,7 @@ def build_parser(command: str, prog: str, description: str, *, file_required: bo
         elif o.kind == "bool":
             p.add_argument(o.flag, action=argparse.BooleanOptionalAction, default=o.default, help=o.help)
         else:
-            extra = {"choices": o.choices} if o.choices else {}
+            extra: dict[str, Any] = {"choices": o.choices} if o.choices else {}
             p.add_argument(o.flag, type=o.kind, default=o.default, help=o.help, **extra)
     return p
 

@@ -11,6 +11,7 @@ or decoding a message never imports the compiled kernels of :mod:`formation_msgs
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -62,9 +63,10 @@ def orthonormality_error(R: ArrayLike) -> float:
     return float(np.max(err))
 
 
-def quaternion_from_matrix(R: ArrayLike) -> tuple[float, float, float, float]:
-    """(x, y, z, w), w ≥ 0, of a rotation matrix (Shepperd's method, pure Python)."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist() if isinstance(R, np.ndarray) else R
+def quaternion_from_matrix(R: np.ndarray | Sequence[Sequence[float]]) -> tuple[float, float, float, float]:
+    """(x, y, z, w), w ≥ 0, of a rotation matrix (an array or nested rows; Shepperd's method, pure Python)."""
+    rows: Sequence[Sequence[float]] = R.tolist() if isinstance(R, np.ndarray) else R
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
     tr = r00 + r11 + r22
     if tr > 0:
         s = 2.0 * math.sqrt(tr + 1.0)

@@ -4,27 +4,29 @@ Every field has a kind, a default (or ``REQUIRED``), a unit and a description.
 :func:`parse_mapping` walks a YAML document against the schema and returns plain Python values
 with defaults filled in; it reports every unknown key (with the nearest valid one) and wrong
 type of a mapping as :class:`FormationSpecError` naming the field path (shortened values).
-:func:`record` makes the frozen dataclass a block builds (``SimulationSpec``, ``AgentSpec``,
-``EdgeSpec``, ``ControllerGains``, ``VelocityFunnel``, ``Dynamics`` in :mod:`formation_msgs_py.spec`), and
-:func:`schema_markdown` renders the reference table of ``docs/formation_file.md`` (a test keeps
-the two in step): no second list of fields anywhere.
+:func:`schema_markdown` renders the reference table of ``docs/formation_file.md``, and
+:func:`documented` the attribute list of the docstring of each frozen dataclass a block builds
+(``SimulationSpec``, ``AgentSpec``, ``EdgeSpec``, ``ControllerGains``, ``VelocityFunnel``, ``Dynamics``,
+written as typed classes in :mod:`formation_msgs_py.spec` so that a type checker sees them). Tests
+keep the table, and each class's attribute names and types (:func:`attribute_type`), in step
+with this declaration.
 
-``AgentSpec`` and ``EdgeSpec`` are records too: a field's ``attr`` names its attribute where it
-differs from the key (``distance`` -> ``d_des``), an ``inline`` map's fields are attributes of the
-agent or edge itself (``distance_funnel.rho_inf`` -> ``rho_e_inf``). Semantic checks (tree,
-distance bounds, funnels) live in :mod:`formation_msgs_py.spec`.
+A field's ``attr`` names its attribute where it differs from the key (``distance`` -> ``d_des``),
+an ``inline`` map's fields are attributes of the agent or edge itself (``distance_funnel.rho_inf``
+-> ``rho_e_inf``). Semantic checks (tree, distance bounds, funnels) live in
+:mod:`formation_msgs_py.spec`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import difflib
+import inspect
 import math
 import re
 import reprlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
 
@@ -57,10 +59,12 @@ class Field:
     variants: Mapping[str, tuple[Field, ...]] = field(default_factory=dict)
     #: ``positive``, ``nonnegative`` or ``""`` for numbers
     sign: str = ""
-    #: the attribute of the built object (:func:`record`) that holds the value; ``""``: ``name``
+    #: the attribute of the built object (:mod:`formation_msgs_py.spec`) that holds the value; ``""``: ``name``
     attr: str = ""
     #: a ``map`` whose fields are attributes of the enclosing object (not an object of their own)
     inline: bool = False
+    #: the attribute's type in the built object where it is not the kind's (:data:`KIND_TYPES`)
+    type: str = ""
 
 
 # --- shared blocks ----------------------------------------------------------------------------
@@ -112,7 +116,7 @@ AGENT_FIELDS: tuple[Field, ...] = (
     Field("id", "agent_id", REQUIRED, "agent name: letters, digits, underscore (topics use agent_<id>)"),
     Field("radius", "float", REQUIRED, "radius r_i of the ball the agent occupies", "m", sign="positive"),
     Field("sensing_radius", "float", REQUIRED, "sensing radius s_i", "m", sign="positive"),
-    Field("position", "vec3", REQUIRED, "initial position p_i(0) in the world frame", "m"),
+    Field("position", "vec3", REQUIRED, "initial position p_i(0) in the world frame", "m", type="np.ndarray"),
     Field("orientation", "rotation", "identity", "initial R_world_body R_i(0); " + _ROTATION_DOC, attr="R_world_body"),
     Field("linear_velocity", "vec3", (0.0, 0.0, 0.0), "initial body-frame linear velocity", "m/s"),
     Field("angular_velocity", "vec3", (0.0, 0.0, 0.0), "initial body-frame angular velocity", "rad/s"),
@@ -121,10 +125,18 @@ AGENT_FIELDS: tuple[Field, ...] = (
         "map",
         {},
         "what the agent knows of itself: gains and velocity funnel",
+        type="ControllerGains",
         children=(
             Field("delta", "float", 0.1, "gain δ_i of the desired velocity", sign="positive"),
             Field("gamma", "float", 15.0, "gain γ_i of the wrench", sign="positive"),
-            Field("velocity_funnel", "map", {}, "velocity performance functions ρ_v", children=_FUNNEL_V),
+            Field(
+                "velocity_funnel",
+                "map",
+                {},
+                "velocity performance functions ρ_v",
+                children=_FUNNEL_V,
+                type="VelocityFunnel",
+            ),
             Field(
                 "saturation_margin",
                 "float",
@@ -163,6 +175,7 @@ AGENT_FIELDS: tuple[Field, ...] = (
         "map",
         REQUIRED,
         "true plant, read by the simulator only",
+        type="Dynamics",
         children=(
             Field("mass", "float", REQUIRED, "mass m_i", "kg", sign="positive"),
             Field("inertia", "inertia", REQUIRED, "body-frame inertia: 3 diagonal entries or a 3x3 matrix", "kg·m²"),
@@ -299,7 +312,7 @@ SIMULATION_FIELDS: tuple[Field, ...] = (
         sign="positive",
     ),
     Field("seed", "int", 0, "seed of every random draw (noise, random disturbances)", sign="nonnegative"),
-    Field("gravity", "vec3", (0.0, 0.0, 0.0), "gravity in the world frame (the paper: off)", "m/s²"),
+    Field("gravity", "vec3", (0.0, 0.0, 0.0), "gravity in the world frame (the paper: off)", "m/s²", type="np.ndarray"),
     Field(
         "spanning_tree",
         "bool",
@@ -508,7 +521,7 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
         if not isinstance(value, Mapping) or "model" not in value:
             raise _fail(path, f"expected a mapping with a 'model' key, got {short(value)}", value)
         model = value["model"]
-        if model not in f.variants:
+        if not isinstance(model, str) or model not in f.variants:  # a mapping or list is no model name
             raise _fail(f"{path}.model", f"{short(model)} is not one of {', '.join(f.variants)}", model)
         rest = {k: v for k, v in value.items() if k != "model"}
         out = parse_mapping(rest, f.variants[model], path)
@@ -572,16 +585,23 @@ def check_partial(node: Any, fields: tuple[Field, ...], path: str) -> list[Forma
 
 # --- built objects ----------------------------------------------------------------------------
 
-_KIND_TYPES = {
+#: The type of a built object's attribute (as written in :mod:`formation_msgs_py.spec`) per kind;
+#: a field's ``type`` overrides it where the loader converts the value further (a numpy array, a
+#: nested object). ``optional_float``: the loader resolves ``null`` to the derived number.
+KIND_TYPES: Mapping[str, str] = {
     "float": "float",
-    "optional_float": "float | None",
+    "optional_float": "float",
     "int": "int",
     "bool": "bool",
     "str": "str",
     "enum": "str",
     "agent_id": "str",
+    "vec3": "tuple[float, ...]",
     "float_or_vec6": "tuple[float, ...]",
     "auto_or_vec6": "tuple[float, ...] | None",
+    "inertia": "np.ndarray",
+    "rotation": "np.ndarray",
+    "variant": "SignalModel",
 }
 
 
@@ -592,16 +612,21 @@ def block(fields: tuple[Field, ...], *names: str) -> tuple[Field, ...]:
     return fields
 
 
-def _attributes(fields: tuple[Field, ...], prefix: str = "") -> list[tuple[str, Field]]:
+def attributes(fields: tuple[Field, ...], prefix: str = "") -> list[tuple[str, Field]]:
     """(file key, field) of each attribute of the built object: inline maps contribute their children."""
     out: list[tuple[str, Field]] = []
     for f in fields:
-        out.extend(_attributes(f.children, f"{prefix}{f.name}.") if f.inline else [(prefix + f.name, f)])
+        out.extend(attributes(f.children, f"{prefix}{f.name}.") if f.inline else [(prefix + f.name, f)])
     return out
 
 
+def attribute_type(f: Field) -> str:
+    """The annotation of the attribute ``f`` becomes in its built object."""
+    return f.type or KIND_TYPES[f.kind]
+
+
 def record_values(fields: tuple[Field, ...], parsed: Mapping[str, Any]) -> dict[str, Any]:
-    """The keyword arguments of a :func:`record` class from a block :func:`parse_mapping` returned."""
+    """The keyword arguments of a built object from a block :func:`parse_mapping` returned."""
     out: dict[str, Any] = {}
     for f in fields:
         if f.inline:
@@ -611,38 +636,27 @@ def record_values(fields: tuple[Field, ...], parsed: Mapping[str, Any]) -> dict[
     return out
 
 
-def record(
-    name: str,
-    fields: tuple[Field, ...],
-    doc: str,
-    *,
-    module: str,
-    derived: tuple[tuple[str, str, str], ...] = (),
-    base: type = object,
-) -> type:
-    """The frozen dataclass one block of the file builds: an attribute per field, in declaration order.
+_T = TypeVar("_T")
 
-    The schema is the one declaration of a block: validation, the reference table and this class
-    come from it (its docstring lists the attributes with their units, meaning and file key).
-    ``derived``: (name, type, doc) of attributes that are not in the file (an index), first;
-    ``base``: methods and properties.
+
+def documented(fields: tuple[Field, ...], *, derived: tuple[tuple[str, str], ...] = ()) -> Callable[[_T], _T]:
+    """A class decorator: appends the attributes of the block ``fields`` (unit, meaning, file key) to
+    the class's docstring, so that the schema stays the one place where a field is described.
+
+    ``derived``: (name, doc) of attributes that are not in the file (an index), first.
     """
-    attrs = _attributes(fields)
-    lines = [doc, "", "Attributes (declared in formation_msgs_py.schema):"]
-    lines += [f"    {n}: {d}" for n, _, d in derived]
+    lines = ["", "Attributes (declared in formation_msgs_py.schema):"]
+    lines += [f"    {n}: {d}" for n, d in derived]
     lines += [
         f"    {f.attr or f.name}{f' [{f.unit}]' if f.unit else ''}: {f.doc}" + (f" (file: {key})" if f.attr else "")
-        for key, f in attrs
+        for key, f in attributes(fields)
     ]
-    cls = dataclasses.make_dataclass(
-        name,
-        [(n, t) for n, t, _ in derived] + [(f.attr or f.name, _KIND_TYPES.get(f.kind, "Any")) for _, f in attrs],
-        bases=(base,),
-        frozen=True,
-    )
-    cls.__module__ = module  # pickles by name, as a class written there would
-    cls.__doc__ = "\n".join(lines)
-    return cls
+
+    def apply(cls: _T) -> _T:
+        cls.__doc__ = "\n".join([inspect.cleandoc(cls.__doc__ or ""), *lines])
+        return cls
+
+    return apply
 
 
 # --- documentation ----------------------------------------------------------------------------

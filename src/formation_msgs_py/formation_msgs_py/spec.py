@@ -36,8 +36,8 @@ from formation_msgs_py.schema import (
     TOP_FIELDS,
     block,
     check_partial,
+    documented,
     parse_mapping,
-    record,
     record_values,
     short,
     unknown_key,
@@ -52,20 +52,37 @@ _SIGNALS = ("disturbance", "velocity_noise")
 # --- result objects ---------------------------------------------------------------------------
 
 
-# Every object a block of the file builds is a record of the schema (one declaration: schema.py).
-VelocityFunnel = record(
-    "VelocityFunnel",
-    block(AGENT_FIELDS, "controller", "velocity_funnel"),
-    "ρ_v per channel [vx, vy, vz, wx, wy, wz]; ``rho_0 is None`` means auto.",
-    module=__name__,
-)
-ControllerGains = record(
-    "ControllerGains",
-    block(AGENT_FIELDS, "controller"),
-    "What agent i knows of itself (paper: δ_i, γ_i, ρ_v,i); max_force / max_torque resolved (N, N·m; "
-    "never above the actuators').",
-    module=__name__,
-)
+# Every object a block of the file builds is a frozen dataclass whose attributes are the block's fields
+# in the schema (schema.py, the one declaration): same names, order and types (a test checks it), no
+# defaults (the loader fills every attribute; the schema holds the defaults). ``documented`` appends
+# the schema's description of each attribute to the docstring.
+
+
+@documented(block(AGENT_FIELDS, "controller", "velocity_funnel"))
+@dataclass(frozen=True)
+class VelocityFunnel:
+    """ρ_v per channel [vx, vy, vz, wx, wy, wz]; ``rho_0 is None`` means auto."""
+
+    rho_0: tuple[float, ...] | None
+    auto_scale: float
+    auto_offset: float
+    rho_inf: tuple[float, ...]
+    decay: tuple[float, ...]
+
+
+@documented(block(AGENT_FIELDS, "controller"))
+@dataclass(frozen=True)
+class ControllerGains:
+    """What agent i knows of itself (paper: δ_i, γ_i, ρ_v,i); max_force / max_torque resolved (N, N·m;
+    never above the actuators')."""
+
+    delta: float
+    gamma: float
+    velocity_funnel: VelocityFunnel
+    saturation_margin: float
+    max_force: float
+    max_torque: float
+    measurement_timeout: float
 
 
 @dataclass(frozen=True)
@@ -76,17 +93,38 @@ class SignalModel:
     params: Mapping[str, Any]
 
 
-Dynamics = record(
-    "Dynamics",
-    block(AGENT_FIELDS, "dynamics"),
-    "True plant of one agent (simulator only): inertia a 3×3 array (body frame, kg·m²), disturbance and "
-    "velocity_noise SignalModels.",
-    module=__name__,
-)
+@documented(block(AGENT_FIELDS, "dynamics"))
+@dataclass(frozen=True)
+class Dynamics:
+    """True plant of one agent (simulator only): inertia a 3×3 array (body frame, kg·m²), disturbance
+    and velocity_noise SignalModels."""
+
+    mass: float
+    inertia: np.ndarray
+    max_force: float
+    max_torque: float
+    disturbance: SignalModel
+    velocity_noise: SignalModel
 
 
-class _Agent:
-    """What an agent derives from its fields."""
+@documented(AGENT_FIELDS, derived=(("index", "position in the file's list of agents"),))
+@dataclass(frozen=True)
+class AgentSpec:
+    """One agent: geometry, initial state (world position and R_world_body as numpy arrays, body twist),
+    controller (ControllerGains), plant (Dynamics)."""
+
+    index: int
+    id: str
+    radius: float
+    sensing_radius: float
+    position: np.ndarray
+    R_world_body: np.ndarray
+    linear_velocity: tuple[float, ...]
+    angular_velocity: tuple[float, ...]
+    controller: ControllerGains
+    dynamics: Dynamics
+    position_noise_std: float
+    rotation_noise_std: float
 
     @property
     def twist(self) -> np.ndarray:
@@ -94,19 +132,24 @@ class _Agent:
         return np.array(self.linear_velocity + self.angular_velocity)
 
 
-AgentSpec = record(
-    "AgentSpec",
-    AGENT_FIELDS,
-    "One agent: geometry, initial state (world position and R_world_body as numpy arrays, body twist), "
-    "controller (ControllerGains), plant (Dynamics).",
-    module=__name__,
-    derived=(("index", "int", "position in the file's list of agents"),),
-    base=_Agent,
-)
+@documented(EDGE_FIELDS, derived=(("index", "position among the kept edges"),))
+@dataclass(frozen=True)
+class EdgeSpec:
+    """Edge k = (tail k1, head k2) with its desired offsets (R_des a numpy array), bounds (d_col, d_con
+    resolved) and funnels."""
 
-
-class _Edge:
-    """What an edge derives from its fields."""
+    index: int
+    tail: str
+    head: str
+    d_des: float
+    R_des: np.ndarray
+    d_col: float
+    d_con: float
+    rho_e_inf: float
+    decay_e: float
+    rho_psi_0: float
+    rho_psi_inf: float
+    decay_psi: float
 
     @property
     def c_col(self) -> float:
@@ -122,40 +165,41 @@ class _Edge:
     def name(self) -> str:
         return f"{self.tail}-{self.head}"
 
-    def rho_e(self, t):
+    def rho_e(self, t: float) -> float:
         """Normalised distance performance function ρ_e(t)."""
         from formation_msgs_py import funnels  # compiled kernels: not on the path of loading a file
 
         return funnels.rho(t, 1.0, funnels.rho_e_floor(self.c_col, self.c_con, self.rho_e_inf), self.decay_e)
 
-    def rho_psi(self, t):
+    def rho_psi(self, t: float) -> float:
         """Orientation performance function ρ_ψ(t)."""
         from formation_msgs_py import funnels
 
         return funnels.rho(t, self.rho_psi_0, self.rho_psi_inf, self.decay_psi)
 
 
-EdgeSpec = record(
-    "EdgeSpec",
-    EDGE_FIELDS,
-    "Edge k = (tail k1, head k2) with its desired offsets (R_des a numpy array), bounds (d_col, d_con "
-    "resolved) and funnels.",
-    module=__name__,
-    derived=(("index", "int", "position among the kept edges"),),
-    base=_Edge,
-)
+@documented(SIMULATION_FIELDS)
+@dataclass(frozen=True)
+class SimulationSpec:
+    """Run settings (gravity a numpy 3-vector)."""
 
+    mode: str
+    duration: float
+    physics_rate: float
+    control_rate: float
+    controller: str
+    record_rate: float
+    seed: int
+    gravity: np.ndarray
+    spanning_tree: bool
+    rate_check: str
+    step_timeout: float
+    command_timeout: float
 
-class _Simulation:
     @property
     def substeps(self) -> int:
         """Integrator steps per control period."""
         return round(self.physics_rate / self.control_rate)
-
-
-SimulationSpec = record(
-    "SimulationSpec", SIMULATION_FIELDS, "Run settings (gravity a numpy 3-vector).", module=__name__, base=_Simulation
-)
 
 
 @dataclass(frozen=True)
@@ -322,92 +366,18 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
     if not isinstance(document, Mapping):
         raise FormationSpecError("", f"a formation file is a mapping at the top level, got {type(document).__name__}")
     errors = _Collector()
-    known = [f.name for f in TOP_FIELDS]
-    for key in document:
-        if key not in known:
-            errors.add(unknown_key(str(key), key, known))
-    top_plain = {k: v for k, v in document.items() if k in ("name", "description", "simulation")}
-    top_fields = tuple(f for f in TOP_FIELDS if f.name in ("name", "description", "simulation"))
-    top = errors.run(lambda: parse_mapping(top_plain, top_fields, ""))
-    sim = top["simulation"] if top is not None else None
-    if sim is not None:
-        errors.run(lambda: _check_rates(sim["physics_rate"], sim["control_rate"]))
-
-    defaults = document.get("defaults") or {}
-    if not isinstance(defaults, Mapping):
-        errors.add(
-            FormationSpecError("defaults", f"expected a mapping with keys agent and edge, got {short(defaults)}")
-        )
-        defaults = {}
-    for key in defaults:
-        if key not in ("agent", "edge"):
-            errors.add(unknown_key(f"defaults.{key}", key, ("agent", "edge")))
-    blocks = {}
-    for key, fields in (("agent", AGENT_FIELDS), ("edge", EDGE_FIELDS)):
-        block = defaults.get(key) or {}
-        if not isinstance(block, Mapping):
-            errors.add(FormationSpecError(f"defaults.{key}", f"expected a mapping, got {short(block)}", block))
-            block = {}
-        errors.extend(check_partial(block, fields, f"defaults.{key}"))
-        blocks[key] = block
-
-    raw_agents = document.get("agents")
-    if not isinstance(raw_agents, list) or len(raw_agents) < 2:
-        errors.add(FormationSpecError("agents", f"expected a list of at least 2 agents, got {short(raw_agents)}"))
-        raw_agents = []
-    raw_edges = document.get("edges")
-    if not isinstance(raw_edges, list) or not raw_edges:
-        errors.add(FormationSpecError("edges", f"expected a non-empty list of edges, got {short(raw_edges)}"))
-        raw_edges = []
-
-    agents = []
-    ids: dict[str, int] = {}
-    for i, raw in enumerate(raw_agents):
-        path = f"agents[{i}]"
-        if not isinstance(raw, Mapping):
-            errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
-            continue
-        with errors.item(path, raw, "defaults.agent"):
-            a = parse_mapping(_deep_merge(blocks["agent"], raw), AGENT_FIELDS, path)
-            if a["id"] in ids:
-                raise FormationSpecError(f"{path}.id", f"{a['id']!r} is used by agents[{ids[a['id']]}] too", a["id"])
-            ids[a["id"]] = i
-            agents.append(_make_agent(i, a, path))
+    top = _parse_top(document, errors)
+    defaults = _parse_defaults(document, errors)
+    raw_agents, raw_edges = _item_lists(document, errors)
+    agents, ids = _parse_agents(raw_agents, defaults["agent"], errors)
     agents_ok = not errors.items
-
-    edges_parsed = []
-    seen: dict[frozenset[str], int] = {}
-    for k, raw in enumerate(raw_edges):
-        path = f"edges[{k}]"
-        if not isinstance(raw, Mapping):
-            errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
-            continue
-        with errors.item(path, raw, "defaults.edge"):
-            e = parse_mapping(_deep_merge(blocks["edge"], raw), EDGE_FIELDS, path)
-            if agents_ok:
-                for end in ("tail", "head"):
-                    if e[end] not in ids:
-                        raise FormationSpecError(
-                            f"{path}.{end}", f"unknown agent {e[end]!r} (agents: {', '.join(ids)})", e[end]
-                        )
-            if e["tail"] == e["head"]:
-                raise FormationSpecError(path, f"tail and head are the same agent {e['tail']!r}", e["tail"])
-            pair = frozenset((e["tail"], e["head"]))
-            if pair in seen:
-                raise FormationSpecError(path, f"duplicates edges[{seen[pair]}] ({e['tail']}, {e['head']})", raw)
-            seen[pair] = k
-            edges_parsed.append((k, e, path))
+    edges_parsed = _parse_edges(raw_edges, defaults["edge"], ids if agents_ok else None, errors)
     errors.raise_if_any()
+    assert top is not None  # parsed: no error was found
+    sim = top["simulation"]
 
     kept, dropped = _tree(list(ids), [(e["tail"], e["head"]) for _, e, _ in edges_parsed], sim["spanning_tree"])
-    by_id = {a.id: a for a in agents}
-    edges = []
-    for k, e, path in edges_parsed:
-        if k not in kept:
-            continue
-        raw = raw_edges[k]
-        with errors.item(path, raw, "defaults.edge"):
-            edges.append(_make_edge(len(edges), e, path, by_id[e["tail"]], by_id[e["head"]]))
+    edges = _make_edges([item for item in edges_parsed if item[0] in kept], raw_edges, agents, errors)
     errors.raise_if_any()
 
     simulation = SimulationSpec(**{**sim, "gravity": np.array(sim["gravity"])})
@@ -420,6 +390,123 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
         edges=tuple(edges),
         dropped_edges=tuple((edges_parsed[k][1]["tail"], edges_parsed[k][1]["head"]) for k in dropped),
     )
+
+
+#: (index in the file, parsed fields, field path) of an edge whose own checks passed
+_ParsedEdge = tuple[int, dict[str, Any], str]
+
+
+def _parse_top(document: Mapping[Any, Any], errors: _Collector) -> dict[str, Any] | None:
+    """The unknown top-level keys, then name, description and simulation (rates checked); None if invalid."""
+    known = [f.name for f in TOP_FIELDS]
+    for key in document:
+        if key not in known:
+            errors.add(unknown_key(str(key), key, known))
+    plain = ("name", "description", "simulation")
+    top_plain = {k: v for k, v in document.items() if k in plain}
+    top_fields = tuple(f for f in TOP_FIELDS if f.name in plain)
+    top: dict[str, Any] | None = errors.run(lambda: parse_mapping(top_plain, top_fields, ""))
+    if top is not None:
+        sim = top["simulation"]
+        errors.run(lambda: _check_rates(sim["physics_rate"], sim["control_rate"]))
+    return top
+
+
+def _parse_defaults(document: Mapping[Any, Any], errors: _Collector) -> dict[str, Mapping[str, Any]]:
+    """The ``defaults`` block: its ``agent`` and ``edge`` mappings (empty where absent or invalid)."""
+    defaults = document.get("defaults") or {}
+    if not isinstance(defaults, Mapping):
+        errors.add(
+            FormationSpecError("defaults", f"expected a mapping with keys agent and edge, got {short(defaults)}")
+        )
+        defaults = {}
+    for key in defaults:
+        if key not in ("agent", "edge"):
+            errors.add(unknown_key(f"defaults.{key}", key, ("agent", "edge")))
+    blocks: dict[str, Mapping[str, Any]] = {}
+    for key, fields in (("agent", AGENT_FIELDS), ("edge", EDGE_FIELDS)):
+        block = defaults.get(key) or {}
+        if not isinstance(block, Mapping):
+            errors.add(FormationSpecError(f"defaults.{key}", f"expected a mapping, got {short(block)}", block))
+            block = {}
+        errors.extend(check_partial(block, fields, f"defaults.{key}"))
+        blocks[key] = block
+    return blocks
+
+
+def _item_lists(document: Mapping[Any, Any], errors: _Collector) -> tuple[list[Any], list[Any]]:
+    """The raw ``agents`` (at least 2) and ``edges`` (at least 1) lists; empty where invalid."""
+    raw_agents = document.get("agents")
+    if not isinstance(raw_agents, list) or len(raw_agents) < 2:
+        errors.add(FormationSpecError("agents", f"expected a list of at least 2 agents, got {short(raw_agents)}"))
+        raw_agents = []
+    raw_edges = document.get("edges")
+    if not isinstance(raw_edges, list) or not raw_edges:
+        errors.add(FormationSpecError("edges", f"expected a non-empty list of edges, got {short(raw_edges)}"))
+        raw_edges = []
+    return raw_agents, raw_edges
+
+
+def _parse_agents(
+    raw_agents: list[Any], defaults: Mapping[str, Any], errors: _Collector
+) -> tuple[list[AgentSpec], dict[str, int]]:
+    """The valid agents and {id: index in the file} of every agent whose fields parsed (ids unique)."""
+    agents: list[AgentSpec] = []
+    ids: dict[str, int] = {}
+    for i, raw in enumerate(raw_agents):
+        path = f"agents[{i}]"
+        if not isinstance(raw, Mapping):
+            errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
+            continue
+        with errors.item(path, raw, "defaults.agent"):
+            a = parse_mapping(_deep_merge(defaults, raw), AGENT_FIELDS, path)
+            if a["id"] in ids:
+                raise FormationSpecError(f"{path}.id", f"{a['id']!r} is used by agents[{ids[a['id']]}] too", a["id"])
+            ids[a["id"]] = i
+            agents.append(_make_agent(i, a, path))
+    return agents, ids
+
+
+def _parse_edges(
+    raw_edges: list[Any], defaults: Mapping[str, Any], ids: Mapping[str, int] | None, errors: _Collector
+) -> list[_ParsedEdge]:
+    """The edges whose fields parsed: ends that are agents (checked when ``ids`` is given: every agent
+    was valid), distinct, and no pair twice."""
+    parsed: list[_ParsedEdge] = []
+    seen: dict[frozenset[str], int] = {}
+    for k, raw in enumerate(raw_edges):
+        path = f"edges[{k}]"
+        if not isinstance(raw, Mapping):
+            errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
+            continue
+        with errors.item(path, raw, "defaults.edge"):
+            e = parse_mapping(_deep_merge(defaults, raw), EDGE_FIELDS, path)
+            if ids is not None:
+                for end in ("tail", "head"):
+                    if e[end] not in ids:
+                        raise FormationSpecError(
+                            f"{path}.{end}", f"unknown agent {e[end]!r} (agents: {', '.join(ids)})", e[end]
+                        )
+            if e["tail"] == e["head"]:
+                raise FormationSpecError(path, f"tail and head are the same agent {e['tail']!r}", e["tail"])
+            pair = frozenset((e["tail"], e["head"]))
+            if pair in seen:
+                raise FormationSpecError(path, f"duplicates edges[{seen[pair]}] ({e['tail']}, {e['head']})", raw)
+            seen[pair] = k
+            parsed.append((k, e, path))
+    return parsed
+
+
+def _make_edges(
+    kept: list[_ParsedEdge], raw_edges: list[Any], agents: list[AgentSpec], errors: _Collector
+) -> list[EdgeSpec]:
+    """The edges of the sensing tree, each checked against its two agents (indices among the kept)."""
+    by_id = {a.id: a for a in agents}
+    edges: list[EdgeSpec] = []
+    for k, e, path in kept:
+        with errors.item(path, raw_edges[k], "defaults.edge"):
+            edges.append(_make_edge(len(edges), e, path, by_id[e["tail"]], by_id[e["head"]]))
+    return edges
 
 
 class _Collector:

@@ -102,7 +102,7 @@ class StampedCodec:
         sec, nsec = divmod(ns, NS_PER_S)
         return self._pack(_CDR_LE, sec, nsec, self._mid, *values)
 
-    def decode(self, data: bytes) -> tuple[int, tuple[float, ...]]:
+    def decode(self, data: bytes | memoryview) -> tuple[int, tuple[float, ...]]:
         """(stamp in integer ns, the doubles) of CDR bytes of this type (any string contents)."""
         sec, nsec = _STAMP.unpack_from(data, 4)
         off = 8
@@ -155,7 +155,7 @@ def ground_truth_bytes(
     """CDR bytes of the ground-truth geometry_msgs/PoseArray at ``ns``: frame ``world``, one pose
     per agent (position in m, orientation as quaternion x, y, z, w of R_world_body)."""
     sec, nsec = divmod(ns, NS_PER_S)
-    values = []
+    values: list[float] = []
     for p, R in zip(p_world, R_world):
         values += p
         values += quaternion_from_matrix(R)
@@ -206,7 +206,7 @@ def relative_pose_from_values(values: Sequence[float]) -> tuple[list[float], lis
     return [px, py, pz], matrix_from_quaternion(qx, qy, qz, qw)
 
 
-def stamp_of(data: bytes) -> int:
+def stamp_of(data: bytes | memoryview) -> int:
     """The stamp (integer ns) CDR bytes start with: header.stamp of every stamped message of
     docs/topics.md (and PoseArray, DiagnosticArray), or the time of a rosgraph_msgs/Clock."""
     sec, nsec = _STAMP.unpack_from(data, 4)

@@ -8,7 +8,7 @@ would stall a recorder at every segment.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
 import yaml
 from rosbags.interfaces import Qos
@@ -19,7 +19,7 @@ from formation_msgs_py.bag import STORAGE_NAMES
 
 #: storage name -> (rosbags plugin, file suffix)
 STORAGES = dict(zip(STORAGE_NAMES, ((StoragePlugin.MCAP, ".mcap"), (StoragePlugin.SQLITE3, ".db3")), strict=True))
-METADATA_VERSION = 9
+METADATA_VERSION: Final = 9  # a literal: rosbags takes version 8 or 9
 ROS_DISTRO = "jazzy"
 _DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 

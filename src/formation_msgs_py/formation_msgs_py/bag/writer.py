@@ -24,11 +24,12 @@ from __future__ import annotations
 import os
 import shutil
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from types import MappingProxyType, TracebackType
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any
 
 from rosbags.interfaces import (
     Connection,
@@ -50,6 +51,9 @@ from rosbags.typesys.store import Typestore
 
 from formation_msgs_py.bag.metadata import METADATA_VERSION, STORAGES, SegmentInfo, metadata_yaml, qos_yaml
 from formation_msgs_py.errors import BagExistsError, BagWriterError
+
+if TYPE_CHECKING:
+    from rosbags.rosbag2.writer import StorageWriter  # a Protocol rosbags declares for type checkers only
 
 #: rmw's "infinite" duration, as Jazzy writes it in metadata.yaml
 INFINITE = QosTime(sec=9223372036, nsec=854775807)
@@ -125,7 +129,10 @@ class _SegmentFileWriter(Writer):
     MCAP messages are written by :class:`_McapWriter`.
     """
 
-    STORAGE_PLUGINS: ClassVar = MappingProxyType({**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _McapWriter})
+    # declared as rosbags declares it (an attribute each writer reads), with MCAP written by ours
+    STORAGE_PLUGINS: Mapping[StoragePlugin, type[StorageWriter]] = MappingProxyType(
+        {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _McapWriter}
+    )
 
     def add_topic_fast(self, topic: str, msgtype: str, msgdef: str, rihs01: str, qos: list[Qos]) -> Connection:
         if not self.storage:

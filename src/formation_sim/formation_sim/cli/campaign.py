@@ -195,6 +195,8 @@ def tasks(campaign: Campaign) -> list[Task]:
     import numpy as np
 
     root = np.random.SeedSequence(campaign.seed)
+    entropy = root.entropy
+    assert isinstance(entropy, int)  # the campaign's seed
     out = []
     for child in root.spawn(campaign.samples):
         i = child.spawn_key[-1]
@@ -206,7 +208,7 @@ def tasks(campaign: Campaign) -> list[Task]:
                     rate,
                     campaign.duration,
                     campaign.vary,
-                    int(root.entropy),
+                    entropy,
                     tuple(child.spawn_key),
                 )
             )

@@ -198,8 +198,9 @@ def _tune_realtime(doc: dict[str, Any], control_rate: float) -> None:
     defaults = doc["defaults"]
     rho_v_inf = 0.5
     # the need is linear in γ and largest at the end (ρ_v = ρ_v,∞): need(γ) = γ · need(1)
+    rho_v = np.full(6, rho_v_inf)
     need_per_gamma = max(
-        float(rate_need(mass_matrix(a["dynamics"]["mass"], np.diag(a["dynamics"]["inertia"])), 1.0, [rho_v_inf] * 6))
+        float(rate_need(mass_matrix(a["dynamics"]["mass"], np.diag(a["dynamics"]["inertia"])), 1.0, rho_v))
         for a in doc["agents"]
     )
     gamma = min(REALTIME_GAMMA_MAX, control_rate / REALTIME_MARGIN / need_per_gamma)

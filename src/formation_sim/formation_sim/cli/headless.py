@@ -79,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-headless: {exc}", file=sys.stderr)
         return ExitCode.INVALID
     spec, out, mode = run.spec, run.out, run.options.controller
+    assert out is not None  # preflight names OUT from the default above
     for msg in run.warnings:
         print(f"formation-headless: warning: {msg}", file=sys.stderr)
     from formation_sim.views.outputs import format_summary, report_animation, write_outputs

@@ -150,7 +150,13 @@ def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
         row[W_BAND_LO], row[W_BAND_HI], row[W_BAND_PSI] = band_lo[k], band_hi[k], band_psi[k]
     K, N = len(spec.edges), len(spec.agents)
     checked = CheckedSteps(
-        *(np.full(n, np.inf) for n in (K, K, N)), *(np.full(K, np.nan) for _ in range(2)), np.zeros(N), np.zeros(N)
+        min_margin_e=np.full(K, np.inf),
+        min_margin_psi=np.full(K, np.inf),
+        min_margin_v=np.full(N, np.inf),
+        settle_e=np.full(K, np.nan),
+        settle_psi=np.full(K, np.nan),
+        peak_force=np.zeros(N),
+        peak_torque=np.zeros(N),
     )
     return Watch(np.stack([judge.edges.tail, judge.edges.head], axis=1).astype(np.int64), edges, checked)
 
@@ -347,7 +353,8 @@ def compile_in_two_processes(spec: FormationSpec) -> None:
     compiler lock rules out threads). No-op when the cache has run_sampled, or interpreted; if the
     second process fails, this one compiles team_step itself when it needs it.
     """
-    if INTERPRETED or Path(run_sampled._cache._cache_file._index_path).exists():
+    # run_sampled is a numba dispatcher, typed as the function it compiles (compiled.kernel)
+    if INTERPRETED or Path(run_sampled._cache._cache_file._index_path).exists():  # type: ignore[attr-defined]
         return
     helper = subprocess.Popen(
         [sys.executable, "-c", "from formation_sim.core.team import load_team_step; load_team_step()"],

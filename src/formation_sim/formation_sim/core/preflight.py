@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from formation_msgs_py.errors import FormationError
+from formation_msgs_py.errors import FormationError, FormationSpecError
 from formation_msgs_py.options import HEADLESS, LAUNCH, RunOptions
 
 if TYPE_CHECKING:
@@ -52,6 +52,8 @@ def load_spec(options: RunOptions) -> FormationSpec:
     """
     from formation_msgs_py.spec import load_formation
 
+    if options.file is None:
+        raise FormationSpecError("", "no formation file given")
     over = options.overrides()
     if "control_rate" in over and "physics_rate" not in over:
         spec = load_formation(options.file)

@@ -38,7 +38,10 @@ class _Batch:
     @classmethod
     def empty(cls, n_agents: int) -> _Batch:
         b, n = CHECK_BATCH, n_agents
-        return cls(np.zeros(b), np.zeros((b, n, 3)), np.zeros((b, n, 3, 3)), *(np.zeros((b, n, 6)) for _ in range(3)))
+        six = (b, n, 6)
+        return cls(
+            np.zeros(b), np.zeros((b, n, 3)), np.zeros((b, n, 3, 3)), np.zeros(six), np.zeros(six), np.zeros(six)
+        )
 
 
 @dataclass

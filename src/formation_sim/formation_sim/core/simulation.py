@@ -85,7 +85,9 @@ class Simulation:
         self.h = 1.0 / self.physics_rate
         rng = np.random.default_rng(sim.seed)
         # Separate streams: adding measurement noise must not change the plant's draws.
-        plant_rng, meas_rng = (np.random.default_rng(s) for s in rng.bit_generator.seed_seq.spawn(2))
+        seed_seq = rng.bit_generator.seed_seq
+        assert isinstance(seed_seq, np.random.SeedSequence)  # default_rng(int) makes one
+        plant_rng, meas_rng = (np.random.default_rng(s) for s in seed_seq.spawn(2))
         self.plant = Plant(view, plant_rng)
         self.sensors = MeasurementModel(view, meas_rng)
         self.state: PlantState = self.plant.initial_state(view)

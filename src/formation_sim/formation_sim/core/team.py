@@ -63,11 +63,11 @@ def load_team_step() -> None:
 
 
 def step_faults(
-    first_end: Sequence[int],
+    first_end: Sequence[int] | np.ndarray,
     neighbours: Sequence[str],
-    in_range: Sequence[bool],
-    level: Sequence[float],
-    reason: Sequence[float],
+    in_range: Sequence[bool] | np.ndarray,
+    level: Sequence[float] | np.ndarray,
+    reason: Sequence[float] | np.ndarray,
 ) -> tuple[dict[int, list[str]], list[tuple[int, str]]]:
     """The fault policy of one step from the kernels' outputs: ({agent index: neighbours whose pose
     is missing}, [(agent index, reason) of every other agent at ERROR]); ``neighbours`` by end."""

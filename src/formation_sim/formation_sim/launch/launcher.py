@@ -160,6 +160,7 @@ def build_parser() -> OptionParser:
 
 
 def _sim_args(args: RunOptions, out: Path, spec: FormationSpec) -> list[str]:
+    assert args.file is not None  # preflight loaded it
     cmd = [str(args.file.resolve()), "--out", str(out), "--force", *args.child_argv(options.SIM)]
     if args.record:
         cmd += ["--bag", str(out / "bag")]
@@ -204,6 +205,7 @@ class Launcher:
 
     def start_all(self) -> Child:
         spec, args = self.spec, self.args
+        assert args.file is not None and args.mode is not None  # preflight loaded the file and resolved the mode
         formation = str(args.file.resolve())
         sim = self.sup.start(
             "sim",
@@ -521,7 +523,7 @@ def _checked(
     prepared; then OUT, its logs/ and the space reserve. Raises :class:`RefusedError`, leaving nothing behind."""
     secure = None
     try:
-        run = preflight(opts, lambda spec, o: _default_out(spec, o.mode), prepare=False)
+        run = preflight(opts, lambda spec, o: _default_out(spec, o.mode or spec.simulation.mode), prepare=False)
         for msg in run.warnings:
             print(f"formation-launch: warning: {msg}", file=sys.stderr)
         if run.options.discovery.server and run.options.secure:

@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 _PR_SET_PDEATHSIG = 1
 
@@ -62,6 +63,11 @@ def policy_name(pid: int) -> str | None:
     except (AttributeError, OSError):
         return None
     return _POLICY_NAMES.get(policy, str(policy))
+
+
+def _argv0(args: Any) -> Any:
+    """The program of a Popen's ``args``: its first item, or the whole command when it is one string or path."""
+    return args[0] if isinstance(args, (list, tuple)) else args
 
 
 @dataclass
@@ -200,7 +206,7 @@ class Supervisor:
                 "name": c.name,
                 "pid": c.proc.pid,
                 "role": c.role,
-                "executable": str(c.proc.args[0]),
+                "executable": str(_argv0(c.proc.args)),
                 "returncode": c.returncode,
                 "log": str(c.log.relative_to(root)),
                 "policy": c.policy,

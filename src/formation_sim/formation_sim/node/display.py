@@ -121,7 +121,7 @@ class DisplayPublisher:
             self.live.send(self.markers_pub.topic_name, markers, ns)
             self.live.send(self.funnels_pub.topic_name, funnels, ns)
             self.live.send(topics.CLOCK, clock_bytes(ns), ns)
-        if self.tf_pub is not None:
+        if self.tf_pub is not None and self.tf_class is not None:
             stamp = conversions.stamp_from_seconds(t)
             frame = topics.WORLD_FRAME
             transforms = []

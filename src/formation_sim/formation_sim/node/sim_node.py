@@ -35,6 +35,7 @@ INCOMPLETE (exit 4). ``--wait-recorder``: wait before the first step until a rec
 
 from __future__ import annotations
 
+import functools
 import struct
 import sys
 import time
@@ -175,7 +176,7 @@ class SimNode(Node):
         self.timing = Timing(n)
         self.wrench_subs = [
             self.create_subscription(
-                WrenchStamped, topics.wrench(a), lambda data, i=i: self.accept_wrench(i, data), qos.CONTROL, raw=True
+                WrenchStamped, topics.wrench(a), functools.partial(self.accept_wrench, i), qos.CONTROL, raw=True
             )
             for i, a in enumerate(self.ids)
         ]
@@ -220,6 +221,7 @@ class SimNode(Node):
             self.bag.write(self.wrench_topics[i], data)
         if not self.watch.accept(self.wrench_topics[i], self.wrench_subs[i]):
             return
+        refused: wrench_checks.WrenchRefusal | None
         try:
             ns, u = self.wrench_codecs[i].decode(data)
         except struct.error:
@@ -554,6 +556,7 @@ def bag_custom_data(spec: FormationSpec, args: RunOptions) -> dict[str, str]:
     """custom_data of the run's bag: the formation file and the run's effective settings, as
     formation-record --formation FILE --meta mode=… control_rate=… duration=… stores them."""
     s = spec.simulation
+    assert args.file is not None  # preflight loaded it
     return {
         "mode": args.mode or s.mode,
         "control_rate": repr(s.control_rate),
@@ -574,6 +577,7 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
     raw = list(sys.argv if argv is None else [sys.argv[0], *argv])
     run = prepared or sim_preflight(raw)
     spec, out, args = run.spec, run.out, run.options
+    assert out is not None  # sim_preflight names OUT (formation-sim --out, or its default)
     for msg in run.warnings:
         print(f"formation-sim: warning: {msg}", file=sys.stderr)
     s = spec.simulation
@@ -652,6 +656,7 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
             if bag.failed is not None and incomplete is None:
                 print(f"formation-sim: ERROR: {bag.failed}", file=sys.stderr, flush=True)
                 incomplete = Incomplete(ExitCode.INCOMPLETE, bag.failed)
+    code: int
     if insecure:
         code = ExitCode.INVALID
     elif runner is None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,6 +36,9 @@ from formation_sim.views.markers import (
     Shape,
     margin_colour,
 )
+
+if TYPE_CHECKING:  # Pillow: imported when an animation is written
+    from PIL.Image import Image as PILImage
 
 ANIMATION_NAME = "animation.gif"
 #: the margin curves' colours: blues, greys and browns, none of the scene's meanings
@@ -194,13 +198,17 @@ def write_animation(
     frame_times = np.arange(t[0], t[-1] + 1e-9, 1.0 / fps)
     samples = np.minimum(np.searchsorted(t, frame_times), len(t) - 1)
     figure = RunFigure(spec, arrays)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     figure.fig.set_dpi(dpi)
     rgb = []
     try:
         for s in samples:
             figure.draw(int(s))
-            figure.fig.canvas.draw()
-            rgb.append(Image.fromarray(np.asarray(figure.fig.canvas.buffer_rgba())[..., :3].copy()))
+            canvas = figure.fig.canvas
+            assert isinstance(canvas, FigureCanvasAgg)  # RunFigure selects the Agg backend
+            canvas.draw()
+            rgb.append(Image.fromarray(np.asarray(canvas.buffer_rgba())[..., :3].copy()))
     finally:
         figure.close()
     palette = _palette(rgb)
@@ -214,7 +222,7 @@ def write_animation(
     return path, len(samples), time.perf_counter() - started
 
 
-def _palette(frames: list) -> object:
+def _palette(frames: list) -> PILImage:
     """One 255-colour palette for every frame: quantised from a strip of frames spread over the run."""
     from PIL import Image
 
@@ -230,7 +238,7 @@ def write_frame(path: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], 
     """The animation's frame at time ``t_frame`` [s] as a PNG (for documentation)."""
     figure = RunFigure(spec, arrays)
     try:
-        figure.draw(int(min(np.searchsorted(arrays["t"], t_frame), len(arrays["t"]) - 1)))
+        figure.draw(min(int(np.searchsorted(arrays["t"], t_frame)), len(arrays["t"]) - 1))
         figure.fig.savefig(path, dpi=dpi)
     finally:
         figure.close()

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -124,11 +125,11 @@ def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndar
     ]
 
 
-UPPER = {"color": "C3", "ls": "--", "lw": 1.0}
-LOWER = {"color": "C2", "ls": "-.", "lw": 1.0}
-ERROR = {"color": "C0", "lw": 1.3}
+UPPER: dict[str, Any] = {"color": "C3", "ls": "--", "lw": 1.0}
+LOWER: dict[str, Any] = {"color": "C2", "ls": "-.", "lw": 1.0}
+ERROR: dict[str, Any] = {"color": "C0", "lw": 1.3}
 #: a cell of an edge figure: the whole run above, its second half (the steady band) below
-EDGE_CELL = {"stacked": 2, "max_cols": 2, "width": 4.4, "height": 2.1, "top": 0.75}
+EDGE_CELL: dict[str, Any] = {"stacked": 2, "max_cols": 2, "width": 4.4, "height": 2.1, "top": 0.75}
 
 
 def _edge_figure(plt, spec: FormationSpec, t: np.ndarray, per_edge, title: str, ylabel: str, legend: list):

@@ -69,7 +69,7 @@ def _plot(title: str, lines: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def _bounds(edges: list[EdgeSpec], groups: list[list[int]], fields: tuple[tuple[str, str], ...]) -> list[dict]:
-    out = []
+    out: list[dict[str, Any]] = []
     for g, members in enumerate(groups):
         names = ", ".join(edges[k].name for k in members)
         colour = BOUND_COLOURS[g % len(BOUND_COLOURS)]

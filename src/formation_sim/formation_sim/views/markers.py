@@ -83,6 +83,10 @@ def _v(x: np.ndarray) -> Vec3:
     return (float(x[0]), float(x[1]), float(x[2]))
 
 
+def _v4(x: np.ndarray) -> tuple[float, float, float, float]:
+    return (float(x[0]), float(x[1]), float(x[2]), float(x[3]))
+
+
 @dataclass(frozen=True)
 class SceneFrame:
     """What moves in one display instant, world frame [m]: N agents, K edges.
@@ -186,7 +190,7 @@ class FormationScene:
         for i, aid in enumerate(self.ids):
             r = float(self.radius[i])
             start = _v(f.p[i])
-            q = tuple(float(x) for x in f.q[i])
+            q = _v4(f.q[i])
             out.append(Shape("bodies", i, CUBE, start, q, (0.8 * r, 0.5 * r, 0.25 * r), BODY_COLOUR))
             pts = tuple(x for c in range(3) for x in (start, _v(f.axis_ends[i, c])))
             out.append(Shape("frames", i, LINE_LIST, scale=(0.03 * r, 0.0, 0.0), points=pts, colors=cols))
@@ -196,11 +200,11 @@ class FormationScene:
                 for c, (ns, colour) in enumerate((("forces", FORCE_COLOUR), ("torques", TORQUE_COLOUR))):
                     out.append(Shape(ns, i, ARROW, scale=scale, color=colour, points=(start, _v(f.tips[i, c]))))
         for k in range(len(self.d_des)):
-            colour = tuple(float(x) for x in f.edge_colours[k])
+            colour = _v4(f.edge_colours[k])
             width = 0.06 * float(min(self.radius[self.tail[k]], self.radius[self.head[k]]))
             ends = (_v(f.edge_ends[k, 0]), _v(f.edge_ends[k, 1]))
-            out.append(Shape("edges", k, LINE_LIST, scale=(width, 0.0, 0.0), color=colour, points=ends))  # type: ignore[arg-type]
+            out.append(Shape("edges", k, LINE_LIST, scale=(width, 0.0, 0.0), color=colour, points=ends))
             size = 0.5 * float(self.radius[self.head[k]])
-            ghost = (*colour[:3], GHOST_ALPHA)
-            out.append(Shape("desired", k, SPHERE, _v(f.ghosts[k]), scale=(size, size, size), color=ghost))  # type: ignore[arg-type]
+            ghost = (colour[0], colour[1], colour[2], GHOST_ALPHA)
+            out.append(Shape("desired", k, SPHERE, _v(f.ghosts[k]), scale=(size, size, size), color=ghost))
         return out

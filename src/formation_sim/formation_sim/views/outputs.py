@@ -33,7 +33,8 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
     written = []
     try:
         npz = io.BytesIO()
-        np.savez(npz, **recorder.arrays())
+        # numpy's stub types the keyword arrays as its allow_pickle flag too
+        np.savez(npz, **recorder.arrays())  # type: ignore[arg-type]
         write_atomic(out_dir / "trajectory.npz", npz.getvalue())
         written.append("trajectory.npz")
         figures = 0.0

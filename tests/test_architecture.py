@@ -1,0 +1,210 @@
+"""The import graph of src/: no circles, imports pointing one way, ROS only in the nodes.
+
+Every module under ``src/`` is parsed (not imported); each absolute ``formation_*`` import is an
+edge, function-level (lazy) imports included: a lazy import still ties two modules together. The
+layers: ``formation_sim.cli`` -> ``launch`` | ``node`` -> ``core`` -> ``formation_msgs_py``; ``views``
+serve the runners and the analysis; ROS (rclpy, message packages) only in the nodes.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+#: Top-level names of ROS 2 client libraries; any ``*_msgs`` package counts as ROS too.
+_ROS_TOP = {"rclpy", "builtin_interfaces", "rosidl_runtime_py", "rmw", "launch", "launch_ros"}
+
+#: The only modules that may import ROS (rclpy or message packages): the rclpy helpers, the simulator
+#: node's folder and the three other nodes.
+ROS_ALLOWED_PACKAGES = ("formation_msgs_py.ros", "formation_sim.node")
+ROS_ALLOWED_MODULES = (
+    "formation_agent.agent_node",
+    "formation_bag.record_node",
+    "formation_bag.replay_node",
+)
+
+#: (importer prefix, imported prefix): an importer under the first may not import anything under the second.
+FORBIDDEN = (
+    # formation_sim: cli -> launch | node -> core -> formation_msgs_py; views never drive a run
+    *(("formation_sim.core", p) for p in ("formation_sim.node", "formation_sim.launch", "formation_sim.cli")),
+    *(("formation_sim.core", "formation_sim.views"),),
+    *(("formation_sim.views", p) for p in ("formation_sim.node", "formation_sim.launch", "formation_sim.cli")),
+    *(("formation_sim.node", p) for p in ("formation_sim.launch", "formation_sim.cli")),
+    *(("formation_sim.launch", p) for p in ("formation_sim.node", "formation_sim.cli")),
+    # the core library stands alone
+    *(("formation_msgs_py", p) for p in ("formation_agent", "formation_sim", "formation_bag", "formation_deploy")),
+    # bags are read and analysed without the simulator's node, launcher or command line
+    *(("formation_bag", p) for p in ("formation_sim.node", "formation_sim.launch", "formation_sim.cli")),
+    # the agent knows nothing of the simulator
+    ("formation_agent", "formation_sim"),
+)
+
+
+@dataclass(frozen=True)
+class Import:
+    """One ``import`` statement of a module: what it names, where, and whether at module level."""
+
+    module: str
+    target: str
+    line: int
+    top_level: bool
+
+    def __str__(self) -> str:
+        where = "" if self.top_level else " (inside a function)"
+        return f"{self.module} imports {self.target} at line {self.line}{where}"
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(SRC).with_suffix("").parts[1:]  # src/<distribution>/<package>/...
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted(SRC.glob("*/formation_*/**/*.py")):
+        out[_module_name(path)] = path
+    return out
+
+
+def _imports(module: str, path: Path) -> list[Import]:
+    """Every absolute import in ``path``: ``from a.b import c`` names ``a.b.c`` and ``a.b`` (the graph keeps
+    those that are modules); ``top_level`` is False inside a function (a lazy import)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    out: list[Import] = []
+
+    def walk(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            names: list[str] = []
+            if isinstance(child, ast.Import):
+                names = [alias.name for alias in child.names]
+            elif isinstance(child, ast.ImportFrom) and child.level == 0 and child.module:
+                names = [f"{child.module}.{alias.name}" for alias in child.names] + [child.module]
+            out.extend(Import(module, name, child.lineno, not in_function) for name in names)
+            walk(child, in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+
+    walk(tree, False)
+    return out
+
+
+@functools.cache
+def _graph() -> tuple[dict[str, list[Import]], dict[str, list[Import]]]:
+    """(project edges per module, ROS imports per module). ``from a import b`` is an edge to ``a.b`` when
+    ``a.b`` is a module, else to ``a``."""
+    modules = _modules()
+    edges: dict[str, list[Import]] = {m: [] for m in modules}
+    ros: dict[str, list[Import]] = {m: [] for m in modules}
+    for module, path in modules.items():
+        seen: set[tuple[str, int]] = set()
+        for imp in _imports(module, path):
+            top_name = imp.target.split(".")[0]
+            if top_name in _ROS_TOP or top_name.endswith("_msgs"):
+                ros[module].append(imp)
+                continue
+            if not top_name.startswith("formation_"):
+                continue
+            target = imp.target
+            while target not in modules and "." in target:
+                target = target.rsplit(".", 1)[0]
+            if target in modules and target != module and (target, imp.line) not in seen:
+                seen.add((target, imp.line))
+                edges[module].append(Import(module, target, imp.line, imp.top_level))
+    return edges, ros
+
+
+def _under(module: str, prefix: str) -> bool:
+    return module == prefix or module.startswith(prefix + ".")
+
+
+def _ros_allowed(module: str) -> bool:
+    return module in ROS_ALLOWED_MODULES or any(_under(module, p) for p in ROS_ALLOWED_PACKAGES)
+
+
+def test_graph_is_read() -> None:
+    """The parser finds the project's modules and their imports (a broken walk would pass every rule)."""
+    edges, ros = _graph()
+    assert "formation_msgs_py.spec" in edges and "formation_sim.core.loop" in edges
+    assert any(e.target == "formation_msgs_py.schema" for e in edges["formation_msgs_py.spec"])
+    assert any(e.target.split(".")[0] == "rclpy" for e in ros["formation_sim.node.sim_node"])
+    lazy = [e for imports in edges.values() for e in imports if not e.top_level]
+    assert lazy, "function-level imports are part of the graph"
+
+
+def test_no_import_circles() -> None:
+    """No module reaches itself through imports (a package's ``__init__`` re-exporting a submodule is an
+    edge like any other)."""
+    edges, _ = _graph()
+    found: list[list[str]] = []
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    stack: list[str] = []
+
+    def visit(module: str) -> None:
+        state[module] = 1
+        stack.append(module)
+        for imp in edges[module]:
+            if state.get(imp.target) == 1:
+                found.append([*stack[stack.index(imp.target) :], imp.target])
+            elif imp.target not in state:
+                visit(imp.target)
+        stack.pop()
+        state[module] = 2
+
+    for module in sorted(edges):
+        if module not in state:
+            visit(module)
+    messages = []
+    for circle in found:
+        steps = [str(next(e for e in edges[a] if e.target == b)) for a, b in itertools.pairwise(circle)]
+        message = "circle " + " -> ".join(circle) + ":\n    " + "\n    ".join(steps)
+        if message not in messages:  # two imports of the same module in one function find a circle twice
+            messages.append(message)
+    assert not messages, "\n".join(messages)
+
+
+def test_ros_is_imported_only_by_the_nodes() -> None:
+    """rclpy and ROS message packages are imported only by formation_msgs_py.ros, formation_sim.node and the
+    agent, recorder and replay nodes."""
+
+    _, ros = _graph()
+    bad = [str(imp) for module, imports in sorted(ros.items()) if not _ros_allowed(module) for imp in imports]
+    assert not bad, "ROS imported outside the nodes:\n  " + "\n  ".join(bad)
+    for module in ROS_ALLOWED_MODULES:
+        assert ros[module], f"{module} no longer imports ROS: drop it from ROS_ALLOWED_MODULES"
+
+
+def test_ros_free_modules_do_not_reach_ros_at_module_level() -> None:
+    """Importing a module outside the nodes never imports ROS through a chain of module-level imports
+    (an entry point may import its node inside a function: ``formation_agent.process``)."""
+    edges, ros = _graph()
+    top_ros = {
+        m: next(i for i in imports if i.top_level) for m, imports in ros.items() if any(i.top_level for i in imports)
+    }
+    bad = []
+    for start in sorted(m for m in edges if not _ros_allowed(m)):
+        chain = {start: [start]}
+        todo = [start]
+        while todo:
+            module = todo.pop()
+            for imp in edges[module]:
+                if imp.top_level and imp.target not in chain:
+                    chain[imp.target] = [*chain[module], imp.target]
+                    todo.append(imp.target)
+        bad += [" -> ".join(chain[m]) + f" ({top_ros[m]})" for m in sorted(set(chain) & set(top_ros))]
+    assert not bad, "a module outside the nodes imports ROS through:\n  " + "\n  ".join(bad)
+
+
+def test_imports_point_one_way() -> None:
+    """No module imports a layer above its own: the FORBIDDEN pairs (cli -> launch | node -> core ->
+    formation_msgs_py; formation_bag without the simulator's node, launcher or command line)."""
+    edges, _ = _graph()
+    bad: dict[tuple[str, int, str], str] = {}  # one message per import statement and rule
+    for module, imports in sorted(edges.items()):
+        for imp in imports:
+            for src, dst in FORBIDDEN:
+                if _under(module, src) and _under(imp.target, dst):
+                    bad.setdefault((module, imp.line, dst), f"{imp} (a {src} module may not import {dst})")
+    assert not bad, "imports against the layering:\n  " + "\n  ".join(bad.values())

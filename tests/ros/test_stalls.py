@@ -1,9 +1,10 @@
 """Lockstep under stalls and forged answers: a run equals the headless one, or it is not PASS and says why.
 
 Every answer is compared with the simulator's witness (its shadow of the agent's controller): a
-forged wrench is never applied. A simulator or an agent stopped (SIGSTOP) for longer than the step
-timeout, at a seeded random step, on a machine made busier by two busy loops, leaves the run equal
-to the headless one (≤ 1e-9) and PASS, or ends it not PASS naming the cause.
+forged wrench is never applied; after a live gain change the witness stops for that agent. A
+simulator or an agent stopped (SIGSTOP) for longer than the step timeout, at a seeded random step,
+on a machine made busier by two busy loops, leaves the run equal to the headless one (≤ 1e-9) and
+PASS, or ends it not PASS naming the cause.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import pytest
 from geometry_msgs.msg import TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 from ros_helpers import BIN, PAPER, assert_equals_headless, read_log, ros_context, wait_for_line
 
 from formation_msgs_py import topics
@@ -146,3 +149,31 @@ def test_a_stall_at_any_step_leaves_the_run_headless_or_not_pass(
     else:
         assert summary["verdict"] != "PASS", note
         assert code == 3 and re.search(r"formation-sim: ERROR: lockstep: no answer .*from agent \w+", log), note
+
+
+def test_the_witness_stops_for_an_agent_whose_gain_changed_live(procs, ros_env: dict[str, str], tmp_path: Path) -> None:
+    """gamma of agent 3 set mid-run (ros2 param set): the run goes on to its end, summary.json witness.stopped
+    names agent 3, the sim time from which and the parameter; the other agents stay witnessed."""
+    for a in load_formation(PAPER).agents:
+        procs.agent(PAPER, a.id)
+    with ros_context(ros_env) as context:
+        node = Node("parameter_driver", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        client = AsyncParameterClient(node, topics.agent_node("3"))
+        assert client.wait_for_services(timeout_sec=60)
+        out = tmp_path / "out"
+        sim = procs.sim(PAPER, out, *RUN)
+        assert wait_for_line(sim, "progress t=", 120), read_log(sim)
+        future = client.set_parameters([Parameter("gamma", value=20.0)])
+        executor.spin_until_future_complete(future, timeout_sec=30)
+        assert future.done() and future.result().results[0].successful, read_log(sim)
+        node.destroy_node()
+    code = sim.wait(timeout=180)
+    log = read_log(sim)
+    summary = json.loads((out / "summary.json").read_text())
+    assert code in (0, 1) and summary["verdict"] in ("PASS", "FAIL"), log  # the funnels decide: gains changed
+    stopped = summary["witness"]["stopped"]
+    assert list(stopped) == ["3"], summary["witness"]
+    assert 0.0 < stopped["3"]["from_t"] < DURATION and "gamma" in stopped["3"]["why"], stopped
+    assert "agent 3: witness stopped from t=" in log, log

@@ -207,3 +207,13 @@ def test_an_agent_that_never_agrees_is_named_as_such() -> None:
     assert "no answer agreeing with the witness (answer_mismatch) from agent 3 for the step at t=0.000000 s" in str(
         err.value
     )
+
+
+def test_a_non_finite_answer_never_agrees() -> None:
+    """A NaN anywhere in an answer is a mismatch of infinite size, whatever the other components."""
+    u = np.ones((3, 6))
+    witness = _witness(u)
+    for k in range(6):
+        answer = [1.0] * 6
+        answer[k] = float("nan")
+        assert witness.judge(0, 0, tuple(answer)) == float("inf")

@@ -188,16 +188,14 @@ class AnswerWitness:
             return None
         w = self.expected[i]
         tol = self.tolerance
-        worst, agrees = 0.0, True
-        for a, b in zip(u, w):
-            d = abs(a - b)
-            agrees = agrees and d <= tol * (1.0 + abs(b))
-            worst = d if d > worst or d != d else worst  # NaN stays the worst
-        if agrees:
-            self.largest_agreed = max(self.largest_agreed, worst)
+        d = [abs(a - b) for a, b in zip(u, w)]
+        total = sum(d)  # NaN if any component is: never agrees
+        # all within tol absolutely: agrees (the usual case, one comparison); else component by component
+        if total <= tol or all(x <= tol * (1.0 + abs(b)) for x, b in zip(d, w)):
+            self.largest_agreed = max(self.largest_agreed, *d)
             return None
         self.mismatched[i] = tuple(u)
-        return worst if worst == worst else math.inf
+        return max(d) if total == total else math.inf
 
     def stop(self, i: int, t: float, why: str) -> tuple[float, ...] | None:
         """Compare agent i's answers no more from sim time ``t`` [s] on (``why``: the change); returns

@@ -10,7 +10,10 @@ ROS-free policy of :mod:`formation_sim.node.stepping`; this module is the thin n
   then ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps not
   answered within ``--resend`` wall seconds are published again to the missing agents; an agent
   silent for ``simulation.step_timeout`` wall seconds gets a last resend and, still silent
-  ``stepping.LAST_CALL`` s later, is named: INCOMPLETE, exit 3.
+  ``stepping.LAST_CALL`` s later, is named: INCOMPLETE, exit 3. Every answer must agree with the
+  witness (``stepping.AnswerWitness``: the shadow controllers' wrench on the published
+  measurements); one that differs is counted (``answer_mismatch``), not applied, and the step is
+  re-sent. A live change of an agent's gains (``/parameter_events``) stops the witness for it.
 - **realtime**: ticks at the control rate on the wall clock; each tick integrates the previous
   period with the latest wrench of each agent held (zero-order hold), then publishes the new
   measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by

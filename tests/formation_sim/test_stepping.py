@@ -6,13 +6,21 @@ import numpy as np
 import pytest
 
 from formation_sim.node.stepping import (
+    APPLY,
+    DUPLICATE,
+    IGNORE,
     LAST_CALL,
+    MISMATCH,
     NS,
+    WITNESS_TOLERANCE,
+    Admission,
+    AnswerWitness,
     CommandHold,
     LagBudget,
     LockstepWait,
     ParticipantMissingError,
     WrenchBook,
+    admit,
 )
 
 IDS = ("1", "2", "3")
@@ -122,3 +130,90 @@ def test_lag_budget() -> None:
     b = LagBudget(budget=1.0, period=0.01)
     assert not b.late(0.004) and b.late(0.006)
     assert not b.exceeded(1.0) and b.exceeded(1.0001)
+
+
+def _witness(u: np.ndarray, ns: int = 0) -> AnswerWitness:
+    w = AnswerWitness(IDS)
+    w.expect(ns, u)
+    return w
+
+
+def test_an_answer_beyond_round_off_is_not_applied_and_the_step_waits() -> None:
+    """Lockstep: an answer within the tolerance is applied; one beyond it (a forged or stale wrench) is
+    a mismatch with its size, the step stays unanswered, and the agent's later, agreeing answer is applied."""
+    rng = np.random.default_rng(25)
+    u = rng.uniform(-100.0, 100.0, (3, 6))
+    book, witness = WrenchBook(3), _witness(u, ns=PERIOD_NS)
+    close = tuple(u[0] * (1 + 1e-12))  # round-off: the quaternion round trip gives ~1e-13
+    assert admit(0, PERIOD_NS, close, None, book, witness) == Admission(APPLY, close)
+    forged = (50.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    a = admit(1, PERIOD_NS, forged, None, book, witness)
+    assert a.action == MISMATCH and a.difference == pytest.approx(np.max(np.abs(np.array(forged) - u[1])))
+    assert witness.mismatched == {1: forged}
+    w = LockstepWait(IDS, step_timeout=2.0, resend=0.25)
+    w.begin(PERIOD_NS, now=0.0)
+    book.accept(0, PERIOD_NS, close)
+    assert w.poll(book, now=0.3, mismatched=witness.mismatched) == [1, 2]  # resent to agent 2 (no apply)
+    good = tuple(u[1])
+    assert admit(1, PERIOD_NS, good, None, book, witness) == Admission(APPLY, good)
+    off = tuple(u[2] + np.array([0, 0, 0, 0, 0, 2e-9 * (1 + abs(u[2, 5]))]))  # twice the tolerance
+    assert admit(2, PERIOD_NS, off, None, book, witness).action == MISMATCH
+    assert witness.largest_agreed == pytest.approx(np.max(np.abs(u[0])) * 1e-12)
+
+
+def test_a_step_answered_keeps_its_answer_and_refused_values_wait_for_the_agent() -> None:
+    """Lockstep: a second, agreeing answer is a duplicate (never replaces the first); a second, other one
+    is a mismatch; a refused value does not answer the step with zero where the witness watches the agent."""
+    u = np.arange(18.0).reshape(3, 6)
+    book, witness = WrenchBook(3), _witness(u)
+    book.accept(0, 0, tuple(u[0]))
+    assert admit(0, 0, tuple(u[0] + 1e-13), None, book, witness) == Admission(DUPLICATE)
+    assert admit(0, 0, tuple(u[0] + 1.0), None, book, witness).action == MISMATCH
+    assert admit(1, 0, (1e9,) * 6, "over_limit", book, witness) == Admission(IGNORE)
+    assert admit(1, 0, tuple(u[1]), "past_step", book, witness) == Admission(IGNORE)
+    # realtime (no witness): a refused value answers with zero, a later answer replaces an earlier one
+    assert admit(1, 0, (1e9,) * 6, "over_limit", book, None) == Admission(APPLY, (0.0,) * 6)
+    assert admit(0, 0, tuple(u[0] + 1.0), None, book, None) == Admission(APPLY, tuple(u[0] + 1.0))
+
+
+def test_the_witness_stops_for_an_agent_whose_gains_changed() -> None:
+    """After a live gain change the witness stops for that agent (from when, why: the report); its
+    answer held back for the current step is then applied, and later answers are not compared."""
+    u = np.zeros((3, 6))
+    book, witness = WrenchBook(3), _witness(u, ns=3 * PERIOD_NS)
+    answer = (1.0, 2.0, 3.0, 0.0, 0.0, 0.0)
+    why = "live parameter(s) gamma of /agent_3/formation_agent changed"
+    assert admit(2, 3 * PERIOD_NS, answer, None, book, witness).action == MISMATCH
+    assert witness.stop(2, 3e-4, why) == answer
+    assert witness.stop(2, 9.0, "again") is None and not witness.watches(2)
+    witness.expect(4 * PERIOD_NS, u)
+    assert admit(2, 4 * PERIOD_NS, answer, None, book, witness) == Admission(APPLY, answer)
+    assert admit(1, 4 * PERIOD_NS, answer, None, book, witness).action == MISMATCH
+    report = witness.report()
+    assert report["stopped"] == {"3": {"from_t": 3e-4, "why": why}}
+    assert report["tolerance"] == WITNESS_TOLERANCE
+
+
+def test_an_agent_that_never_agrees_is_named_as_such() -> None:
+    """The last call names a silent agent and, apart, one whose answers all differed from the witness."""
+    w, book = wait(), WrenchBook(3)
+    w.begin(0, now=0.0)
+    book.accept(1, 0, (0.0,) * 6)
+    w.poll(book, now=2.0, mismatched={2: (1.0,) * 6})
+    with pytest.raises(ParticipantMissingError) as err:
+        w.poll(book, now=2.0 + LAST_CALL, mismatched={2: (1.0,) * 6})
+    assert err.value.names == ["1", "3"]
+    assert "no answer from agent 1;" in str(err.value)
+    assert "no answer agreeing with the witness (answer_mismatch) from agent 3 for the step at t=0.000000 s" in str(
+        err.value
+    )
+
+
+def test_a_non_finite_answer_never_agrees() -> None:
+    """A NaN anywhere in an answer is a mismatch of infinite size, whatever the other components."""
+    u = np.ones((3, 6))
+    witness = _witness(u)
+    for k in range(6):
+        answer = [1.0] * 6
+        answer[k] = float("nan")
+        assert witness.judge(0, 0, tuple(answer)) == float("inf")

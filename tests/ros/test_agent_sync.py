@@ -86,3 +86,21 @@ def test_poses_of_a_later_step_wait_and_those_of_answered_steps_are_forgotten() 
     for k in range(3, 30):
         sync.on_pose(j, k * 100_000, p, R, now=0.0)
     assert sorted(sync.steps) == [k * 100_000 for k in range(22, 30)]  # the newest 8
+
+
+def test_resent_step_after_a_missing_pose_is_answered_from_the_resend() -> None:
+    """A step answered without a pose (later than pose_wait) and then re-sent is answered again from
+    the resend's poses: the wrench the controller gives with every pose (the simulator's witness)."""
+    sync, poses, v, sent = _setup()
+    (j, (p, R)), *late = poses.items()
+    sync.on_pose(j, 0, p, R, now=0.0)
+    sync.on_velocity(0, v, now=0.0)
+    sync.try_compute(sync.deadline(), final=True)  # the other pose came too late: zero and ERROR
+    assert sent == [(0, (0.0,) * 6)]
+    for k, (p, R) in poses.items():  # the resend: every pose, then the velocity
+        sync.on_pose(k, 0, p, R, now=1.0)
+    sync.on_velocity(0, v, now=1.0)
+    ref = AgentController(sync.controller.view).compute(0.0, poses, v)
+    assert late and sent[-1] == (0, ref.wrench) and any(ref.wrench)
+    sync.on_velocity(0, v, now=2.0)  # answered with every pose: a further resend repeats it
+    assert sent[-1] == sent[-2] and len(sent) == 3

@@ -11,7 +11,8 @@ stamp. The agent computes as soon as it has its velocity and every neighbour's p
 stamp; a neighbour out of sensing range sends nothing, so after ``pose_wait`` wall seconds it
 answers anyway with a zero wrench and ERROR (as the headless runner does), and a lockstep
 simulator never waits for it. A repeated stamp (the simulator re-sends a step it has no answer
-for) is answered with the same wrench; an earlier stamp (clock jumped back) resets the
+for) is answered with the same wrench, or, if that answer lacked a neighbour's pose, computed again
+from the resend's poses; an earlier stamp (clock jumped back) resets the
 controller and the watchdogs. The node checks every message first (:mod:`formation_agent.measurement_checks`):
 a refused value (non-finite, not a rotation, out of range) answers its step with a zero wrench and
 ERROR; a refused stamp (from the future, or older than ``measurement_timeout`` by the /clock, sim
@@ -93,6 +94,8 @@ class StepSynchroniser:
     pending: tuple[int, Sequence[float], float] | None = None
     last_ns: int | None = None
     last_wrench: tuple[float, ...] = (0.0,) * 6
+    #: whether the last answer had every neighbour's pose (else a resend of its step is answered anew)
+    last_complete: bool = True
     last_output: ControlOutput | None = None
     window: Window = None  # type: ignore[assignment]
     #: every fault of this agent by kind (formation_msgs_py.faults): resets, refusals, zero answers
@@ -147,9 +150,13 @@ class StepSynchroniser:
     def on_velocity(self, ns: int, v: Sequence[float], now: float) -> None:
         self.last_measurement_wall = now
         if self.last_ns is not None:
-            if ns == self.last_ns:  # the simulator re-sent a step: same answer
+            if ns == self.last_ns and self.last_complete:  # the simulator re-sent a step: same answer
                 self.publish(ns, self.last_wrench)
                 return
+            # a step re-sent after an answer without a neighbour's pose (lost, or later than
+            # pose_wait) is answered again from the resend's poses below, as if it were new: the
+            # controller's only state, the velocity funnel's start, is set once, so the answer is
+            # the one the headless run gives
             if ns < self.last_ns:
                 self.reset(ns / _NS, f"measurements stamped {ns / _NS:.6f} s after {self.last_ns / _NS:.6f} s")
         self.pending = (ns, v, now + self.pose_wait)
@@ -194,6 +201,7 @@ class StepSynchroniser:
         else:
             out = ctrl.compute(t, poses, v)
         self.last_ns = ns
+        self.last_complete = complete
         self.last_wrench = out.wrench
         self.last_output = out
         self.window.add(out)

@@ -4,8 +4,11 @@ occurrence (summary.json ``faults``; docs/outputs.md), and the strict, atomic JS
 Who counts what (kinds):
 
 - the simulator (formation_sim.node.sim_node): ``resent_step`` (lockstep: a step published again to an
-  agent that had not answered), ``stale_command`` (realtime: a tick applied an agent's older wrench,
-  its answer to the last step was not in), ``zero_wrench`` (realtime: that wrench was older than
+  agent that had not answered), :data:`ANSWER_MISMATCH` (lockstep: an answer that differed from
+  the witness, the simulator's shadow of that agent's controller on the measurements it published,
+  by more than round-off; not applied, the step stays unanswered: formation_sim.node.stepping),
+  ``stale_command`` (realtime: a tick applied an agent's older wrench, its answer to the last step
+  was not in), ``zero_wrench`` (realtime: that wrench was older than
   ``command_timeout`` and replaced by zero), ``late_tick`` (realtime, agent ``simulator``: a tick
   more than half a period late), ``refused_wrench_<kind>`` (formation_sim.core.wrench_checks), and from its
   shadow of the controllers ``measurement`` (a neighbour out of sensing range) and ``controller``
@@ -28,6 +31,9 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+#: lockstep: an agent's answer differed from the witness (its controller run by the simulator)
+ANSWER_MISMATCH = "answer_mismatch"
 
 
 @dataclass

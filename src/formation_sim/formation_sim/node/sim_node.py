@@ -10,7 +10,10 @@ ROS-free policy of :mod:`formation_sim.node.stepping`; this module is the thin n
   then ``Simulation.advance(u)``. Identical to ``run_headless`` sampled at the same rate. Steps not
   answered within ``--resend`` wall seconds are published again to the missing agents; an agent
   silent for ``simulation.step_timeout`` wall seconds gets a last resend and, still silent
-  ``stepping.LAST_CALL`` s later, is named: INCOMPLETE, exit 3.
+  ``stepping.LAST_CALL`` s later, is named: INCOMPLETE, exit 3. Every answer must agree with the
+  witness (``stepping.AnswerWitness``: the shadow controllers' wrench on the published
+  measurements); one that differs is counted (``answer_mismatch``), not applied, and the step is
+  re-sent. A live change of an agent's gains (``/parameter_events``) stops the witness for it.
 - **realtime**: ticks at the control rate on the wall clock; each tick integrates the previous
   period with the latest wrench of each agent held (zero-order hold), then publishes the new
   measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by
@@ -47,18 +50,21 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, TwistStamped, WrenchStamped
+from rcl_interfaces.msg import ParameterEvent
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
+from rclpy.qos import qos_profile_parameter_events
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
+from formation_agent.agent_node import LIVE_GAINS
 from formation_agent.kernel_cache import warm_up
 from formation_msgs_py import topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, ros_type_name
 from formation_msgs_py.errors import BagError
-from formation_msgs_py.faults import FaultLog
+from formation_msgs_py.faults import ANSWER_MISMATCH, FaultLog
 from formation_msgs_py.options import RunOptions
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
@@ -76,13 +82,18 @@ from formation_sim.node.display import DisplayPublisher, declare_simulator_param
 from formation_sim.node.run_bag import RunBag
 from formation_sim.node.sim_options import sim_preflight
 from formation_sim.node.stepping import (
+    APPLY,
+    DUPLICATE,
+    MISMATCH,
     NS,
     ZERO_WRENCH,
+    AnswerWitness,
     CommandHold,
     LagBudget,
     LockstepWait,
     ParticipantMissingError,
     WrenchBook,
+    admit,
 )
 from formation_sim.node.timing import Timing
 from formation_sim.views.live_view import SUBPROTOCOL, LiveView, LiveViewError
@@ -163,6 +174,8 @@ class SimNode(Node):
             self.agent_ends[self.ids.index(obs)].append((k, *self.links[(obs, tgt)]))
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
         self.wrenches = WrenchBook(n)
+        # lockstep: every answer is compared with the shadow controllers' wrench (the witness)
+        self.witness = AnswerWitness(self.ids) if spec.simulation.mode == "lockstep" else None
         self.wrench_check = wrench_checks.WrenchCheck(
             [a.dynamics.max_force for a in spec.agents],
             [a.dynamics.max_torque for a in spec.agents],
@@ -180,6 +193,11 @@ class SimNode(Node):
             )
             for i, a in enumerate(self.ids)
         ]
+        if self.witness is not None:  # the agents' live gains: the witness cannot follow them
+            self.agent_nodes = {topics.agent_node(a): i for i, a in enumerate(self.ids)}
+            self.parameter_events_sub = self.create_subscription(
+                ParameterEvent, "/parameter_events", self._on_parameter_event, qos_profile_parameter_events
+            )
         # every topic of the formation: intruders are reported (and counted in summary.json) here
         self.wrench_topics = ["/" + topics.wrench(a) for a in self.ids]
         self.watch = GraphWatch(
@@ -215,7 +233,10 @@ class SimNode(Node):
         self.bag.write(topics.DIAGNOSTICS, data)  # type: ignore[union-attr]  # subscribed only with a bag
 
     def accept_wrench(self, i: int, data: bytes) -> None:
-        """Every wrench agent i publishes comes here (the one place wrenches are accepted)."""
+        """Every wrench agent i publishes comes here (the one place wrenches are accepted).
+
+        In lockstep an answer is applied only if it agrees with the witness (:class:`AnswerWitness`);
+        one that differs is the fault ``answer_mismatch`` and leaves the step unanswered (resent)."""
         self.received += 1
         if self.bag is not None:
             self.bag.write(self.wrench_topics[i], data)
@@ -232,17 +253,54 @@ class SimNode(Node):
                 self.timing.duplicates += 1
                 return
             refused = self.wrench_check.check(i, ns, u, self.current_ns)
+        kind = None
         if refused is not None:
             kind, reason = refused.kind, refused.reason
             if self.faults.add(self.current_ns / NS, self.ids[i], f"refused_wrench_{kind}", reason):
                 print(f"formation-sim: agent {self.ids[i]}: wrench refused ({kind}): {reason}", flush=True)
-            if kind in wrench_checks.DROPPED_KINDS or ns == self.wrenches.stamp[i]:
-                return  # answers no step, or the step has its answer already: nothing changes
-            u = (0.0,) * 6  # a refused value answers its step with zero: never integrated
+            if kind == wrench_checks.MALFORMED:
+                return  # no stamp, no values
+        admission = admit(i, ns, u, kind, self.wrenches, self.witness)
+        if admission.action == APPLY:
+            self._answer(i, ns, admission.u)
+        elif admission.action == MISMATCH:
+            self._mismatch(i, ns, admission.u, admission.difference)
+        elif admission.action == DUPLICATE:
+            self.timing.duplicates += 1
+
+    def _answer(self, i: int, ns: int, u: tuple[float, ...]) -> None:
         if self.wrenches.accept(i, ns, u):
             sent = self.pub_wall.get(ns)
             if sent is not None:
                 self.timing.latencies.append(time.monotonic() - sent)
+
+    def _mismatch(self, i: int, ns: int, u: tuple[float, ...], difference: float) -> None:
+        """Agent i's answer ``u`` to step ``ns`` differs from the witness by ``difference``: counted, not applied."""
+        w = self.witness.expected[i]  # type: ignore[union-attr]  # only called with a witness
+        zero = " (a zero wrench: the agent lacked a measurement?)" if not any(u) else ""
+        detail = f"step t={ns / NS:.6f} s: max |u - witness| {difference:.3g}{zero}"
+        if self.faults.add(ns / NS, self.ids[i], ANSWER_MISMATCH, detail):
+            print(
+                f"formation-sim: agent {self.ids[i]}: answer not applied ({ANSWER_MISMATCH}): {detail}; "
+                f"answer {_fmt6(u)}, witness {_fmt6(w)}",
+                flush=True,
+            )
+
+    def _on_parameter_event(self, event: ParameterEvent) -> None:
+        """An agent's live gain changed (its ``delta``/``gamma``): the witness stops for that agent."""
+        i = self.agent_nodes.get(event.node)
+        witness = self.witness
+        if i is None or witness is None or not witness.watches(i):
+            return
+        names = sorted({p.name for p in event.changed_parameters if p.name in LIVE_GAINS})
+        if not names:
+            return
+        t = max(self.current_ns, 0) / NS
+        why = f"live parameter(s) {', '.join(names)} of {event.node} changed"
+        held = witness.stop(i, t, why)
+        print(f"formation-sim: agent {self.ids[i]}: witness stopped from t={t:.6f} s: {why}", flush=True)
+        if held is not None:
+            self._answer(i, witness.ns, held)
 
     # publishing ------------------------------------------------------------------------------
     def publish_step(self, meas: Measurements, ns: int, only: list[int] | None = None) -> None:
@@ -428,7 +486,8 @@ class Runner:
             # while the agents compute: /clock, ground truth, display, shadow controllers and the
             # funnel check of step k (an agent's stamp checks allow /clock to come a little later)
             self._publish_aux(k, meas.t, ns)
-            _, margin_v, errors = self.shadow.evaluate(meas, rec)
+            witness_u, margin_v, errors = self.shadow.evaluate(meas, rec)
+            node.witness.expect(ns, witness_u)  # type: ignore[union-attr]  # lockstep: there is one
             s = sim.state
             rec.add(meas.t, s.p, s.R, s.v, None, margin_v)
             self.shadow.note_errors(meas.t, errors, rec)
@@ -436,7 +495,7 @@ class Runner:
                 if wait.done(node.wrenches):
                     break
                 now = mono()
-                late = wait.poll(node.wrenches, now)
+                late = wait.poll(node.wrenches, now, node.witness.mismatched)  # type: ignore[union-attr]
                 if late:
                     node.publish_step(meas, ns, only=late)
                     timing.resends += 1
@@ -548,8 +607,14 @@ class Runner:
         }
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
         info["security"] = self.node.watch.watch.report()
+        if self.node.witness is not None:
+            info["witness"] = self.node.witness.report()
         info.update(extra)
         return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)
+
+
+def _fmt6(u: Any) -> str:
+    return "[" + ", ".join(f"{x:.6g}" for x in u) + "]"
 
 
 def bag_custom_data(spec: FormationSpec, args: RunOptions) -> dict[str, str]:
@@ -569,6 +634,79 @@ def bag_custom_data(spec: FormationSpec, args: RunOptions) -> dict[str, str]:
 def _interrupted(runner: Runner | None) -> Incomplete:
     t = runner.sim.t if runner is not None else 0.0
     return Incomplete(ExitCode.INTERRUPTED, f"interrupted (SIGINT/SIGTERM) at t={t:.4f} s")
+
+
+class SimProcess:
+    """The parts of one simulator process, made in order by :meth:`start` and released by :meth:`release`
+    whatever got made (a stop can come at any point)."""
+
+    def __init__(
+        self, spec: FormationSpec, args: RunOptions, raw: list[str], bag: RunBag | None, live: LiveView | None
+    ) -> None:
+        self.spec, self.args, self.raw, self.bag, self.live = spec, args, raw, bag, live
+        self.node: SimNode | None = None
+        self.executor: Any = None
+        self.runner: Runner | None = None
+        self.extra: dict[str, Any] = {}
+
+    def start(self) -> Runner:
+        """rclpy, the node (secure transport checked), the executor, the runner; every agent matched."""
+        spec, args = self.spec, self.args
+        stopping.init(self.raw)
+        self.node = node = SimNode(spec, args.measurement_qos, args.intruder_policy, self.bag)
+        check_secure_transport()
+        node.display = declare_simulator_parameters(node, spec, args, self.live)
+        self.executor = EventsExecutor(context=node.context)
+        self.executor.add_node(node)
+        self.runner = runner = Runner(node, self.executor, spec, args)
+        timeout = args.discovery_timeout or 30.0 + len(spec.agents)
+        t_disc = time.monotonic()
+        runner.wait_for_agents(timeout)
+        self.extra["discovery_s"] = time.monotonic() - t_disc
+        print(f"formation-sim: all {len(spec.agents)} agents matched in {self.extra['discovery_s']:.2f} s", flush=True)
+        return runner
+
+    def stopped_by(self, exc: BaseException) -> Incomplete | None:
+        """How a run stopped by ``exc`` (out of :meth:`start` or the stepping) ends; None: no stop but a bug.
+
+        A missing agent: exit 3 naming it; a run that cannot go on: its reason; an insecure transport:
+        invalid input; SIGINT/SIGTERM (also a publish or wait it cut short): interrupted."""
+        if isinstance(exc, (ParticipantMissingError, RunStoppedError, InsecureTransportError)):
+            print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
+        if isinstance(exc, ParticipantMissingError):
+            self.extra["missing"] = exc.names
+            return Incomplete(ExitCode.PROCESS_DIED, str(exc))
+        if isinstance(exc, RunStoppedError):
+            return exc.incomplete
+        if isinstance(exc, InsecureTransportError):
+            return Incomplete(ExitCode.INVALID, str(exc))  # before any runner: the exit status alone
+        if isinstance(exc, (KeyboardInterrupt, ExternalShutdownException, StopRequestedError)):
+            return _interrupted(self.runner)
+        if self.node is not None and not rclpy.ok(context=self.node.context):
+            return _interrupted(self.runner)  # a publish or wait cut short by SIGINT/SIGTERM
+        return None
+
+    def release(self, incomplete: Incomplete | None) -> tuple[float, Incomplete | None]:
+        """Shut executor, node and rclpy down and close the bag; (stepping wall time [s], the run's
+        Incomplete: a bag that failed to write makes a finished run INCOMPLETE)."""
+        wall = time.monotonic() - self.runner.started if self.runner is not None else 0.0
+        if self.executor is not None:
+            self.executor.shutdown()  # else it keeps the node's DDS participant past destroy_node (agent_node.spin)
+        if self.node is not None:
+            self.node.destroy_node()
+        try:
+            rclpy.try_shutdown()
+        except RCLError:
+            pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
+        if self.live is not None:
+            self.live.close()
+        bag = self.bag
+        if bag is not None:
+            self.extra["recorder"] = bag.close()
+            if bag.failed is not None and incomplete is None:
+                print(f"formation-sim: ERROR: {bag.failed}", file=sys.stderr, flush=True)
+                incomplete = Incomplete(ExitCode.INCOMPLETE, bag.failed)
+        return wall, incomplete
 
 
 @guarded("formation-sim")
@@ -602,70 +740,28 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         except (BagError, OSError) as exc:
             print(f"formation-sim: {exc}", file=sys.stderr, flush=True)
             return ExitCode.INVALID
-    node = executor = runner = None
+    proc = SimProcess(spec, args, raw, bag, live)
     incomplete: Incomplete | None = None
-    insecure = False
-    extra: dict[str, Any] = {}
     try:
-        stopping.init(raw)
-        node = SimNode(spec, args.measurement_qos, args.intruder_policy, bag)
-        check_secure_transport()
-        node.display = declare_simulator_parameters(node, spec, args, live)
-        executor = EventsExecutor(context=node.context)
-        executor.add_node(node)
-        runner = Runner(node, executor, spec, args)
-        timeout = args.discovery_timeout or 30.0 + len(spec.agents)
-        t_disc = time.monotonic()
-        runner.wait_for_agents(timeout)
-        extra["discovery_s"] = time.monotonic() - t_disc
-        print(f"formation-sim: all {len(spec.agents)} agents matched in {extra['discovery_s']:.2f} s", flush=True)
+        runner = proc.start()
         if args.mode == "lockstep":
             runner.run_lockstep()
         else:
             runner.run_realtime()
-    except ParticipantMissingError as exc:
-        print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
-        incomplete = Incomplete(ExitCode.PROCESS_DIED, str(exc))
-        extra["missing"] = exc.names
-    except RunStoppedError as exc:
-        print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
-        incomplete = exc.incomplete
-    except InsecureTransportError as exc:
-        print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
-        insecure = True
-    except (KeyboardInterrupt, ExternalShutdownException, StopRequestedError):
-        incomplete = _interrupted(runner)
-    except Exception:
-        if node is None or rclpy.ok(context=node.context):
+    except (Exception, KeyboardInterrupt) as exc:
+        incomplete = proc.stopped_by(exc)
+        if incomplete is None:
             raise
-        incomplete = _interrupted(runner)  # a publish or wait cut short by SIGINT/SIGTERM
     finally:
-        wall = time.monotonic() - runner.started if runner is not None else 0.0
-        if executor is not None:
-            executor.shutdown()  # else it keeps the node's DDS participant past destroy_node (agent_node.spin)
-        if node is not None:
-            node.destroy_node()
-        try:
-            rclpy.try_shutdown()
-        except RCLError:
-            pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
-        if live is not None:
-            live.close()
-        if bag is not None:
-            extra["recorder"] = bag.close()
-            if bag.failed is not None and incomplete is None:
-                print(f"formation-sim: ERROR: {bag.failed}", file=sys.stderr, flush=True)
-                incomplete = Incomplete(ExitCode.INCOMPLETE, bag.failed)
+        wall, incomplete = proc.release(incomplete)
     code: int
-    if insecure:
-        code = ExitCode.INVALID
-    elif runner is None:
+    if proc.runner is None:
         code = ExitCode.INCOMPLETE if incomplete is None else incomplete.code
     else:
-        code = _write_outputs(runner, out, args, wall, incomplete, extra)
-    if node is None:
+        code = _write_outputs(proc.runner, out, args, wall, incomplete, proc.extra)
+    if proc.node is None:
         return code  # stopped while starting: a node half made is released by the interpreter's finalization
-    stopping.exit_now(code, node.context)
+    stopping.exit_now(code, proc.node.context)
 
 
 def _write_outputs(

@@ -20,10 +20,11 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 _ROS_TOP = {"rclpy", "builtin_interfaces", "rosidl_runtime_py", "rmw", "launch", "launch_ros"}
 
 #: The only modules that may import ROS (rclpy or message packages): the rclpy helpers, the simulator
-#: node's folder and the three other nodes.
+#: node's folder, the three other nodes and the parameter tool (a client of the nodes' parameter services).
 ROS_ALLOWED_PACKAGES = ("formation_msgs_py.ros", "formation_sim.node")
 ROS_ALLOWED_MODULES = (
     "formation_agent.agent_node",
+    "formation_agent.param_cli",
     "formation_bag.record_node",
     "formation_bag.replay_node",
 )

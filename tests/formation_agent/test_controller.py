@@ -259,3 +259,47 @@ def test_controller_limits_default_to_the_actuators_and_never_exceed_them(paper_
     doc["agents"][0]["controller"] = {"max_force": 50.0}
     with pytest.raises(FormationSpecError, match=r"agents\[0\]\.controller\.max_force: 50 exceeds .*max_force 40"):
         formation_from_dict(doc)
+
+
+# --- each test kills the mutant it is named after (tests/mutants.py) ----------------------------------
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_mutant_wrench_sign_flipped__the_wrench_opposes_the_transformed_velocity_error(spec, seed) -> None:
+    """u_i,c = −γ ρ_v⁻¹ r_v(ξ_v) T_v(ξ_v): in every channel the wrench has the sign opposite to ξ_v (r_v > 0 and
+    T_v has the sign of ξ_v), inside the funnel and saturated alike, and the actuator limit keeps the signs."""
+    rng = np.random.default_rng(300 + seed)
+    p, R = world(spec)
+    p = p + rng.normal(scale=0.02, size=p.shape)
+    R = R @ exp_rows(rng.normal(scale=0.05, size=(len(p), 3)))
+    for a in spec.agents:
+        ctrl = AgentController(agent_view(spec, a.id))
+        meas = measurements(spec, p, R, a.id)
+        ctrl.compute(0.0, meas, np.zeros(6))  # sets ρ_v0 = 2|e_v(0)| + 1
+        for t in rng.uniform(0.0, 0.5, size=4):
+            v = rng.normal(scale=1.5, size=6)  # some channels past their funnel: saturated
+            out = ctrl.compute(t, meas, v)
+            xi, u = np.array(out.xi_v), np.array(out.wrench)
+            assert np.all(xi != 0.0)
+            np.testing.assert_array_equal(np.sign(u), -np.sign(xi))
+
+
+def test_mutant_torque_limited_by_max_force__force_and_torque_have_their_own_limits(paper_path: Path) -> None:
+    """An agent whose controller.max_torque (5 N·m) differs from its max_force (100 N): a saturating error
+    gives a torque of norm 5 and a force of norm 100; with the limits the other way round, 100 and 5."""
+    import yaml
+
+    from formation_msgs_py.spec import formation_from_dict
+
+    for max_force, max_torque in ((100.0, 5.0), (5.0, 100.0)):
+        doc = yaml.safe_load(paper_path.read_text())
+        doc["agents"][0].setdefault("controller", {}).update(max_force=max_force, max_torque=max_torque)
+        spec = formation_from_dict(doc)
+        p, R = world(spec)
+        meas = measurements(spec, p, R, spec.agents[0].id)
+        ctrl = AgentController(agent_view(spec, spec.agents[0].id))
+        ctrl.compute(0.0, meas, np.zeros(6))
+        out = ctrl.compute(1e-4, meas, np.array([1e3, 1e3, 0.0, 0.0, 1e3, 1e3]))  # force and torque past their limits
+        force, torque = np.linalg.norm(out.wrench[:3]), np.linalg.norm(out.wrench[3:])
+        # the limit scales a norm to the limit: equal up to the rounding of the scaling
+        assert force == pytest.approx(max_force, rel=1e-12) and torque == pytest.approx(max_torque, rel=1e-12)

@@ -25,27 +25,36 @@ def test_available_memory_is_positive_and_at_most_the_machine() -> None:
     assert 0 < kernel_cache.available_memory() <= total
 
 
-def test_cache_is_warm_only_for_the_source_and_numba_as_they_are(tmp_path) -> None:
-    """An index written for another controller.py (or another numba) is stale: agents would compile."""
-    import hashlib
+def test_cache_is_warm_only_for_the_sources_and_numba_as_they_are(tmp_path, monkeypatch) -> None:
+    """An index written for other sources (the controller's file or a module it imports) or another numba
+    is stale: agents would compile."""
     import importlib.metadata
     import pickle
+    import sys
 
-    source = tmp_path / "controller.py"
-    source.write_text("def agent_step(): pass\n")
-    (tmp_path / "__pycache__").mkdir()
-    index = tmp_path / "__pycache__" / "controller.agent_step-265.py311.nbi"
-    assert not kernel_cache.numba_cache_warm(tmp_path)  # no index
+    from formation_msgs_py.compiled import STAMP_IN_NAME, sources_stamp
 
-    def write_index(version: str, text: bytes) -> None:
-        with index.open("wb") as f:
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    package = tmp_path / "formation_kernel_cache_probe"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "gains.py").write_text("GAMMA = 1.0\n")
+    source = package / "controller.py"
+    source.write_text("from formation_kernel_cache_probe.gains import GAMMA\n\ndef agent_step(): return GAMMA\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    (package / "__pycache__").mkdir()
+    assert not kernel_cache.numba_cache_warm(package)  # no index
+
+    def write_index(version: str) -> None:
+        stamp = sources_stamp(source)
+        name = f"controller.agent_step-3-{stamp[:STAMP_IN_NAME]}.py{sys.version_info[0]}{sys.version_info[1]}.nbi"
+        with (package / "__pycache__" / name).open("wb") as f:
             pickle.dump(version, f, protocol=-1)
-            f.write(pickle.dumps((hashlib.sha256(text).digest(), {}), protocol=-1))
+            f.write(pickle.dumps((stamp, {}), protocol=-1))
 
-    numba_version = importlib.metadata.version("numba")
-    write_index(numba_version, source.read_bytes())
-    assert kernel_cache.numba_cache_warm(tmp_path)
-    write_index("0.0.1", source.read_bytes())
-    assert not kernel_cache.numba_cache_warm(tmp_path)
-    write_index(numba_version, b"def agent_step(): return 1\n")
-    assert not kernel_cache.numba_cache_warm(tmp_path)
+    write_index("0.0.1")
+    assert not kernel_cache.numba_cache_warm(package)
+    write_index(importlib.metadata.version("numba"))
+    assert kernel_cache.numba_cache_warm(package)
+    (package / "gains.py").write_text("GAMMA = 2.0\n")  # a module the kernel imports
+    assert not kernel_cache.numba_cache_warm(package)

@@ -369,3 +369,88 @@ def test_set_inputs_needs_a_sample(spec: FormationSpec) -> None:
     rec = RunRecorder(spec)
     with pytest.raises(RuntimeError, match="no sample added yet"):
         rec.set_inputs(np.zeros((len(spec.agents), 6)))
+
+
+# --- the judge at its boundaries: each test kills the mutant it is named after (tests/mutants.py) --------
+
+
+def on_the_connectivity_bound(spec: FormationSpec, p: np.ndarray, R: np.ndarray) -> None:
+    """Move edge 0's head along +x from its tail (at the origin) to a float distance whose distance margin
+    at t = 0, by the judge's own formulas, is exactly 0: e exactly on C_con·ρ_e(0) (at t = 0 every exp is 1
+    exactly, so the numpy and the compiled forms agree to the bit)."""
+    edges = Judge(spec).edges
+    i, j = edges.tail[0], edges.head[0]
+    assert np.all(p[i] == 0.0) and p[j][0] > 0 and p[j][1] == p[j][2] == 0.0  # desired_shape: edge 0 along +x
+    d = math.sqrt(spec.edges[0].d_des ** 2 + spec.edges[0].c_con * rho_e(spec, 0, 0.0))
+    for step in sorted(range(-400, 401), key=abs):  # the floats nearest the bound first
+        q = p.copy()
+        q[j, 0] = d + step * math.ulp(d)
+        e, psi = edges.errors(q, R)
+        if edges.margins(0.0, e, psi)[3][0] == 0.0:
+            p[j, 0] = q[j, 0]
+            return
+    raise AssertionError("no float distance puts edge 0 exactly on its connectivity bound")
+
+
+def test_mutant_violation_at_margin_below_zero__an_error_exactly_on_a_funnel_bound_is_a_violation(
+    spec: FormationSpec,
+) -> None:
+    """The funnel rule is margin ≤ 0, not < 0: e exactly on C_con·ρ_e at t = 0 is the first violation
+    (numpy judge), and the run core's step check (the same rule, here as Python) leaves the funnel there."""
+    from formation_agent.controller import MARGIN_V, OUT_COLUMNS
+    from formation_msgs_py.judge import outside
+    from formation_sim.core.loop import check_step, new_buffers, new_watch
+
+    assert outside(0.0) and outside(-0.0) and not outside(5e-324)
+    p, R = trajectory(spec)
+    on_the_connectivity_bound(spec, p[0], R[0])
+    j = judge(spec, T, p, R)
+    assert j.min_margin_e[0] == 0.0
+    assert j.first_violation is not None
+    edge = spec.edges[0].name
+    assert j.first_violation.as_dict() == {"t": 0.0, "kind": "distance", "edge": edge, "channel": "connectivity"}
+    n_agents = len(spec.agents)
+    watch = new_watch(spec, Judge(spec))
+    out = np.zeros((n_agents, OUT_COLUMNS))
+    out[:, MARGIN_V : MARGIN_V + 6] = 1.0  # velocity margins well inside
+    assert check_step(watch, new_buffers(1, n_agents, 0, len(spec.edges)), 0, 0.0, p[0], R[0], out)
+    assert watch.checked.min_margin_e[0] == 0.0
+    watch = new_watch(spec, Judge(spec))
+    assert not check_step(watch, new_buffers(1, n_agents, 0, len(spec.edges)), 0, 0.0, p[1], R[1], out)
+
+
+def test_mutant_velocity_margin_update_below_zero__a_velocity_margin_exactly_zero_is_a_violation(
+    spec: FormationSpec,
+) -> None:
+    """Velocity margins known between samples (Judge.update_velocity): a channel exactly on its bound is
+    the first violation, named by agent and channel; a margin just above 0 is not."""
+    rec = RunRecorder(spec, control_rate=100.0)
+    margin_v = np.ones((len(spec.agents), 6))
+    margin_v[2, 4] = 5e-324  # the smallest positive margin: inside
+    rec.update_velocity(0.01, margin_v)
+    assert rec.first_violation is None
+    margin_v[2, 4] = 0.0
+    rec.update_velocity(0.02, margin_v)
+    assert rec.first_violation is not None
+    assert rec.first_violation.as_dict() == {"t": 0.02, "kind": "velocity", "agent": spec.agents[2].id, "channel": "wy"}
+    assert rec.min_margin_v[2] == 0.0
+
+
+def test_mutant_duration_short_by_one_and_a_half_periods__a_run_one_control_step_short_is_incomplete(
+    spec: FormationSpec,
+) -> None:
+    """A run is complete within half a control period of the requested duration: its last sample one
+    control step (10 ms at 100 Hz) short is INCOMPLETE (exit 3); 0.4 of a step short is complete (PASS)."""
+    p, R = desired_shape(spec)
+    v, u = np.zeros((len(spec.agents), 6)), np.zeros((len(spec.agents), 6))
+
+    def outcome(t_last: float):
+        rec = RunRecorder(spec, control_rate=100.0)
+        for t in (0.0, 0.5, t_last):
+            rec.add(t, p, R, v, u)
+        return rec.outcome(1.0)
+
+    short = outcome(0.99)
+    assert short.exit_code == ExitCode.INCOMPLETE and "duration not reached" in short.reason
+    assert outcome(0.996).exit_code == ExitCode.PASS
+    assert outcome(1.0).exit_code == ExitCode.PASS

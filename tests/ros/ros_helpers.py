@@ -63,6 +63,53 @@ def ros_context(ros_env: dict[str, str], ros_args: Sequence[str] = ()) -> Iterat
                 os.environ[k] = value
 
 
+#: the wrench an outsider forges in the intruder tests: 50 N along the body x axis
+FORGED = (50.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def launch_beside_a_forger(cmd: Sequence[str], ros_env: dict[str, str], agent: str = "3") -> tuple[int, str, int]:
+    """Run ``cmd`` (a formation-launch command line) while an outsider node answers each of ``agent``'s
+    steps with :data:`FORGED` on its wrench topic, stamped like the step's velocity (the pending
+    step's stamp, mostly before the agent answers). Returns (exit status, output, wrenches forged);
+    the launch is stopped by its process group if it outlives the test's deadline."""
+    from geometry_msgs.msg import TwistStamped, WrenchStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from formation_msgs_py import topics
+    from formation_msgs_py.ros import conversions, qos
+
+    launch = subprocess.Popen(
+        list(cmd), env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+    )
+    forged = 0
+    try:
+        with ros_context(ros_env) as context:
+            node = Node("outsider", context=context)
+            pub = node.create_publisher(WrenchStamped, topics.wrench(agent), qos.CONTROL)
+            wrench, twist = conversions.wrench_codec(agent), conversions.twist_codec(agent)
+
+            def forge(data: bytes) -> None:
+                nonlocal forged
+                pub.publish(wrench.encode(twist.decode(data)[0], FORGED))
+                forged += 1
+
+            node.create_subscription(TwistStamped, topics.velocity(agent), forge, qos.CONTROL, raw=True)
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(node)
+            deadline = time.monotonic() + 240
+            while launch.poll() is None:
+                assert time.monotonic() < deadline
+                executor.spin_once(timeout_sec=0.05)
+            node.destroy_node()
+    finally:
+        if launch.poll() is None:
+            os.killpg(launch.pid, signal.SIGINT)
+            launch.wait(timeout=60)
+    log = launch.stdout.read().decode(errors="replace") if launch.stdout else ""
+    return launch.returncode, log, forged
+
+
 @dataclass
 class Procs:
     """Processes started by one test; :meth:`stop_all` signals each PID's own process group."""

@@ -22,15 +22,22 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from geometry_msgs.msg import TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import BIN, PAPER, assert_equals_headless, read_log, ros_context, wait_for_line
+from ros_helpers import (
+    BIN,
+    FORGED,
+    PAPER,
+    assert_equals_headless,
+    launch_beside_a_forger,
+    read_log,
+    ros_context,
+    wait_for_line,
+)
 
 from formation_msgs_py import topics
-from formation_msgs_py.ros import conversions, qos
 from formation_msgs_py.spec import load_formation
 
 #: 0.2 s of the paper preset at 10 kHz: 2000 lockstep steps, every one recorded
@@ -38,7 +45,6 @@ DURATION = 0.2
 RUN = ("--duration", str(DURATION), "--record-rate", "10000", "--step-timeout", "1", "--progress-period", "1e-6")
 #: the simulator prints its progress every 64 steps (a tiny progress period)
 PROGRESS_EVERY = 64
-FORGED = (50.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 @pytest.fixture(scope="module")
@@ -56,44 +62,18 @@ def busy_loops() -> Iterator[list[int]]:
 def test_a_forged_answer_is_never_applied(ros_env: dict[str, str], tmp_path: Path) -> None:
     """An outsider answers each of agent 3's steps with 50 N on /agent_3/wrench as soon as the step is
     published (the pending step's stamp, mostly before agent 3): never in u, counted as answer_mismatch,
-    and the run equals the headless one."""
+    the run equals the headless one, and it ends INCOMPLETE (untrusted input) naming the outsider."""
     out = tmp_path / "out"
     duration = 0.05
     cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     cmd += ["--duration", str(duration), "--record-rate", "10000"]
-    launch = subprocess.Popen(
-        cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
-    )
-    forged = 0
-    try:
-        with ros_context(ros_env) as context:
-            node = Node("outsider", context=context)
-            pub = node.create_publisher(WrenchStamped, topics.wrench("3"), qos.CONTROL)
-            wrench, twist = conversions.wrench_codec("3"), conversions.twist_codec("3")
-
-            def forge(data: bytes) -> None:
-                nonlocal forged
-                pub.publish(wrench.encode(twist.decode(data)[0], FORGED))
-                forged += 1
-
-            node.create_subscription(TwistStamped, topics.velocity("3"), forge, qos.CONTROL, raw=True)
-            executor = SingleThreadedExecutor(context=context)
-            executor.add_node(node)
-            deadline = time.monotonic() + 240
-            while launch.poll() is None:
-                assert time.monotonic() < deadline
-                executor.spin_once(timeout_sec=0.05)
-            node.destroy_node()
-    finally:
-        if launch.poll() is None:
-            os.killpg(launch.pid, signal.SIGINT)
-            launch.wait(timeout=60)
-    log = launch.stdout.read().decode(errors="replace") if launch.stdout else ""
-    assert launch.returncode == 0, log
+    code, log, forged = launch_beside_a_forger(cmd, ros_env)
+    assert code == 4, log  # the outsider is an intruder: untrusted input, whatever the witness kept out
     assert forged > 0, log
     summary = json.loads((out / "summary.json").read_text())
     assert summary["faults"]["3"]["answer_mismatch"]["count"] >= 1, summary["faults"]
     assert ("/agent_3/wrench", "/outsider") in {(i["topic"], i["node"]) for i in summary["security"]["intruders"]}
+    assert summary["incomplete_reason"].startswith("untrusted input: "), summary["incomplete_reason"]
     u = np.load(out / "trajectory.npz")["u"]
     i3 = load_formation(PAPER).agent_ids.index("3")
     assert not np.any(np.all(u[:, i3] == FORGED, axis=-1)), "a forged wrench was applied"

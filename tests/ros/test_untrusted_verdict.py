@@ -4,21 +4,11 @@ controller): INCOMPLETE, untrusted input, the verdict block naming the outsider 
 from __future__ import annotations
 
 import json
-import os
 import re
-import signal
-import subprocess
-import time
 from pathlib import Path
 
 import pytest
-from geometry_msgs.msg import TwistStamped, WrenchStamped
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
-from ros_helpers import BIN, REALTIME, ros_context
-
-from formation_msgs_py import topics
-from formation_msgs_py.ros import conversions, qos
+from ros_helpers import BIN, REALTIME, launch_beside_a_forger
 
 
 @pytest.mark.parametrize("policy", ["report", "refuse"])
@@ -30,35 +20,8 @@ def test_lockstep_run_with_a_forged_wrench_is_untrusted(ros_env: dict[str, str],
     cmd = [str(BIN / "formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     cmd += ["--mode", "lockstep", "--duration", "1", "--physics-rate", "100", "--intruder-policy", policy]
     cmd += ["--step-timeout", "2"]  # refuse: agent 3 counts as missing after 2 s, not the default's longer wait
-    launch = subprocess.Popen(
-        cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
-    )
-    try:
-        with ros_context(ros_env) as context:
-            node = Node("outsider", context=context)
-            pub = node.create_publisher(WrenchStamped, topics.wrench("3"), qos.CONTROL)
-            wrench, twist = conversions.wrench_codec("3"), conversions.twist_codec("3")
-            force = [50.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-            node.create_subscription(
-                TwistStamped,
-                topics.velocity("3"),
-                lambda data: pub.publish(wrench.encode(twist.decode(data)[0], force)),
-                qos.CONTROL,
-                raw=True,
-            )
-            executor = SingleThreadedExecutor(context=context)
-            executor.add_node(node)
-            deadline = time.monotonic() + 240
-            while launch.poll() is None:
-                assert time.monotonic() < deadline
-                executor.spin_once(timeout_sec=0.05)
-            node.destroy_node()
-    finally:
-        if launch.poll() is None:
-            os.killpg(launch.pid, signal.SIGINT)
-            launch.wait(timeout=60)
-    log = launch.stdout.read().decode(errors="replace") if launch.stdout else ""
-    assert launch.returncode in ((4,) if policy == "report" else (3, 4)), log
+    code, log, _ = launch_beside_a_forger(cmd, ros_env)
+    assert code in ((4,) if policy == "report" else (3, 4)), log
     summary = json.loads((out / "summary.json").read_text())
     assert summary["verdict"] == "INCOMPLETE", log
     assert "untrusted input: " in summary["incomplete_reason"], summary["incomplete_reason"]

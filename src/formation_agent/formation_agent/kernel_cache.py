@@ -19,12 +19,13 @@ interpreted unless its environment says ``NUMBA_DISABLE_JIT=0``.
 
 from __future__ import annotations
 
-import hashlib
 import importlib.metadata
 import os
 import pickle
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from formation_msgs_py.compiled import cache_index_glob
 
 if TYPE_CHECKING:  # the agent's view: not imported for --help
     from formation_msgs_py.spec import AgentView
@@ -36,27 +37,28 @@ COMPILED_EXTRA_RSS = 125 * 2**20
 
 
 def numba_cache_warm(package: Path = Path(__file__).parent) -> bool:
-    """Whether numba's on-disk cache holds the controller's kernel for the source as it is now.
+    """Whether numba's on-disk cache holds the controller's kernel for the sources as they are now.
 
     The simulator compiles it (its shadow controllers call it) at a first run or after a change of
-    ``controller.py``; agents that found only a stale index would each compile it at start (~10 s
-    of CPU each: 20 of them miss the discovery timeout). numba keys an index by the SHA-256 of the
-    source file and its own version (numba/core/caching.py, IndexDataCacheFile): both are checked
-    here without importing numba (the index is not unpickled past its version).
+    ``controller.py`` or of a module it imports; agents that found no fresh entry would each compile
+    it at start (~10 s of CPU each: 20 of them miss the discovery timeout). The entry's file name
+    holds :func:`formation_msgs_py.compiled.sources_stamp` (every source compiled into the kernel)
+    and the index starts with numba's version: both are checked here without importing numba
+    (the index is not unpickled past its version).
     """
     try:
-        digest = hashlib.sha256((package / "controller.py").read_bytes()).digest()
+        patterns = cache_index_glob(package / "controller.py", "agent_step")
         version = importlib.metadata.version("numba")
     except (OSError, importlib.metadata.PackageNotFoundError):
         return False
-    for index in package.glob("__pycache__/controller.agent_step-*.nbi"):
-        try:
-            with index.open("rb") as f:
-                fresh = pickle.load(f) == version and digest in f.read()
-        except (OSError, pickle.UnpicklingError, EOFError):
-            continue
-        if fresh:
-            return True
+    for pattern in patterns:
+        for index in pattern.parent.glob(pattern.name):
+            try:
+                with index.open("rb") as f:
+                    if pickle.load(f) == version:
+                        return True
+            except (OSError, pickle.UnpicklingError, EOFError):
+                continue
     return False
 
 

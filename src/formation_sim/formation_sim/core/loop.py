@@ -41,8 +41,17 @@ from formation_agent.controller import (
 )
 from formation_msgs_py import funnels
 from formation_msgs_py.compiled import INTERPRETED, formula, kernel
-from formation_msgs_py.judge import CheckedSteps, EdgeSample, Judge
-from formation_msgs_py.so3 import flat_rows, matmul3, matrix_rows
+from formation_msgs_py.judge import (
+    CheckedSteps,
+    EdgeSample,
+    Judge,
+    edge_errors,
+    edge_margins,
+    in_steady_band,
+    outside,
+    settle,
+)
+from formation_msgs_py.so3 import flat_rows, matrix_rows, vec3
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_sim.core.measurement import Sensing, relative_poses
 from formation_sim.core.plant import (
@@ -162,49 +171,38 @@ def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
 
 
 @formula
-def settle(s, t, inside):
-    """The settle time after a sample at t: NaN (none) while outside the band, else the first t inside."""
-    if not inside:
-        return np.nan
-    return t if np.isnan(s) else s
-
-
-@formula
 def check_step(watch, buf, n, t, p, R, out):
-    """The funnels at step n of the chunk on ground truth (e, ψ, ρ into ``buf``); True if one is left."""
+    """The funnels at step n of the chunk on ground truth (e, ψ, ρ into ``buf``); True if one is left
+    (the judge's formulas and rule: :func:`formation_msgs_py.judge.edge_errors`, ``edge_margins``, ``outside``)."""
     c = watch.checked
-    outside = False
+    left = False
     for k in range(watch.pairs.shape[0]):
         g, i, j = watch.edges[k], watch.pairs[k, 0], watch.pairs[k, 1]
-        d = (p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2])
-        e = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - g[W_D2]
-        A = matmul3(matrix_rows(R[j]), flat_rows(g, W_R_DES))  # ψ = ½(3 − Σ (R_k2 R_des)∘R_k1)
-        trace = 0.0
-        for a in range(3):
-            for b in range(3):
-                trace += A[a][b] * R[i, a, b]
-        psi = 0.5 * (3.0 - trace)
-        rho_e = funnels.rho(t, 1.0, g[W_FLOOR_E], g[W_DECAY_E])
-        rho_psi = funnels.rho(t, g[W_RHO_PSI_0], g[W_RHO_PSI_INF], g[W_DECAY_PSI])
-        m_e = funnels.margin_e(e / rho_e, g[W_C_COL], g[W_C_CON])
-        m_psi = funnels.margin_psi(psi / rho_psi)
+        e, psi = edge_errors(
+            vec3(p[i]), vec3(p[j]), matrix_rows(R[i]), matrix_rows(R[j]), g[W_D2], flat_rows(g, W_R_DES)
+        )
+        rho_e, rho_psi, _, m_e, m_psi = edge_margins(
+            t, e, psi, g[W_C_COL], g[W_C_CON], g[W_FLOOR_E], g[W_DECAY_E],
+            g[W_RHO_PSI_0], g[W_RHO_PSI_INF], g[W_DECAY_PSI],
+        )  # fmt: skip
         buf.e[n, k], buf.psi[n, k], buf.rho_e[n, k], buf.rho_psi[n, k] = e, psi, rho_e, rho_psi
         c.min_margin_e[k] = min(c.min_margin_e[k], m_e)
         c.min_margin_psi[k] = min(c.min_margin_psi[k], m_psi)
-        c.settle_e[k] = settle(c.settle_e[k], t, g[W_BAND_LO] <= e <= g[W_BAND_HI])
-        c.settle_psi[k] = settle(c.settle_psi[k], t, psi <= g[W_BAND_PSI])
-        outside = outside or m_e <= 0 or m_psi <= 0
+        inside_e, inside_psi = in_steady_band(e, psi, g[W_BAND_LO], g[W_BAND_HI], g[W_BAND_PSI])
+        c.settle_e[k] = settle(c.settle_e[k], t, inside_e)
+        c.settle_psi[k] = settle(c.settle_psi[k], t, inside_psi)
+        left = left or outside(m_e) or outside(m_psi)
     for i in range(out.shape[0]):
         m_v = out[i, MARGIN_V]
         for ch in range(1, 6):
             m_v = min(m_v, out[i, MARGIN_V + ch])
         c.min_margin_v[i] = min(c.min_margin_v[i], m_v)
-        outside = outside or m_v <= 0
+        left = left or outside(m_v)
         force = np.sqrt(out[i, U] * out[i, U] + out[i, U + 1] * out[i, U + 1] + out[i, U + 2] * out[i, U + 2])
         torque = np.sqrt(out[i, U + 3] * out[i, U + 3] + out[i, U + 4] * out[i, U + 4] + out[i, U + 5] * out[i, U + 5])
         c.peak_force[i] = max(c.peak_force[i], force)
         c.peak_torque[i] = max(c.peak_torque[i], torque)
-    return outside
+    return left
 
 
 @formula

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from formation_msgs_py import funnels
+from formation_msgs_py.judge import EdgeErrors
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.spec import FormationSpec
 
@@ -121,29 +121,20 @@ class FormationScene:
         self.tail = np.array([index[e.tail] for e in spec.edges], dtype=int)
         self.head = np.array([index[e.head] for e in spec.edges], dtype=int)
         self.d_des = np.array([e.d_des for e in spec.edges])
-        self.R_des = np.array([e.R_des for e in spec.edges])
-        self.c_col = np.array([e.c_col for e in spec.edges])
-        self.c_con = np.array([e.c_con for e in spec.edges])
-        self._floor_e = np.array([e.rho_e_inf for e in spec.edges]) / np.maximum(self.c_col, self.c_con)
-        self._decay_e = np.array([e.decay_e for e in spec.edges])
-        self._psi = np.array([(e.rho_psi_0, e.rho_psi_inf, e.decay_psi) for e in spec.edges]).reshape(-1, 3)
+        self.edges = EdgeErrors(spec)
 
     def funnels(self, t: float, p: np.ndarray, R: np.ndarray) -> dict[str, np.ndarray]:
         """Per edge (K,): e [m²], its bounds −C_col·ρ_e and C_con·ρ_e, ψ, ρ_ψ, and the margins."""
-        d = p[self.head] - p[self.tail]
-        e = np.sum(d * d, axis=-1) - self.d_des**2
-        A = R[self.head] @ self.R_des
-        psi = 0.5 * (3.0 - np.sum(A * R[self.tail], axis=(-2, -1)))
-        rho_e = funnels.rho(t, 1.0, self._floor_e, self._decay_e)
-        rho_psi = funnels.rho(t, self._psi[:, 0], self._psi[:, 1], self._psi[:, 2])
+        e, psi = self.edges.errors(p, R)  # the judge's formulas (formation_msgs_py.judge)
+        rho_e, rho_psi, _, margin_e, margin_psi = self.edges.margins(t, e, psi)
         return {
             "e": e,
-            "e_lower": -self.c_col * rho_e,
-            "e_upper": self.c_con * rho_e,
+            "e_lower": -self.edges.c_col * rho_e,
+            "e_upper": self.edges.c_con * rho_e,
             "psi": psi,
             "rho_psi": rho_psi,
-            "margin_e": funnels.margin_e(e / rho_e, self.c_col, self.c_con),
-            "margin_psi": funnels.margin_psi(psi / rho_psi),
+            "margin_e": margin_e,
+            "margin_psi": margin_psi,
         }
 
     def frame(self, t: float, p: np.ndarray, R: np.ndarray, u: np.ndarray | None) -> SceneFrame:

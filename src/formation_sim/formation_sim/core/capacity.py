@@ -1,0 +1,257 @@
+"""What a host holds in realtime: the CPU per tick of a formation's processes, from its messages.
+
+A realtime run is one simulator process and one process per agent. Per control tick (rate f):
+
+- each agent takes its velocity and one relative pose per tree neighbour, and ``/clock`` every
+  ``f / clock_rate`` ticks, and publishes one wrench;
+- the simulator publishes all of those, ground truth (at every tick while recording, else at the
+  record rate), the display topics (markers, funnels, ``/tf``, at the marker rate), and takes every
+  wrench; while recording it also writes each of those messages into the bag.
+
+The model charges each message a CPU cost in the process that sends or takes it, one cost for the
+simulator (``sim_message_s``: it publishes a burst per tick) and one for an agent
+(``agent_message_s``: every message wakes it), plus each process's own work per tick (physics,
+sensing, shadow controllers and funnel check per agent in the simulator; checks and controller in
+an agent). The message costs are measured on the host by ``formation-check --calibrate`` (the
+floor: a run's messages with no work, :mod:`formation_sim.launch.calibrate`) or, without a
+calibration, are :data:`DEFAULT_COSTS`, derived in BENCHMARKS.md's figures (see its docstring).
+
+Ticks stay on time while the processes use at most :data:`UTILISATION` of the cores they run on:
+the cores needed are ``ceil(total CPU per tick / (period * UTILISATION))``, and the simulator, one
+thread, must itself stay under ``UTILISATION`` of one core. ROS-free: no rclpy here.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import socket
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from formation_msgs_py.errors import CalibrationError
+
+if TYPE_CHECKING:
+    from formation_msgs_py.spec import FormationSpec
+
+#: the share of a core the processes may use and still keep their ticks on time. The messages alone
+#: of 20 agents at 100 Hz used 59-69 % of two cores and missed 2-10 % of the ticks (BENCHMARKS.md,
+#: "What two cores hold"); the 5-agent preset at 100 Hz, well under half, kept 99-100 %.
+UTILISATION = 0.5
+#: the simulator's /clock rate in realtime [Hz of sim time] (formation_sim.node.sim_node.REALTIME_CLOCK_RATE)
+REALTIME_CLOCK_RATE = 10.0
+#: the display rate of markers, funnels and /tf [Hz of sim time] (formation-launch --marker-rate default)
+MARKER_RATE = 30.0
+#: display messages per display instant: markers, funnels, /tf
+DISPLAY_MESSAGES = 3
+
+
+@dataclass(frozen=True)
+class Costs:
+    """CPU per message and per tick [s] on one host; ``source`` says where they come from."""
+
+    #: CPU of the simulator per message it publishes or takes [s]
+    sim_message_s: float
+    #: CPU of an agent per message it takes or publishes [s]
+    agent_message_s: float
+    #: the simulator's own work per tick: fixed part [s] and per agent [s]
+    sim_work_s: float
+    sim_work_per_agent_s: float
+    #: one display frame per agent (markers, funnels, /tf encoding) [s]
+    display_per_agent_s: float
+    #: one bag write [s]
+    bag_write_s: float
+    #: an agent's own work per tick: measurement checks, controller, wrench encoding [s]
+    agent_work_s: float
+    source: str = "built-in defaults (BENCHMARKS.md)"
+
+
+#: Built-in costs, from BENCHMARKS.md (all at control rates of 50-100 Hz on the two-core reference
+#: host). Message costs: the floor (``benchmarks/floor_bench.py --rate``, the messages alone, /clock
+#: every 10 ticks) gave, for 20 agents at 100 Hz, the simulator 2.7-3.3 ms per tick for
+#: 58 + 0.1 published and 20 taken messages (38.4 µs each at the 3.0 ms midpoint) and each agent
+#: 0.46-0.52 ms for 2.9 + 0.1 taken and 1 published (122 µs each at 0.49 ms); for 50 agents at 50 Hz,
+#: the simulator 7.95 ms for 148.1 + 50 (40.1 µs each) and each agent 0.54 ms for 4.06 (133 µs).
+#: The defaults are the means of the two: 39 µs and 128 µs. Work: the simulator's own Python per
+#: lockstep step was 159 µs for 5 agents and 220 µs for 20 ("Where a step goes now"): 139 µs + 4.1 µs
+#: per agent; a display frame ~0.4 ms for 20 agents (20 µs per agent); one bag write 3.6 µs; an
+#: agent process (``formation-agent``) costs 0.46 ms per lockstep step against the floor agent's
+#: 0.25 ms: 0.21 ms of its own work.
+DEFAULT_COSTS = Costs(
+    sim_message_s=39e-6,
+    agent_message_s=128e-6,
+    sim_work_s=139e-6,
+    sim_work_per_agent_s=4.1e-6,
+    display_per_agent_s=20e-6,
+    bag_write_s=3.6e-6,
+    agent_work_s=210e-6,
+)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """CPU per tick [s] of each process of a realtime run, and the cores it needs."""
+
+    control_rate: float
+    agents: int
+    edges: int
+    record: bool
+    costs: Costs
+    sim_messages: float  # messages the simulator publishes and takes per tick
+    agent_messages: dict[str, float]  # per agent: messages taken and published per tick
+    sim_cpu_s: float
+    agent_cpu_s: dict[str, float]
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.control_rate
+
+    @property
+    def total_cpu_s(self) -> float:
+        return self.sim_cpu_s + sum(self.agent_cpu_s.values())
+
+    @property
+    def busy_cores(self) -> float:
+        """Cores kept busy on average: total CPU per tick / period."""
+        return self.total_cpu_s / self.period_s
+
+    @property
+    def cores_needed(self) -> int:
+        """Cores for on-time ticks: busy cores / :data:`UTILISATION`, rounded up."""
+        return max(1, math.ceil(self.busy_cores / UTILISATION - 1e-9))
+
+    @property
+    def simulator_fits(self) -> bool:
+        """The simulator (one thread) uses at most :data:`UTILISATION` of one core."""
+        return self.sim_cpu_s <= UTILISATION * self.period_s
+
+
+def message_counts(
+    spec: FormationSpec, *, record: bool = True, marker_rate: float = MARKER_RATE
+) -> tuple[float, dict[str, float]]:
+    """(messages the simulator publishes and takes per tick, {agent: messages it takes and publishes per tick})."""
+    s = spec.simulation
+    f = s.control_rate
+    degree = {a.id: 0 for a in spec.agents}
+    for e in spec.edges:
+        degree[e.tail] += 1
+        degree[e.head] += 1
+    clock = min(s.record_rate, f, REALTIME_CLOCK_RATE) / f
+    ground_truth = 1.0 if record else min(s.record_rate, f) / f
+    display = DISPLAY_MESSAGES * min(marker_rate, f) / f if marker_rate > 0 else 0.0
+    agents = {a: d + 1 + clock + 1 for a, d in degree.items()}  # poses, velocity, /clock; the wrench
+    published = sum(d + 1 for d in degree.values()) + clock + ground_truth + display
+    return published + len(degree), agents
+
+
+def predict(
+    spec: FormationSpec, costs: Costs = DEFAULT_COSTS, *, record: bool = True, marker_rate: float = MARKER_RATE
+) -> Prediction:
+    """CPU per tick of the simulator and of each agent of ``spec`` run in realtime at its control rate."""
+    f = spec.simulation.control_rate
+    n = len(spec.agents)
+    sim_messages, agent_messages = message_counts(spec, record=record, marker_rate=marker_rate)
+    display_frames = min(marker_rate, f) / f if marker_rate > 0 else 0.0
+    sim_cpu = (
+        costs.sim_message_s * sim_messages
+        + costs.sim_work_s
+        + costs.sim_work_per_agent_s * n
+        + costs.display_per_agent_s * n * display_frames
+        + (costs.bag_write_s * sim_messages if record else 0.0)
+    )
+    agent_cpu = {a: costs.agent_message_s * m + costs.agent_work_s for a, m in agent_messages.items()}
+    return Prediction(f, n, len(spec.edges), record, costs, sim_messages, agent_messages, sim_cpu, agent_cpu)
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity; os.cpu_count where that is unknown)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def report_lines(p: Prediction, cores: int) -> tuple[list[str], list[str]]:
+    """(lines of the prediction, reasons this host cannot keep the ticks on time)."""
+    ms = 1e3
+    per_agent = list(p.agent_cpu_s.values())
+    busiest = max(p.agent_cpu_s, key=p.agent_cpu_s.__getitem__)
+    lines = [
+        f"realtime capacity at {p.control_rate:g} Hz ({p.period_s * ms:.3g} ms per tick), "
+        f"{'recording' if p.record else 'not recording'}; costs: {p.costs.source}",
+        f"  messages per tick: simulator {p.sim_messages:.1f}, each agent "
+        f"{min(p.agent_messages.values()):.1f}-{max(p.agent_messages.values()):.1f}",
+        f"  CPU per tick: simulator {p.sim_cpu_s * ms:.2f} ms ({p.sim_cpu_s / p.period_s:.0%} of a core), "
+        f"each agent {min(per_agent) * ms:.2f}-{max(per_agent) * ms:.2f} ms (busiest {busiest}), "
+        f"all {p.total_cpu_s * ms:.2f} ms",
+        f"  cores: {p.busy_cores:.2f} busy on average; {p.cores_needed} needed to keep ticks on time "
+        f"(at most {UTILISATION:.0%} of each); this host has {cores}",
+    ]
+    unsafe = []
+    if not p.simulator_fits:
+        unsafe.append(
+            f"realtime: the simulator alone needs {p.sim_cpu_s * ms:.2f} ms of CPU per "
+            f"{p.period_s * ms:.3g} ms tick, more than {UTILISATION:.0%} of one core: no host keeps these ticks "
+            "on time (lower the control rate)"
+        )
+    if p.cores_needed > cores:
+        unsafe.append(
+            f"realtime: needs {p.cores_needed} cores to keep ticks on time, this host has {cores} "
+            "(run agents on other hosts, or lower the control rate)"
+        )
+    return lines, unsafe
+
+
+# --- calibration file --------------------------------------------------------------------------
+
+
+def calibration_path() -> Path:
+    """``$XDG_CACHE_HOME/formation/capacity.json`` (``~/.cache`` without XDG_CACHE_HOME)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "formation" / "capacity.json"
+
+
+def save_calibration(sim_message_s: float, agent_message_s: float, detail: dict[str, Any], path: Path) -> Path:
+    """Write the measured message costs [s] with this host's name, cores and the date (UTC)."""
+    doc = {
+        "host": socket.gethostname(),
+        "cpu_count": os.cpu_count(),
+        "available_cores": available_cores(),
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "sim_message_s": sim_message_s,
+        "agent_message_s": agent_message_s,
+        "measurement": detail,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+def load_costs(path: Path | None = None) -> Costs:
+    """The host's calibrated costs if ``path`` (default :func:`calibration_path`) exists for this
+    host, else :data:`DEFAULT_COSTS`. A file of another host is ignored (defaults)."""
+    path = path or calibration_path()
+    if not path.exists():
+        return DEFAULT_COSTS
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise CalibrationError(
+            f"calibration {path}: unreadable ({exc}); run formation-check --calibrate again"
+        ) from None
+    if not isinstance(doc, dict):
+        raise CalibrationError(f"calibration {path}: not a JSON object")
+    if doc.get("host") != socket.gethostname():
+        return replace(DEFAULT_COSTS, source=f"built-in defaults (BENCHMARKS.md; {path} is of host {doc.get('host')})")
+    values = {}
+    for key in ("sim_message_s", "agent_message_s"):
+        x = doc.get(key)
+        if not isinstance(x, (int, float)) or not math.isfinite(x) or not 0 < x < 1:
+            raise CalibrationError(f"calibration {path}: {key} = {x!r} is not a cost in (0, 1) s")
+        values[key] = float(x)
+    return replace(DEFAULT_COSTS, **values, source=f"calibrated on {doc['host']} {doc.get('date', '?')} ({path})")

@@ -1,4 +1,4 @@
-"""What a host holds in realtime: the message counts, the CPU model, the calibration file and formation-check --realtime."""
+"""What a host holds in realtime: message counts, the CPU model, the calibration file, formation-check --realtime."""
 
 from __future__ import annotations
 
@@ -20,11 +20,11 @@ STATED = replace(
     capacity.DEFAULT_COSTS,
     sim_message_s=40e-6,
     agent_message_s=100e-6,
-    sim_work_s=0.0,
-    sim_work_per_agent_s=0.0,
-    display_per_agent_s=0.0,
+    sim_tick_s=0.0,
+    sim_tick_per_agent_s=0.0,
+    sim_second_per_agent_s=0.0,
+    agent_second_s=0.0,
     bag_write_s=0.0,
-    agent_work_s=0.0,
     source="stated",
 )
 
@@ -110,10 +110,14 @@ def test_calibration_file_round_trip_and_refusals(tmp_path) -> None:
     costs = capacity.load_costs(path)
     assert (costs.sim_message_s, costs.agent_message_s) == (50e-6, 150e-6)
     assert costs.source.startswith("calibrated on ")
+    # the other terms scale with the message costs: the simulator's by 50/39, an agent's by 150/128
+    d = capacity.DEFAULT_COSTS
+    assert costs.sim_second_per_agent_s == pytest.approx(d.sim_second_per_agent_s * 50 / 39)
+    assert costs.agent_second_s == pytest.approx(d.agent_second_s * 150 / 128)
     path.write_text(json.dumps(dict(doc, host="another-host")))
     assert capacity.load_costs(path).sim_message_s == capacity.DEFAULT_COSTS.sim_message_s
     path.write_text(json.dumps(dict(doc, agent_message_s=-1.0)))
-    with pytest.raises(CalibrationError, match="agent_message_s = -1.0"):
+    with pytest.raises(CalibrationError, match=r"agent_message_s = -1\.0"):
         capacity.load_costs(path)
     assert capacity.load_costs(tmp_path / "none.json") is capacity.DEFAULT_COSTS
 

@@ -7,7 +7,7 @@ field). ``--schema`` prints the reference of every field of a formation file.
 
 ``--realtime`` adds what a realtime run of the file needs (:mod:`formation_sim.core.capacity`):
 the CPU per tick of the simulator and of each agent, and the cores that keep its ticks on time,
-from this host's calibration (``--calibrate`` measures it first, about ten seconds) or built-in
+from this host's calibration (``--calibrate`` measures it first, 20-40 s) or built-in
 costs; the prediction's first line says which. A calibration that fails exits 3 (a floor process
 failed, its error printed); an unreadable calibration file is invalid input (2).
 """
@@ -114,7 +114,7 @@ def build_parser() -> OptionParser:
     p.add_argument(
         "--calibrate",
         action="store_true",
-        help="measure this host's CPU per message first (about 10 s of ROS 2 processes) and store it in "
+        help="measure this host's CPU per message first (20-40 s of ROS 2 processes) and store it in "
         "$XDG_CACHE_HOME/formation/capacity.json for --realtime; with no FILE, only that",
     )
     p.add_argument(
@@ -139,7 +139,7 @@ def run_calibration(quiet: bool) -> int:
     from formation_sim.launch.calibrate import calibrate
 
     if not quiet:
-        print("formation-check: calibrating: the floor of a realtime run (about 10 s)…", flush=True)
+        print("formation-check: calibrating: the floor of a realtime run of 20 agents (20-40 s)…", flush=True)
     try:
         path, costs, detail = calibrate()
     except FormationError as exc:

@@ -10,11 +10,13 @@ A realtime run is one simulator process and one process per agent. Per control t
 
 The model charges each message a CPU cost in the process that sends or takes it, one cost for the
 simulator (``sim_message_s``: it publishes a burst per tick) and one for an agent
-(``agent_message_s``: every message wakes it), plus each process's own work per tick (physics,
-sensing, shadow controllers and funnel check per agent in the simulator; checks and controller in
-an agent). The message costs are measured on the host by ``formation-check --calibrate`` (the
-floor: a run's messages with no work, :mod:`formation_sim.launch.calibrate`) or, without a
-calibration, are :data:`DEFAULT_COSTS`, derived in BENCHMARKS.md's figures (see its docstring).
+(``agent_message_s``: every message wakes it), plus the simulator's own work per tick (physics,
+sensing, shadow controllers, funnel check: a fixed part and a part per agent) and what each process
+does per wall second whatever the rate (graph watch, display, diagnostics). Without a calibration
+the costs are :data:`DEFAULT_COSTS` (their derivation is in its comment); ``formation-check
+--calibrate`` measures the host's cost per message with the floor of a realtime run (its messages
+with no work, :mod:`formation_sim.launch.calibrate`) and scales every cost of a process by the
+ratio of its measured message cost to the default one (:func:`calibrated`).
 
 Ticks stay on time while the processes use at most :data:`UTILISATION` of the cores they run on:
 the cores needed are ``ceil(total CPU per tick / (period * UTILISATION))``, and the simulator, one
@@ -51,43 +53,46 @@ DISPLAY_MESSAGES = 3
 
 @dataclass(frozen=True)
 class Costs:
-    """CPU per message and per tick [s] on one host; ``source`` says where they come from."""
+    """CPU per message, per tick and per wall second [s] on one host; ``source`` says where they come from."""
 
     #: CPU of the simulator per message it publishes or takes [s]
     sim_message_s: float
-    #: CPU of an agent per message it takes or publishes [s]
+    #: CPU of an agent per message it takes or publishes (its checks and controller included) [s]
     agent_message_s: float
-    #: the simulator's own work per tick: fixed part [s] and per agent [s]
-    sim_work_s: float
-    sim_work_per_agent_s: float
-    #: one display frame per agent (markers, funnels, /tf encoding) [s]
-    display_per_agent_s: float
-    #: one bag write [s]
+    #: the simulator's own work per tick (physics, sensing, shadow controllers, funnel check):
+    #: fixed part [s] and per agent [s]
+    sim_tick_s: float
+    sim_tick_per_agent_s: float
+    #: the simulator's work per wall second and agent, whatever the rate (the graph watch of every
+    #: agent's topics, display frames, diagnostics) [s]
+    sim_second_per_agent_s: float
+    #: an agent's work per wall second (graph watch, diagnostics, deadline checks) [s]
+    agent_second_s: float
+    #: one bag write, while recording [s]
     bag_write_s: float
-    #: an agent's own work per tick: measurement checks, controller, wrench encoding [s]
-    agent_work_s: float
     source: str = "built-in defaults (BENCHMARKS.md)"
 
 
-#: Built-in costs, from BENCHMARKS.md (all at control rates of 50-100 Hz on the two-core reference
-#: host). Message costs: the floor (``benchmarks/floor_bench.py --rate``, the messages alone, /clock
-#: every 10 ticks) gave, for 20 agents at 100 Hz, the simulator 2.7-3.3 ms per tick for
-#: 58 + 0.1 published and 20 taken messages (38.4 µs each at the 3.0 ms midpoint) and each agent
-#: 0.46-0.52 ms for 2.9 + 0.1 taken and 1 published (122 µs each at 0.49 ms); for 50 agents at 50 Hz,
-#: the simulator 7.95 ms for 148.1 + 50 (40.1 µs each) and each agent 0.54 ms for 4.06 (133 µs).
-#: The defaults are the means of the two: 39 µs and 128 µs. Work: the simulator's own Python per
-#: lockstep step was 159 µs for 5 agents and 220 µs for 20 ("Where a step goes now"): 139 µs + 4.1 µs
-#: per agent; a display frame ~0.4 ms for 20 agents (20 µs per agent); one bag write 3.6 µs; an
-#: agent process (``formation-agent``) costs 0.46 ms per lockstep step against the floor agent's
-#: 0.25 ms: 0.21 ms of its own work.
+#: Built-in costs. Message costs, from BENCHMARKS.md's floor (``benchmarks/floor_bench.py --rate``:
+#: the messages alone, /clock every 10 ticks, two-core reference host, quiet): for 20 agents at
+#: 100 Hz the simulator took 2.7-3.3 ms per tick for 58.1 published and 20 taken messages (38.4 µs
+#: each at the 3.0 ms midpoint) and each agent 0.46-0.52 ms for 2.9 + 0.1 taken and 1 published
+#: (122 µs each at 0.49 ms); for 50 agents at 50 Hz the simulator 7.95 ms for 148.1 + 50 (40.1 µs)
+#: and each agent 0.54 ms for 4.06 (133 µs). The defaults are the means: 39 µs and 128 µs.
+#: The rest, what a run adds to its messages, is fitted to realtime runs of 5 and 10 agents at 50
+#: and 100 Hz without recording on the same host (BENCHMARKS.md, "What a host holds": the CPU of
+#: each process between two progress lines, against the messages at the costs above): the
+#: simulator 140 µs + 54 µs per agent per tick and 6.1 ms per agent per wall second; an agent
+#: 10 ms per wall second and nothing per tick beyond its messages. A bag write is 3.6 µs
+#: (BENCHMARKS.md, "Where a step goes now").
 DEFAULT_COSTS = Costs(
     sim_message_s=39e-6,
     agent_message_s=128e-6,
-    sim_work_s=139e-6,
-    sim_work_per_agent_s=4.1e-6,
-    display_per_agent_s=20e-6,
+    sim_tick_s=140e-6,
+    sim_tick_per_agent_s=54e-6,
+    sim_second_per_agent_s=6.1e-3,
+    agent_second_s=10e-3,
     bag_write_s=3.6e-6,
-    agent_work_s=210e-6,
 )
 
 
@@ -154,15 +159,14 @@ def predict(
     f = spec.simulation.control_rate
     n = len(spec.agents)
     sim_messages, agent_messages = message_counts(spec, record=record, marker_rate=marker_rate)
-    display_frames = min(marker_rate, f) / f if marker_rate > 0 else 0.0
     sim_cpu = (
         costs.sim_message_s * sim_messages
-        + costs.sim_work_s
-        + costs.sim_work_per_agent_s * n
-        + costs.display_per_agent_s * n * display_frames
+        + costs.sim_tick_s
+        + costs.sim_tick_per_agent_s * n
+        + costs.sim_second_per_agent_s * n / f
         + (costs.bag_write_s * sim_messages if record else 0.0)
     )
-    agent_cpu = {a: costs.agent_message_s * m + costs.agent_work_s for a, m in agent_messages.items()}
+    agent_cpu = {a: costs.agent_message_s * m + costs.agent_second_s / f for a, m in agent_messages.items()}
     return Prediction(f, n, len(spec.edges), record, costs, sim_messages, agent_messages, sim_cpu, agent_cpu)
 
 
@@ -254,4 +258,24 @@ def load_costs(path: Path | None = None) -> Costs:
         if not isinstance(x, (int, float)) or not math.isfinite(x) or not 0 < x < 1:
             raise CalibrationError(f"calibration {path}: {key} = {x!r} is not a cost in (0, 1) s")
         values[key] = float(x)
-    return replace(DEFAULT_COSTS, **values, source=f"calibrated on {doc['host']} {doc.get('date', '?')} ({path})")
+    source = f"calibrated on {doc['host']} {doc.get('date', '?')} ({path})"
+    return calibrated(values["sim_message_s"], values["agent_message_s"], source)
+
+
+def calibrated(sim_message_s: float, agent_message_s: float, source: str) -> Costs:
+    """:data:`DEFAULT_COSTS` scaled to a host whose floor costs these per message [s]: each process's
+    other terms by the same factor as its messages (a host half as fast per message is taken to be
+    half as fast at the rest)."""
+    d = DEFAULT_COSTS
+    ks, ka = sim_message_s / d.sim_message_s, agent_message_s / d.agent_message_s
+    return replace(
+        d,
+        sim_message_s=sim_message_s,
+        agent_message_s=agent_message_s,
+        sim_tick_s=d.sim_tick_s * ks,
+        sim_tick_per_agent_s=d.sim_tick_per_agent_s * ks,
+        sim_second_per_agent_s=d.sim_second_per_agent_s * ks,
+        bag_write_s=d.bag_write_s * ks,
+        agent_second_s=d.agent_second_s * ka,
+        source=source,
+    )

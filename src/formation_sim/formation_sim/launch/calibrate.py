@@ -2,10 +2,11 @@
 
 Runs the floor (:mod:`formation_sim.node.floor`: a realtime run's messages with no work) of a
 chain of :data:`AGENTS` agents at :data:`RATE` Hz for :data:`TICKS` ticks after :data:`WARMUP`
-(about ten seconds with start-up), in a reserved ROS domain, and divides each process's CPU by the
-messages it sent and took: the simulator's cost per message and an agent's (their mean). The
-result goes to :func:`formation_sim.core.capacity.calibration_path` with the host name, its cores
-and the date; :func:`formation_sim.core.capacity.load_costs` reads it back.
+(20-40 s with start-up on two cores), in a reserved ROS domain, and divides each process's CPU
+by the messages it sent and took: the simulator's cost per message and an agent's (their mean),
+which :func:`formation_sim.core.capacity.calibrated` turns into the host's costs. The result goes
+to :func:`formation_sim.core.capacity.calibration_path` with the host name, its cores and the
+date; :func:`formation_sim.core.capacity.load_costs` reads it back.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from formation_sim.core import capacity
 from formation_sim.launch.dds_env import run_environment
 from formation_sim.launch.supervisor import die_with_parent
 
-#: the calibration floor: agents of a chain, tick rate [Hz], ticks measured after the warm-up ticks
-AGENTS, RATE, TICKS, WARMUP = 5, 100.0, 400, 100
+#: the calibration floor: agents of a chain, tick rate [Hz], ticks measured after the warm-up ticks;
+#: 20 agents at 100 Hz, as the floor figures the built-in message costs come from
+AGENTS, RATE, TICKS, WARMUP = 20, 100.0, 300, 100
 #: wall s a floor process may take, start-up and discovery included
 TIMEOUT_S = 180.0
 

@@ -21,7 +21,6 @@ STATED = replace(
     sim_message_s=40e-6,
     agent_message_s=100e-6,
     sim_tick_s=0.0,
-    sim_tick_per_agent_s=0.0,
     sim_second_per_agent_s=0.0,
     agent_second_s=0.0,
     bag_write_s=0.0,

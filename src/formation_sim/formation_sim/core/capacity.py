@@ -11,7 +11,7 @@ A realtime run is one simulator process and one process per agent. Per control t
 The model charges each message a CPU cost in the process that sends or takes it, one cost for the
 simulator (``sim_message_s``: it publishes a burst per tick) and one for an agent
 (``agent_message_s``: every message wakes it), plus the simulator's own work per tick (physics,
-sensing, shadow controllers, funnel check: a fixed part and a part per agent) and what each process
+sensing, shadow controllers, funnel check) and what each process
 does per wall second whatever the rate (graph watch, display, diagnostics). Without a calibration
 the costs are :data:`DEFAULT_COSTS` (their derivation is in its comment); ``formation-check
 --calibrate`` measures the host's cost per message with the floor of a realtime run (its messages
@@ -59,10 +59,9 @@ class Costs:
     sim_message_s: float
     #: CPU of an agent per message it takes or publishes (its checks and controller included) [s]
     agent_message_s: float
-    #: the simulator's own work per tick (physics, sensing, shadow controllers, funnel check):
-    #: fixed part [s] and per agent [s]
+    #: the simulator's own work per tick beyond its messages (physics, sensing, shadow controllers,
+    #: funnel check, the tick's wait) [s]
     sim_tick_s: float
-    sim_tick_per_agent_s: float
     #: the simulator's work per wall second and agent, whatever the rate (the graph watch of every
     #: agent's topics, display frames, diagnostics) [s]
     sim_second_per_agent_s: float
@@ -79,19 +78,18 @@ class Costs:
 #: each at the 3.0 ms midpoint) and each agent 0.46-0.52 ms for 2.9 + 0.1 taken and 1 published
 #: (122 µs each at 0.49 ms); for 50 agents at 50 Hz the simulator 7.95 ms for 148.1 + 50 (40.1 µs)
 #: and each agent 0.54 ms for 4.06 (133 µs). The defaults are the means: 39 µs and 128 µs.
-#: The rest, what a run adds to its messages, is fitted to realtime runs of 5 and 10 agents at 50
-#: and 100 Hz without recording on the same host (BENCHMARKS.md, "What a host holds": the CPU of
-#: each process between two progress lines, against the messages at the costs above): the
-#: simulator 140 µs + 54 µs per agent per tick and 6.1 ms per agent per wall second; an agent
-#: 10 ms per wall second and nothing per tick beyond its messages. A bag write is 3.6 µs
-#: (BENCHMARKS.md, "Where a step goes now").
+#: The rest, what a run adds to its messages, is a least-squares fit to realtime runs of 5 and 10
+#: agents at 50 and 100 Hz and 20 agents at 50 Hz, not recording, on the same host (BENCHMARKS.md,
+#: "What a host holds": the CPU of each process between two progress lines, less its messages at
+#: the costs above): the simulator 0.90 ms per tick and 2.6 ms per agent and wall second (its
+#: per-agent work per tick came out at -2 µs: none); an agent 8.6 ms per wall second (per tick,
+#: 5 µs: none beyond its messages). A bag write is 3.6 µs (BENCHMARKS.md, "Where a step goes now").
 DEFAULT_COSTS = Costs(
     sim_message_s=39e-6,
     agent_message_s=128e-6,
-    sim_tick_s=140e-6,
-    sim_tick_per_agent_s=54e-6,
-    sim_second_per_agent_s=6.1e-3,
-    agent_second_s=10e-3,
+    sim_tick_s=0.90e-3,
+    sim_second_per_agent_s=2.6e-3,
+    agent_second_s=8.6e-3,
     bag_write_s=3.6e-6,
 )
 
@@ -162,7 +160,6 @@ def predict(
     sim_cpu = (
         costs.sim_message_s * sim_messages
         + costs.sim_tick_s
-        + costs.sim_tick_per_agent_s * n
         + costs.sim_second_per_agent_s * n / f
         + (costs.bag_write_s * sim_messages if record else 0.0)
     )
@@ -273,7 +270,6 @@ def calibrated(sim_message_s: float, agent_message_s: float, source: str) -> Cos
         sim_message_s=sim_message_s,
         agent_message_s=agent_message_s,
         sim_tick_s=d.sim_tick_s * ks,
-        sim_tick_per_agent_s=d.sim_tick_per_agent_s * ks,
         sim_second_per_agent_s=d.sim_second_per_agent_s * ks,
         bag_write_s=d.bag_write_s * ks,
         agent_second_s=d.agent_second_s * ka,

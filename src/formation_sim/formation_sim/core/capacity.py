@@ -195,8 +195,9 @@ def report_lines(p: Prediction, cores: int) -> tuple[list[str], list[str]]:
     if not p.simulator_fits:
         unsafe.append(
             f"realtime: the simulator alone needs {p.sim_cpu_s * ms:.2f} ms of CPU per "
-            f"{p.period_s * ms:.3g} ms tick, more than {UTILISATION:.0%} of one core: no host keeps these ticks "
-            "on time (lower the control rate)"
+            f"{p.period_s * ms:.3g} ms tick, more than {UTILISATION:.0%} of one core: no number of such cores "
+            f"keeps these ticks on time (a core {p.sim_cpu_s / (UTILISATION * p.period_s):.2g}x as fast would; "
+            "or lower the control rate)"
         )
     if p.cores_needed > cores:
         unsafe.append(

@@ -79,7 +79,7 @@ def measure(agents: int = AGENTS, rate: float = RATE, ticks: int = TICKS, warmup
 
 def calibrate(path: Path | None = None) -> tuple[Path, capacity.Costs, dict[str, Any]]:
     """Measure and store this host's message costs; (file written, costs, the measurement)."""
-    m = measure()
+    m = measure(AGENTS, RATE, TICKS, WARMUP)
     sim = m["sim"]
     sim_cost = sim["cpu_s"] / sim["messages"]
     agent_cost = sum(a["cpu_s"] / a["messages"] for a in m["agents"].values()) / len(m["agents"])

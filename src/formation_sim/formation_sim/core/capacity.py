@@ -11,8 +11,8 @@ A realtime run is one simulator process and one process per agent. Per control t
 The model charges each message a CPU cost in the process that sends or takes it, one cost for the
 simulator (``sim_message_s``: it publishes a burst per tick) and one for an agent
 (``agent_message_s``: every message wakes it), plus the simulator's own work per tick (physics,
-sensing, shadow controllers, funnel check) and what each process
-does per wall second whatever the rate (graph watch, display, diagnostics). Without a calibration
+sensing, shadow controllers, funnel check) and what each process does per wall second whatever
+the rate (graph watch, display, diagnostics). Without a calibration
 the costs are :data:`DEFAULT_COSTS` (their derivation is in its comment); ``formation-check
 --calibrate`` measures the host's cost per message with the floor of a realtime run (its messages
 with no work, :mod:`formation_sim.launch.calibrate`) and scales every cost of a process by the

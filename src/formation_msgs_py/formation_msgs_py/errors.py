@@ -68,6 +68,10 @@ class RotationError(FormationError, ValueError):
     """A matrix that should be a rotation is not one (or has the wrong shape)."""
 
 
+class CalibrationError(FormationError, ValueError):
+    """A host's capacity calibration (formation-check --calibrate) that cannot be read or used."""
+
+
 # --- bags: writing (formation_msgs_py.bag) and reading, analysing (formation_bag) ---
 
 

@@ -1,8 +1,15 @@
 """``formation-check FILE``: validate a formation file and say whether it is safe to run.
 
 Exit status: 0 valid, 1 valid but unsafe (a control rate below what the velocity loop needs,
-an initial error within a few percent of its funnel bound), 2 invalid (the message names the
+an initial error within a few percent of its funnel bound; with ``--realtime``, more cores than
+this host has, or a simulator that no core keeps on time), 2 invalid (the message names the
 field). ``--schema`` prints the reference of every field of a formation file.
+
+``--realtime`` adds what a realtime run of the file needs (:mod:`formation_sim.core.capacity`):
+the CPU per tick of the simulator and of each agent, and the cores that keep its ticks on time,
+from this host's calibration (``--calibrate`` measures it first, 20-40 s) or built-in
+costs; the prediction's first line says which. A calibration that fails exits 3 (a floor process
+failed, its error printed); an unreadable calibration file is invalid input (2).
 """
 
 from __future__ import annotations
@@ -98,19 +105,70 @@ def build_parser() -> OptionParser:
     p.add_argument(
         "--schema", action="store_true", help="print the reference of every formation-file field (Markdown) and exit"
     )
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="also predict the CPU per tick of a realtime run (simulator, each agent) and the cores it needs, and "
+        "say whether this host has them (exit 1 if not)",
+    )
+    p.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="measure this host's CPU per message first (20-40 s of ROS 2 processes) and store it in "
+        "$XDG_CACHE_HOME/formation/capacity.json for --realtime; with no FILE, only that",
+    )
+    p.add_argument(
+        "--no-record",
+        dest="predict_record",
+        action="store_false",
+        help="with --realtime: a run that does not record a bag (formation-launch --no-record)",
+    )
     return p
+
+
+def realtime_report(spec: FormationSpec, record: bool) -> tuple[list[str], list[str]]:
+    """(lines of the realtime prediction for this host, reasons this host cannot run it on time)."""
+    from formation_sim.core import capacity
+
+    prediction = capacity.predict(spec, capacity.load_costs(), record=record)
+    return capacity.report_lines(prediction, capacity.available_cores())
+
+
+def run_calibration(quiet: bool) -> int:
+    """``--calibrate``: measure and store this host's message costs; 0, or 3 if a floor process failed."""
+    from formation_sim.launch.calibrate import calibrate
+
+    if not quiet:
+        print("formation-check: calibrating: the floor of a realtime run of 20 agents (20-40 s)…", flush=True)
+    try:
+        path, costs, detail = calibrate()
+    except FormationError as exc:
+        print(f"formation-check: {exc}", file=sys.stderr)
+        return ExitCode.PROCESS_DIED
+    if not quiet:
+        print(
+            f"calibration: {costs.sim_message_s * 1e6:.1f} µs per simulator message, "
+            f"{costs.agent_message_s * 1e6:.1f} µs per agent message (load {detail['load_1min']:.1f}, "
+            f"floor on time {detail['on_time_fraction']:.1%}); written to {path}"
+        )
+    return ExitCode.PASS
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    opts = options.parse(options.CHECK, parser, argv)
+    ns = parser.parse_args(argv)
+    opts = options.RunOptions.from_namespace(options.CHECK, ns)
     if opts.schema:
         from formation_msgs_py.schema import schema_markdown
 
         sys.stdout.write(schema_markdown())
         return ExitCode.PASS
+    if ns.calibrate:
+        code = run_calibration(opts.quiet)
+        if code != ExitCode.PASS or opts.file is None:
+            return code
     if opts.file is None:
-        parser.error("a formation file is required (or --schema)")
+        parser.error("a formation file is required (or --schema, --calibrate)")
     from formation_sim.core.preflight import InvalidRunError, duration_problem, load_spec
 
     try:
@@ -122,6 +180,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"formation-check: INVALID: {exc}", file=sys.stderr)
         return ExitCode.INVALID
     lines, unsafe = report(spec)
+    if ns.realtime or ns.calibrate:
+        try:
+            more, why = realtime_report(spec, ns.predict_record)
+        except FormationError as exc:  # an unreadable calibration file
+            print(f"formation-check: INVALID: {exc}", file=sys.stderr)
+            return ExitCode.INVALID
+        lines += more
+        unsafe += why
     if not opts.quiet:
         print("\n".join(lines))
     if unsafe:

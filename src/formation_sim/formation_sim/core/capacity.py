@@ -276,3 +276,17 @@ def calibrated(sim_message_s: float, agent_message_s: float, source: str) -> Cos
         agent_second_s=d.agent_second_s * ka,
         source=source,
     )
+
+
+# --- the calibration floor's formation: a chain of agents (the floor node and its launcher share it)
+
+
+def chain_ids(n: int) -> list[str]:
+    """The ids of the floor's ``n`` agents, in chain order."""
+    return [f"c{k}" for k in range(n)]
+
+
+def chain_neighbours(n: int) -> dict[str, list[str]]:
+    """Each floor agent's tree neighbours in the chain of ``n``."""
+    ids = chain_ids(n)
+    return {a: [ids[k + d] for d in (-1, 1) if 0 <= k + d < n] for k, a in enumerate(ids)}

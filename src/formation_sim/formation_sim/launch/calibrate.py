@@ -34,7 +34,7 @@ TIMEOUT_S = 180.0
 
 def measure(agents: int = AGENTS, rate: float = RATE, ticks: int = TICKS, warmup: int = WARMUP) -> dict[str, Any]:
     """Run the floor; {"sim": {...}, "agents": {id: {...}}} as each process reported it."""
-    from formation_sim.node.floor import chain_ids
+    from formation_sim.core.capacity import chain_ids
 
     with tempfile.TemporaryDirectory(prefix="formation-calibrate-") as logs:
         env = run_environment(dict(os.environ), log_dir=Path(logs))

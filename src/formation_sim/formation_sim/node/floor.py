@@ -20,17 +20,10 @@ import sys
 import time
 from typing import Any
 
+from formation_sim.core.capacity import chain_ids, chain_neighbours
+
 #: an agent that hears no tick for this long [wall s] ends: its simulator is gone
 IDLE_TIMEOUT_S = 60.0
-
-
-def chain_ids(n: int) -> list[str]:
-    return [f"c{k}" for k in range(n)]
-
-
-def chain_neighbours(n: int) -> dict[str, list[str]]:
-    ids = chain_ids(n)
-    return {a: [ids[k + d] for d in (-1, 1) if 0 <= k + d < n] for k, a in enumerate(ids)}
 
 
 def _cpu_s() -> float:
@@ -78,9 +71,7 @@ def agent(agent_id: str, n: int, ticks: int, warmup: int, clock_every: int) -> d
     subs = [node.create_subscription(TwistStamped, topics.velocity(agent_id), on_message, qos.CONTROL, raw=True)]
     for j in neighbours:
         subs.append(
-            node.create_subscription(
-                PoseStamped, topics.relative_pose(agent_id, j), on_message, qos.CONTROL, raw=True
-            )
+            node.create_subscription(PoseStamped, topics.relative_pose(agent_id, j), on_message, qos.CONTROL, raw=True)
         )
     executor = EventsExecutor(context=node.context)
     executor.add_node(node)

@@ -199,7 +199,7 @@ def copy_into(root: Path, workdir: str, text: str, context: list[str]) -> list[s
             else:
                 target = root / dest / Path(src).name / Path(f).relative_to(src)
             target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(REPO / f, target)
+            shutil.copy2(REPO / f, target, follow_symlinks=False)  # a link stays a link, as COPY keeps it
             copied.append(str(target.relative_to(root)))
     return copied
 

@@ -75,7 +75,7 @@ def test_mcap_files_are_byte_for_byte_those_of_rosbags_own_writer(tmp_path: Path
     def segment(path: Path) -> bytes:
         enc = m.Encoder()
         rng = np.random.default_rng(3)
-        with SegmentedBagWriter(path, segment_seconds=None) as w:
+        with SegmentedBagWriter(path, segment_seconds=None, chunk_seconds=None) as w:
             w.add_topic("/clock", m.CLOCK)
             w.add_topic("/agent_1/velocity", m.TWIST_STAMPED)
             for k in range(30_000):  # ~3.3 MB: four chunks

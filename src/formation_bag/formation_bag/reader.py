@@ -26,6 +26,7 @@ from rosbags.interfaces import Connection, ConnectionExtRosbag2
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 
+from formation_msgs_py.bag import KEY_REPAIRED
 from formation_msgs_py.bag.metadata import STORAGES, SegmentInfo, metadata_yaml
 from formation_msgs_py.bag.writer import typestore
 from formation_msgs_py.errors import BagExistsError, BagFormatError, BagNotFoundError
@@ -231,25 +232,30 @@ def salvage(partial: Path, final: Path) -> int:
     """Write the messages of the closed chunks of ``partial`` (an MCAP file whose writer was killed:
     no summary, a torn last chunk) as the complete MCAP file ``final``; returns how many.
 
-    rosbags' MCAP writer puts each chunk (~1 MiB) in the file when it closes, so a killed writer's
-    file holds all but its last ~1 MiB. Nothing is written if no message can be read.
+    The writer (formation_msgs_py.bag.writer) puts each chunk in the file when it closes (at ~1 MiB
+    or 1 s of log time), so a killed writer's file holds all but its last chunk, and its custom_data
+    (the run's settings) at its start: the complete file carries them again. Nothing is written if
+    no message can be read.
     """
     from mcap.exceptions import McapError
-    from mcap.records import Channel, Message, Schema
+    from mcap.records import Channel, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
     from rosbags.rosbag2.metadata import parse_qos
 
-    from formation_msgs_py.bag.writer import SegmentedBagWriter
+    from formation_msgs_py.bag.writer import CUSTOM_DATA_RECORD, SegmentedBagWriter
 
     tmp = final.parent / f".salvage_{final.stem}"
     schemas: dict[int, str] = {}
     topics: dict[int, tuple[str, str, list[Any]]] = {}
     writer: SegmentedBagWriter | None = None
+    custom_data: dict[str, str] = {}
     count = 0
     with partial.open("rb") as f:
         try:
             for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
-                if isinstance(rec, Schema):
+                if isinstance(rec, Metadata) and rec.name == CUSTOM_DATA_RECORD:
+                    custom_data = dict(rec.metadata)  # the run's settings, written when the file opened
+                elif isinstance(rec, Schema):
                     schemas[rec.id] = rec.name
                 elif isinstance(rec, Channel):
                     qos = parse_qos(rec.metadata.get("offered_qos_profiles", "") or [])
@@ -257,7 +263,9 @@ def salvage(partial: Path, final: Path) -> int:
                 elif isinstance(rec, Message) and rec.channel_id in topics:
                     topic, msgtype, qos = topics[rec.channel_id]
                     if writer is None:
-                        writer = SegmentedBagWriter(tmp, segment_seconds=None, segment_bytes=None)
+                        writer = SegmentedBagWriter(
+                            tmp, segment_seconds=None, segment_bytes=None, custom_data=custom_data
+                        )
                     writer.add_topic(topic, msgtype, qos)
                     writer.write(topic, rec.log_time, rec.data)
                     count += 1
@@ -284,7 +292,8 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
         raise BagExistsError(meta, "metadata file")
     if meta.exists():
         meta.unlink()
-    salvaged = []
+    salvaged: list[str] = []
+    repaired: list[str] = []  # custom_data.repaired: what the bag's readers should know of it
     for part in partial_files(path):
         final = path / f"{part.name.lstrip('.')}"
         if part.suffix != ".mcap" or final.exists():
@@ -295,6 +304,9 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
             salvaged.append(
                 f"{part}: open when the writer stopped: {n} messages recovered into {final.name}, its tail lost"
             )
+            with Bag(final) as b:
+                reached = (b.end_time - b.start_time) / 1e9 if b.message_count else 0.0
+            repaired.append(f"{final.name}: {n} messages up to {reached:.4f} s of log time recovered, the rest lost")
     bag = Bag(path)
     try:
         infos: list[SegmentInfo] = []
@@ -314,7 +326,7 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
             storage=storage,
             segments=infos,
             topics=[tuple(r) for r in topic_rows.values()],  # type: ignore[misc]
-            custom_data=bag.custom_data,
+            custom_data={**bag.custom_data, **({KEY_REPAIRED: "; ".join(repaired)} if repaired else {})},
         )
         lost = salvaged + list(bag.lost)
     finally:

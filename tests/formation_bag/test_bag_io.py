@@ -197,6 +197,46 @@ def test_sigkill_of_a_one_file_writer_is_salvaged_by_repair(tmp_path: Path) -> N
     assert check_bag(bag).ok
 
 
+def test_a_killed_writer_loses_at_most_the_last_second_of_log_time(tmp_path: Path) -> None:
+    """Small messages (a 1 MiB chunk would take ~17 s here): chunks close and reach the disk every
+    second of log time, so after SIGKILL repair recovers every message up to within 1 s of the last
+    one written, with the writer's custom_data, and notes what it recovered."""
+    bag = tmp_path / "bag"
+    code = textwrap.dedent(
+        f"""
+        import time
+        from formation_bag import messages as m
+        from formation_msgs_py.bag.writer import SegmentedBagWriter
+        enc = m.Encoder()
+        w = SegmentedBagWriter({str(bag)!r}, segment_seconds=None, segment_bytes=None,
+                               custom_data={{"duration": "10", "formation_file": "f.yaml"}})
+        w.add_topic("/clock", m.CLOCK)
+        for k in range(3500):  # 3.5 s of log time at 1 kHz
+            w.write("/clock", k * 1_000_000, enc.clock(k * 1_000_000))
+        print("written", flush=True)
+        time.sleep(600)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "written"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    meta, lost = repair(bag)
+    assert len(lost) == 1 and "messages recovered into bag_0.mcap" in lost[0]
+    with Bag(bag) as b:
+        stamps = [m.stamp_ns(m.deserialize(x.data, x.msgtype).clock) for x in b.messages()]
+        custom = b.custom_data
+    # chunks close once they span 1 s: [0, 1.000], [1.001, 2.001], [2.002, 3.002]; the rest was open
+    assert stamps == [k * 1_000_000 for k in range(len(stamps))]
+    assert 3499 - len(stamps) < 1000  # lost: less than 1 s of log time
+    assert custom["duration"] == "10" and custom["formation_file"] == "f.yaml"
+    assert custom["repaired"] == f"bag_0.mcap: {len(stamps)} messages up to 3.0020 s of log time recovered, the rest lost"
+    assert check_bag(bag).ok
+
+
 def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:
     """check_bag reports a metadata.yaml whose counts do not match the files."""
     bag = tmp_path / "bag"

@@ -15,6 +15,7 @@ from formation_msgs_py.bag.writer import make_qos
 from formation_sim.node.run_bag import RunBag
 
 CLOCK, WRENCH, FUNNELS = "/clock", "/agent_1/wrench", "/formation/funnels"
+GT, MARKERS = "/formation/ground_truth", "/formation/markers"
 STEP_NS = 100_000  # 10 kHz
 
 
@@ -150,3 +151,38 @@ def test_publications_held_are_written_in_order_when_the_hold_ends(tmp_path: Pat
     assert bag.written[CLOCK] == 5
     bag.close()
     assert _log_times(tmp_path / "bag")[CLOCK] == [k * STEP_NS for k in range(5)]
+
+
+def test_view_file_holds_the_display_topics_and_the_rest_at_the_display_rate(tmp_path: Path) -> None:
+    """OUT/view.mcap: markers, funnels and /diagnostics whole, /clock and the ground truth on the
+    30 Hz display grid (the first message at or after each k/30 s), read with the mcap reader; the
+    bag keeps every message; a view file that exists is refused before the bag is made."""
+    from mcap.reader import make_reader
+
+    bag = RunBag(tmp_path / "bag", {"mode": "lockstep"}, view=tmp_path / "view.mcap", view_rate=30.0)
+    bag.add_topic(CLOCK, "rosgraph_msgs/msg/Clock", make_qos(depth=1), published=True)
+    bag.add_topic(GT, "geometry_msgs/msg/PoseArray", make_qos(), published=True)
+    bag.add_topic(MARKERS, "visualization_msgs/msg/MarkerArray", make_qos(), published=True)
+    bag.add_topic(WRENCH, "geometry_msgs/msg/WrenchStamped", make_qos(), published=False)
+    codec = wire.wrench_codec("1")
+    for k in range(2001):  # 0.2 s at 10 kHz
+        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+        bag.write(GT, wire.clock_bytes(k * STEP_NS))  # a stamp first: all the log time needs
+        bag.write(WRENCH, codec.encode(k * STEP_NS, [0.0] * 6))
+        if k % 333 == 0:
+            bag.write(MARKERS, b"\x00\x01\x00\x00" + bytes(4))
+    counts = bag.close()
+    assert counts["view"] == {"path": str(tmp_path / "view.mcap"), "written": 2 * 7 + 7, "failed": None}
+    times: dict[str, list[int]] = {}
+    with (tmp_path / "view.mcap").open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            times.setdefault(channel.topic, []).append(message.log_time)
+    # 0, then the first 100 µs step at or after k/30 s: 33.4, 66.7, 100, 133.4, 166.7, 200 ms
+    grid = [0, 33_400_000, 66_700_000, 100_000_000, 133_400_000, 166_700_000, 200_000_000]
+    assert times[CLOCK] == grid and times[GT] == grid
+    assert times[MARKERS] == [k * STEP_NS for k in range(0, 2001, 333)]
+    assert WRENCH not in times  # not a display topic
+    assert _log_times(tmp_path / "bag")[CLOCK] == [k * STEP_NS for k in range(2001)]
+    with pytest.raises(FileExistsError, match="view file"):
+        RunBag(tmp_path / "bag2", {}, view=tmp_path / "view.mcap")
+    assert not (tmp_path / "bag2").exists()

@@ -39,7 +39,6 @@ from formation_msgs_py.bag.writer import McapFileWriter, SegmentedBagWriter
 from formation_msgs_py.errors import BagError, BagExistsError
 from formation_msgs_py.wire import stamp_of
 
-
 #: the view file's name in OUT
 VIEW_FILE = "view.mcap"
 #: message types of the view file written whole (they come at the display rate or slower)

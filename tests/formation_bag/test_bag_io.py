@@ -18,7 +18,7 @@ import yaml
 
 from formation_bag import messages as m
 from formation_bag.interop import JAZZY_KEYS, check_bag
-from formation_bag.reader import Bag, repair
+from formation_bag.reader import Bag, repair, repair_file
 from formation_msgs_py.bag.writer import SegmentedBagWriter
 from formation_msgs_py.errors import BagExistsError, BagFormatError, BagNotFoundError, BagWriterError
 
@@ -236,6 +236,52 @@ def test_a_killed_writer_loses_at_most_the_last_second_of_log_time(tmp_path: Pat
     recovered = f"bag_0.mcap: {len(stamps)} messages up to 3.0020 s of log time recovered, the rest lost"
     assert custom["repaired"] == recovered
     assert check_bag(bag).ok
+
+
+def test_a_killed_view_file_is_completed_in_place_by_repair(tmp_path: Path) -> None:
+    """A one-file MCAP writer (OUT/view.mcap's) killed after 3.5 s of log time: its chunks are on disk
+    up to within 1 s; ``formation-bag repair FILE`` completes the file in place, saying what it
+    recovered; a complete file is refused."""
+    from mcap.reader import make_reader
+
+    view = tmp_path / "view.mcap"
+    code = textwrap.dedent(
+        f"""
+        import time
+        from formation_bag import messages as m
+        from formation_msgs_py.bag.writer import McapFileWriter
+        enc = m.Encoder()
+        w = McapFileWriter({str(view)!r}, custom_data={{"mode": "lockstep"}})
+        w.add_topic("/clock", m.CLOCK)
+        for k in range(106):  # 3.5 s at 30 Hz
+            w.write("/clock", round(k * 1e9 / 30), enc.clock(round(k * 1e9 / 30)))
+        print("written", flush=True)
+        time.sleep(600)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "written"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    r = subprocess.run(
+        [sys.executable, "-m", "formation_bag.cli", "repair", str(view)], capture_output=True, text=True, check=False
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    with view.open("rb") as f:
+        reader = make_reader(f)
+        times = [msg.log_time for _, _, msg in reader.iter_messages()]
+        assert reader.get_summary() is not None
+    # chunks close once they span 1 s: at 1.0, 2.033, 3.067 s; what came after was open
+    assert times == [round(k * 1e9 / 30) for k in range(len(times))] and len(times) == 93
+    note = f"view.mcap: 93 messages up to {times[-1] / 1e9:.4f} s of log time recovered, the rest lost"
+    assert r.stdout.strip() == f"repaired {view}: {note}"
+    with Bag(view) as b:
+        assert b.custom_data == {"mode": "lockstep", "repaired": note}
+    with pytest.raises(BagFormatError, match="complete already"):
+        repair_file(view)
 
 
 def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:

@@ -19,8 +19,9 @@ all but the last second of the run for ``formation-bag repair`` (docs/bags.md).
 as the run goes with the same bytes and log times: every message of the display topics (markers,
 funnels, /tf) and /diagnostics, and /clock and the ground truth decimated to ``view_rate`` (the
 display rate). It costs a step only its own writes (a dictionary look-up per bag message, a write
-per display instant); its chunks are flushed like the bag's. An I/O error on it stops only it
-(:attr:`RunBag.view_failed`): the bag is the run's record.
+per display instant); its chunks are flushed every :data:`VIEW_CHUNK_SECONDS` of log time, so a
+crash keeps all but its last half second (``formation-bag repair OUT/view.mcap`` completes it).
+An I/O error on it stops only it (:attr:`RunBag.view_failed`): the bag is the run's record.
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ from formation_msgs_py.wire import stamp_of
 
 #: the view file's name in OUT
 VIEW_FILE = "view.mcap"
+#: log time [s] after which the view file's chunk is closed and flushed (it is small: a chunk of
+#: 1 MiB would take seconds to fill; a crash loses at most this much of it)
+VIEW_CHUNK_SECONDS = 0.5
 #: message types of the view file written whole (they come at the display rate or slower)
 VIEW_ALL_TYPES = frozenset(
     (
@@ -77,7 +81,9 @@ class RunBag:
         if view is not None and view.exists():  # before the bag: refused, nothing is left behind
             raise BagExistsError(view, "view file")
         self.writer = SegmentedBagWriter(path, segment_seconds=None, segment_bytes=max_bytes, custom_data=custom_data)
-        self.view = None if view is None else McapFileWriter(view, custom_data=custom_data)
+        self.view = (
+            None if view is None else McapFileWriter(view, chunk_seconds=VIEW_CHUNK_SECONDS, custom_data=custom_data)
+        )
         self.view_rate = float(view_rate)
         #: per view topic, the log time [ns] its next message is due at (0: every message)
         self.view_due: dict[str, int] = {}

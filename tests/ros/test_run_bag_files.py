@@ -126,7 +126,8 @@ def _sim_pid(launcher: int) -> int | None:
 def test_sigkill_of_the_simulator_loses_at_most_a_second(ros_env: dict[str, str], tmp_path: Path) -> None:
     """SIGKILL of the simulator past 0.6 s of a 1 s recorded lockstep run: ``formation-bag repair``
     recovers every step up to the last chunk on disk when it was killed (≥ 0.6 s, within 1 s of the
-    kill point) and formation-analyze says INCOMPLETE, naming the repair and the gap."""
+    kill point) and the view file up to ≥ 0.5 s; formation-analyze says INCOMPLETE, naming the
+    repair and the gap."""
     out = tmp_path / "out"
     proc = _launch(ros_env, out, "1")
     open_file = out / "bag" / ".bag_0" / ".bag_0.mcap"
@@ -170,6 +171,13 @@ def test_sigkill_of_the_simulator_loses_at_most_a_second(ros_env: dict[str, str]
         expected = list(range(0, reached - step_ns + 1, step_ns))
         assert sorted(set(times))[: len(expected)] == expected, topic
     assert "of log time recovered, the rest lost" in repaired
+
+    # the view file: flushed every half second of simulated time, completed in place by repair
+    r = subprocess.run([str(BIN / "formation-bag"), "repair", str(out / "view.mcap")], capture_output=True, text=True)
+    assert r.returncode == 0 and "of log time recovered, the rest lost" in r.stdout, r.stdout + r.stderr
+    clock = _mcap_log_times(out / "view.mcap")["/clock"]
+    assert clock[0] == 0 and clock[-1] >= 0.5e9 and clock[-1] >= last - 1e9, clock
+    assert max(b - a for a, b in itertools.pairwise(clock)) <= (DISPLAY_PERIOD + CLOCK_PERIOD) * 1e9
 
     r = subprocess.run(
         [str(BIN / "formation-analyze"), str(out / "bag"), "--out", str(tmp_path / "analysis"), "--no-plots"],

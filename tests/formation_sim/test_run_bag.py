@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 from pathlib import Path
 
@@ -186,3 +187,46 @@ def test_view_file_holds_the_display_topics_and_the_rest_at_the_display_rate(tmp
     with pytest.raises(FileExistsError, match="view file"):
         RunBag(tmp_path / "bag2", {}, view=tmp_path / "view.mcap")
     assert not (tmp_path / "bag2").exists()
+
+
+class _DiskFull:
+    """A file that takes ``room`` more bytes, then writes what fits and fails as a full disk does."""
+
+    def __init__(self, f, room: int) -> None:
+        self.f, self.room = f, room
+
+    def write(self, data) -> int:
+        data = bytes(data)
+        if len(data) > self.room:
+            self.f.write(data[: self.room])
+            self.room = 0
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.room -= len(data)
+        return self.f.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self.f, name)
+
+
+def test_a_full_disk_keeps_every_flushed_second_for_repair(tmp_path: Path) -> None:
+    """The disk fills during the third second of log time: the run's bag fails (named), and repair
+    recovers every message of the first two seconds, the chunks flushed before the disk was full."""
+    from formation_bag.reader import Bag, repair
+
+    bag = _bag(tmp_path / "bag")
+    bag.write(CLOCK, wire.clock_bytes(0))
+    storage = bag.writer._open.storage
+    # a Clock message takes ~60 B with its index: a 1 s chunk (10 000 of them) ~0.6 MB; room for two
+    storage.bio = _DiskFull(storage.bio, 1_400_000)
+    for k in range(1, 35_000):
+        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+    counts = bag.close()
+    assert bag.failed is not None and "No space left on device" in bag.failed
+    assert counts["not_recorded"] > 0
+    _, lost = repair(tmp_path / "bag")
+    assert len(lost) == 1 and "recovered into bag_0.mcap" in lost[0]
+    with Bag(tmp_path / "bag") as b:
+        times = [msg.log_time for msg in b.messages()]
+        assert "20002 messages up to 2.0001 s" in b.custom_data["repaired"]
+    # chunks close once they span 1 s: [0, 1.0000] and [1.0001, 2.0001] reached the disk whole
+    assert times == [k * STEP_NS for k in range(20_002)]

@@ -18,7 +18,7 @@ import yaml
 
 from formation_bag import messages as m
 from formation_bag.interop import JAZZY_KEYS, check_bag
-from formation_bag.reader import Bag, repair
+from formation_bag.reader import Bag, repair, repair_file
 from formation_msgs_py.bag.writer import SegmentedBagWriter
 from formation_msgs_py.errors import BagExistsError, BagFormatError, BagNotFoundError, BagWriterError
 
@@ -75,7 +75,7 @@ def test_mcap_files_are_byte_for_byte_those_of_rosbags_own_writer(tmp_path: Path
     def segment(path: Path) -> bytes:
         enc = m.Encoder()
         rng = np.random.default_rng(3)
-        with SegmentedBagWriter(path, segment_seconds=None) as w:
+        with SegmentedBagWriter(path, segment_seconds=None, chunk_seconds=None) as w:
             w.add_topic("/clock", m.CLOCK)
             w.add_topic("/agent_1/velocity", m.TWIST_STAMPED)
             for k in range(30_000):  # ~3.3 MB: four chunks
@@ -195,6 +195,93 @@ def test_sigkill_of_a_one_file_writer_is_salvaged_by_repair(tmp_path: Path) -> N
     # a Clock message takes 43 B in a chunk: a 1 MiB chunk holds ~24 000; all but the torn last one are back
     assert stamps == [k * 1000 for k in range(len(stamps))] and len(stamps) >= 100_000 - 25_000
     assert check_bag(bag).ok
+
+
+def test_a_killed_writer_loses_at_most_the_last_second_of_log_time(tmp_path: Path) -> None:
+    """Small messages (a 1 MiB chunk would take ~17 s here): chunks close and reach the disk every
+    second of log time, so after SIGKILL repair recovers every message up to within 1 s of the last
+    one written, with the writer's custom_data, and notes what it recovered."""
+    bag = tmp_path / "bag"
+    code = textwrap.dedent(
+        f"""
+        import time
+        from formation_bag import messages as m
+        from formation_msgs_py.bag.writer import SegmentedBagWriter
+        enc = m.Encoder()
+        w = SegmentedBagWriter({str(bag)!r}, segment_seconds=None, segment_bytes=None,
+                               custom_data={{"duration": "10", "formation_file": "f.yaml"}})
+        w.add_topic("/clock", m.CLOCK)
+        for k in range(3500):  # 3.5 s of log time at 1 kHz
+            w.write("/clock", k * 1_000_000, enc.clock(k * 1_000_000))
+        print("written", flush=True)
+        time.sleep(600)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "written"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    _, lost = repair(bag)
+    assert len(lost) == 1 and "messages recovered into bag_0.mcap" in lost[0]
+    with Bag(bag) as b:
+        stamps = [m.stamp_ns(m.deserialize(x.data, x.msgtype).clock) for x in b.messages()]
+        custom = b.custom_data
+    # chunks close once they span 1 s: [0, 1.000], [1.001, 2.001], [2.002, 3.002]; the rest was open
+    assert stamps == [k * 1_000_000 for k in range(len(stamps))]
+    assert 3499 - len(stamps) < 1000  # lost: less than 1 s of log time
+    assert custom["duration"] == "10" and custom["formation_file"] == "f.yaml"
+    recovered = f"bag_0.mcap: {len(stamps)} messages up to 3.0020 s of log time recovered, the rest lost"
+    assert custom["repaired"] == recovered
+    assert check_bag(bag).ok
+
+
+def test_a_killed_view_file_is_completed_in_place_by_repair(tmp_path: Path) -> None:
+    """A one-file MCAP writer (OUT/view.mcap's) killed after 3.5 s of log time: its chunks are on disk
+    up to within 1 s; ``formation-bag repair FILE`` completes the file in place, saying what it
+    recovered; a complete file is refused."""
+    from mcap.reader import make_reader
+
+    view = tmp_path / "view.mcap"
+    code = textwrap.dedent(
+        f"""
+        import time
+        from formation_bag import messages as m
+        from formation_msgs_py.bag.writer import McapFileWriter
+        enc = m.Encoder()
+        w = McapFileWriter({str(view)!r}, custom_data={{"mode": "lockstep"}})
+        w.add_topic("/clock", m.CLOCK)
+        for k in range(106):  # 3.5 s at 30 Hz
+            w.write("/clock", round(k * 1e9 / 30), enc.clock(round(k * 1e9 / 30)))
+        print("written", flush=True)
+        time.sleep(600)
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "written"
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    r = subprocess.run(
+        [sys.executable, "-m", "formation_bag.cli", "repair", str(view)], capture_output=True, text=True, check=False
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    with view.open("rb") as f:
+        reader = make_reader(f)
+        times = [msg.log_time for _, _, msg in reader.iter_messages()]
+        assert reader.get_summary() is not None
+    # chunks close once they span 1 s: at 1.0, 2.033, 3.067 s; what came after was open
+    assert times == [round(k * 1e9 / 30) for k in range(len(times))] and len(times) == 93
+    note = f"view.mcap: 93 messages up to {times[-1] / 1e9:.4f} s of log time recovered, the rest lost"
+    assert r.stdout.strip() == f"repaired {view}: {note}"
+    with Bag(view) as b:
+        assert b.custom_data == {"mode": "lockstep", "repaired": note}
+    with pytest.raises(BagFormatError, match="complete already"):
+        repair_file(view)
 
 
 def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:

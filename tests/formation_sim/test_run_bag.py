@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from formation_msgs_py.bag.writer import make_qos
 from formation_sim.node.run_bag import RunBag
 
 CLOCK, WRENCH, FUNNELS = "/clock", "/agent_1/wrench", "/formation/funnels"
+GT, MARKERS = "/formation/ground_truth", "/formation/markers"
 STEP_NS = 100_000  # 10 kHz
 
 
@@ -150,3 +152,81 @@ def test_publications_held_are_written_in_order_when_the_hold_ends(tmp_path: Pat
     assert bag.written[CLOCK] == 5
     bag.close()
     assert _log_times(tmp_path / "bag")[CLOCK] == [k * STEP_NS for k in range(5)]
+
+
+def test_view_file_holds_the_display_topics_and_the_rest_at_the_display_rate(tmp_path: Path) -> None:
+    """OUT/view.mcap: markers, funnels and /diagnostics whole, /clock and the ground truth on the
+    30 Hz display grid (the first message at or after each k/30 s), read with the mcap reader; the
+    bag keeps every message; a view file that exists is refused before the bag is made."""
+    from mcap.reader import make_reader
+
+    bag = RunBag(tmp_path / "bag", {"mode": "lockstep"}, view=tmp_path / "view.mcap", view_rate=30.0)
+    bag.add_topic(CLOCK, "rosgraph_msgs/msg/Clock", make_qos(depth=1), published=True)
+    bag.add_topic(GT, "geometry_msgs/msg/PoseArray", make_qos(), published=True)
+    bag.add_topic(MARKERS, "visualization_msgs/msg/MarkerArray", make_qos(), published=True)
+    bag.add_topic(WRENCH, "geometry_msgs/msg/WrenchStamped", make_qos(), published=False)
+    codec = wire.wrench_codec("1")
+    for k in range(2001):  # 0.2 s at 10 kHz
+        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+        bag.write(GT, wire.clock_bytes(k * STEP_NS))  # a stamp first: all the log time needs
+        bag.write(WRENCH, codec.encode(k * STEP_NS, [0.0] * 6))
+        if k % 333 == 0:
+            bag.write(MARKERS, b"\x00\x01\x00\x00" + bytes(4))
+    counts = bag.close()
+    assert counts["view"] == {"path": str(tmp_path / "view.mcap"), "written": 2 * 7 + 7, "failed": None}
+    times: dict[str, list[int]] = {}
+    with (tmp_path / "view.mcap").open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            times.setdefault(channel.topic, []).append(message.log_time)
+    # 0, then the first 100 µs step at or after k/30 s: 33.4, 66.7, 100, 133.4, 166.7, 200 ms
+    grid = [0, 33_400_000, 66_700_000, 100_000_000, 133_400_000, 166_700_000, 200_000_000]
+    assert times[CLOCK] == grid and times[GT] == grid
+    assert times[MARKERS] == [k * STEP_NS for k in range(0, 2001, 333)]
+    assert WRENCH not in times  # not a display topic
+    assert _log_times(tmp_path / "bag")[CLOCK] == [k * STEP_NS for k in range(2001)]
+    with pytest.raises(FileExistsError, match="view file"):
+        RunBag(tmp_path / "bag2", {}, view=tmp_path / "view.mcap")
+    assert not (tmp_path / "bag2").exists()
+
+
+class _DiskFull:
+    """A file that takes ``room`` more bytes, then writes what fits and fails as a full disk does."""
+
+    def __init__(self, f, room: int) -> None:
+        self.f, self.room = f, room
+
+    def write(self, data) -> int:
+        data = bytes(data)
+        if len(data) > self.room:
+            self.f.write(data[: self.room])
+            self.room = 0
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.room -= len(data)
+        return self.f.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self.f, name)
+
+
+def test_a_full_disk_keeps_every_flushed_second_for_repair(tmp_path: Path) -> None:
+    """The disk fills during the third second of log time: the run's bag fails (named), and repair
+    recovers every message of the first two seconds, the chunks flushed before the disk was full."""
+    from formation_bag.reader import Bag, repair
+
+    bag = _bag(tmp_path / "bag")
+    bag.write(CLOCK, wire.clock_bytes(0))
+    storage = bag.writer._open.storage
+    # a Clock message takes ~60 B with its index: a 1 s chunk (10 000 of them) ~0.6 MB; room for two
+    storage.bio = _DiskFull(storage.bio, 1_400_000)
+    for k in range(1, 35_000):
+        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+    counts = bag.close()
+    assert bag.failed is not None and "No space left on device" in bag.failed
+    assert counts["not_recorded"] > 0
+    _, lost = repair(tmp_path / "bag")
+    assert len(lost) == 1 and "recovered into bag_0.mcap" in lost[0]
+    with Bag(tmp_path / "bag") as b:
+        times = [msg.log_time for msg in b.messages()]
+        assert "20002 messages up to 2.0001 s" in b.custom_data["repaired"]
+    # chunks close once they span 1 s: [0, 1.0000] and [1.0001, 2.0001] reached the disk whole
+    assert times == [k * STEP_NS for k in range(20_002)]

@@ -47,6 +47,7 @@ from formation_bag import messages as m
 from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.parsers import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_bag.rerun import AgentRerun, rerun_all
+from formation_msgs_py.bag import KEY_REPAIRED
 from formation_msgs_py.errors import BagError, FormationError
 from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
@@ -295,6 +296,7 @@ def bag_report(
     return {
         "path": str(run.path),
         "recovered_without_metadata": run.recovered,
+        "repaired": run.custom_data.get(KEY_REPAIRED),
         "lost": run.lost,
         "truncated": bool(missing),
         "ground_truth_samples": len(gt),
@@ -343,6 +345,8 @@ def missing_data(
     of the ground truth, velocities and (lockstep: one per step) wrenches, and messages the
     recorder counted as missed."""
     out = [f"lost {x}" for x in run.lost]
+    if run.custom_data.get(KEY_REPAIRED):  # formation-bag repair salvaged what a killed writer left
+        out.append(f"writer stopped, bag repaired: {run.custom_data[KEY_REPAIRED]}")
 
     def describe(name: str, gaps: list[tuple[int, int]], rate: float) -> None:
         if gaps:

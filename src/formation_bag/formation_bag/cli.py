@@ -28,9 +28,10 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--json", action="store_true", help="machine-readable output")
     rep = sub.add_parser(
         "repair",
-        help="salvage the file a killed writer left open (MCAP); write metadata.yaml for the readable files",
+        help="salvage the file a killed writer left open (MCAP); write metadata.yaml for the readable files. "
+        "Given one MCAP file (OUT/view.mcap of a crashed run), complete it in place",
     )
-    rep.add_argument("bag", type=Path)
+    rep.add_argument("bag", type=Path, help="a bag directory, or one MCAP file")
     rep.add_argument("--force", action="store_true", help="replace an existing metadata.yaml")
     return p
 
@@ -49,7 +50,7 @@ def _run(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     from formation_bag import messages as m  # rosbags: not for --help
     from formation_bag.interop import check_bag
-    from formation_bag.reader import Bag, repair
+    from formation_bag.reader import Bag, repair, repair_file
 
     try:
         if args.command == "info":
@@ -92,6 +93,9 @@ def _run(argv: list[str] | None) -> int:
                     print(f"  PROBLEM: {prob}")
                 print("OK" if report.ok else "PROBLEMS FOUND")
             return 0 if report.ok else 1
+        if args.bag.is_file():
+            print(f"repaired {args.bag}: {repair_file(args.bag)}")
+            return 0
         meta, lost = repair(args.bag, force=args.force)
         print(f"wrote {meta}")
         for item in lost:

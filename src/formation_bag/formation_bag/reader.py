@@ -26,6 +26,7 @@ from rosbags.interfaces import Connection, ConnectionExtRosbag2
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 
+from formation_msgs_py.bag import KEY_REPAIRED
 from formation_msgs_py.bag.metadata import STORAGES, SegmentInfo, metadata_yaml
 from formation_msgs_py.bag.writer import typestore
 from formation_msgs_py.errors import BagExistsError, BagFormatError, BagNotFoundError
@@ -227,29 +228,40 @@ def embedded_custom_data(path: Path) -> dict[str, str]:
         return {}
 
 
-def salvage(partial: Path, final: Path) -> int:
+def recovered_note(name: str, count: int, first_ns: int, last_ns: int) -> str:
+    """``custom_data.repaired`` of a salvaged file: what was recovered (log time from its first message)."""
+    return f"{name}: {count} messages up to {(last_ns - first_ns) / 1e9:.4f} s of log time recovered, the rest lost"
+
+
+def salvage(partial: Path, final: Path, name: str | None = None) -> int:
     """Write the messages of the closed chunks of ``partial`` (an MCAP file whose writer was killed:
     no summary, a torn last chunk) as the complete MCAP file ``final``; returns how many.
 
-    rosbags' MCAP writer puts each chunk (~1 MiB) in the file when it closes, so a killed writer's
-    file holds all but its last ~1 MiB. Nothing is written if no message can be read.
+    The writer (formation_msgs_py.bag.writer) puts each chunk in the file when it closes (at ~1 MiB
+    or 1 s of log time), so a killed writer's file holds all but its last chunk, and its custom_data
+    (the run's settings) at its start: the complete file carries them again. Nothing is written if
+    no message can be read. The complete file's custom_data also says what was recovered
+    (:data:`KEY_REPAIRED`, :func:`recovered_note`, naming the file ``name``, default ``final``'s).
     """
     from mcap.exceptions import McapError
-    from mcap.records import Channel, Message, Schema
+    from mcap.records import Channel, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
     from rosbags.rosbag2.metadata import parse_qos
 
-    from formation_msgs_py.bag.writer import SegmentedBagWriter
+    from formation_msgs_py.bag.writer import CUSTOM_DATA_RECORD, SegmentedBagWriter
 
     tmp = final.parent / f".salvage_{final.stem}"
     schemas: dict[int, str] = {}
     topics: dict[int, tuple[str, str, list[Any]]] = {}
     writer: SegmentedBagWriter | None = None
-    count = 0
+    custom_data: dict[str, str] = {}
+    count, first, last = 0, 2**63 - 1, 0
     with partial.open("rb") as f:
         try:
             for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
-                if isinstance(rec, Schema):
+                if isinstance(rec, Metadata) and rec.name == CUSTOM_DATA_RECORD:
+                    custom_data = dict(rec.metadata)  # the run's settings, written when the file opened
+                elif isinstance(rec, Schema):
                     schemas[rec.id] = rec.name
                 elif isinstance(rec, Channel):
                     qos = parse_qos(rec.metadata.get("offered_qos_profiles", "") or [])
@@ -257,19 +269,49 @@ def salvage(partial: Path, final: Path) -> int:
                 elif isinstance(rec, Message) and rec.channel_id in topics:
                     topic, msgtype, qos = topics[rec.channel_id]
                     if writer is None:
-                        writer = SegmentedBagWriter(tmp, segment_seconds=None, segment_bytes=None)
+                        writer = SegmentedBagWriter(
+                            tmp, segment_seconds=None, segment_bytes=None, custom_data=custom_data
+                        )
                     writer.add_topic(topic, msgtype, qos)
                     writer.write(topic, rec.log_time, rec.data)
                     count += 1
+                    first, last = min(first, rec.log_time), max(last, rec.log_time)
         except (McapError, EOFError, ValueError, struct.error):
             pass  # the torn end of the file
     if writer is None:
         return 0
+    writer.custom_data[KEY_REPAIRED] = recovered_note(name or final.name, count, first, last)
     writer.close()
     written = writer.path / f"{writer.path.name}_0.mcap"
     os.replace(written, final)
     shutil.rmtree(tmp)
     return count
+
+
+def _is_complete_mcap(path: Path) -> bool:
+    """True if the MCAP file ends with its closing magic (a writer that was not killed wrote it)."""
+    with path.open("rb") as f:
+        if f.seek(0, os.SEEK_END) < 16:
+            return False
+        f.seek(-8, os.SEEK_END)
+        return f.read(8) == b"\x89MCAP0\r\n"
+
+
+def repair_file(path: str | Path) -> str:
+    """Make the MCAP file a killed writer left (``OUT/view.mcap``, or a bag's file) complete in place:
+    its closed chunks, with its custom_data and ``custom_data.repaired`` saying what was recovered.
+    Returns that note; BagFormatError if the file is complete already or holds no readable message."""
+    path = Path(path)
+    if not path.is_file() or path.suffix != ".mcap":
+        raise BagFormatError(f"{path}: not an MCAP file")
+    if _is_complete_mcap(path):
+        raise BagFormatError(f"{path}: complete already (it has its summary), nothing to repair")
+    tmp = path.parent / f".repaired_{path.name}"
+    if not salvage(path, tmp, path.name):
+        raise BagFormatError(f"{path}: no readable message (nothing was flushed before the writer stopped)")
+    note = embedded_custom_data(tmp)[KEY_REPAIRED]
+    os.replace(tmp, path)
+    return note
 
 
 def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
@@ -284,7 +326,8 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
         raise BagExistsError(meta, "metadata file")
     if meta.exists():
         meta.unlink()
-    salvaged = []
+    salvaged: list[str] = []
+    repaired: list[str] = []  # custom_data.repaired: what the bag's readers should know of it
     for part in partial_files(path):
         final = path / f"{part.name.lstrip('.')}"
         if part.suffix != ".mcap" or final.exists():
@@ -295,6 +338,7 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
             salvaged.append(
                 f"{part}: open when the writer stopped: {n} messages recovered into {final.name}, its tail lost"
             )
+            repaired.append(embedded_custom_data(final)[KEY_REPAIRED])
     bag = Bag(path)
     try:
         infos: list[SegmentInfo] = []
@@ -314,7 +358,7 @@ def repair(path: str | Path, *, force: bool = False) -> tuple[Path, list[str]]:
             storage=storage,
             segments=infos,
             topics=[(topic, msgtype, qos, digest, count) for topic, msgtype, qos, digest, count in topic_rows.values()],
-            custom_data=bag.custom_data,
+            custom_data={**bag.custom_data, **({KEY_REPAIRED: "; ".join(repaired)} if repaired else {})},
         )
         lost = salvaged + list(bag.lost)
     finally:

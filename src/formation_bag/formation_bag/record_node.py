@@ -8,7 +8,9 @@ published in total and while we listened), stored in metadata.yaml custom_data `
 (and in ``--stats FILE``). SIGINT/SIGTERM (our own handlers) stop the loop, take and write what
 the subscriptions already hold (no waiting for silence: agents publish /diagnostics until they
 are stopped), close the last segment and write metadata.yaml (exit status 0). A SIGKILL loses at
-most the open segment. A full disk stops the recording with one line and exit status 4.
+most the open chunk of the open segment (the writer flushes a chunk every 1 MiB or second of log
+time; ``formation-bag repair`` salvages the rest). A full disk stops the recording with one line
+and exit status 4.
 
 An observer of any run: nothing waits for it while stepping (formation-launch has the simulator
 write the run's bag itself, ``formation-sim --bag``). ``formation-sim --wait-recorder`` waits for

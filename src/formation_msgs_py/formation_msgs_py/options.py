@@ -194,7 +194,8 @@ OPTIONS: tuple[Option, ...] = (
     Option("--resend", "lockstep: re-send an unanswered step after [wall s]", frozenset({SIM}), positive, 0.25),
     Option("--bag", "write the run's bag into DIR (must not exist) in this process: every message the simulator "
            "publishes, every wrench and /diagnostics it receives; log time = simulation time in lockstep, the wall "
-           "clock in realtime (what formation-launch does when it records)", frozenset({SIM}), Path),
+           "clock in realtime (what formation-launch does when it records); and OUT/view.mcap, the display "
+           "topics for viewers", frozenset({SIM}), Path),
     Option("--max-bag-size", "split the run's bag into files of at most about this many bytes, as ros2 bag record "
            "-b (default: one file, which a viewer opens whole)", ROS, byte_count, forward=True),
     Option("--wait-recorder", "wait until a bag recorder (formation-record --formation FILE) subscribes before the "

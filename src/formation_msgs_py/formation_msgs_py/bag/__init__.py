@@ -11,6 +11,9 @@ STORAGE_NAMES = ("mcap", "sqlite3")
 #: custom_data keys of a run's bag: the formation file's text and name (analysis needs no other input)
 KEY_FORMATION_YAML = "formation_yaml"
 KEY_FORMATION_FILE = "formation_file"
+#: custom_data key that ``formation-bag repair`` sets when it salvaged a file a killed writer left open
+#: (what was recovered); formation-analyze reports the run INCOMPLETE with it
+KEY_REPAIRED = "repaired"
 #: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time): their log
 #: time in simulation time is that stamp; other types (markers, funnel values, /tf) take the latest one
 STAMPED_TYPES = frozenset(

@@ -16,7 +16,14 @@ the open one (rosbags keeps a segment in memory or in an uncommitted transaction
 
 Segments close after ``segment_seconds`` of log time or ``segment_bytes`` of file, whichever
 comes first, checked at every write; a segment's size is its payload plus
-:data:`MESSAGE_OVERHEAD` per message (the open segment is not on disk yet to be measured).
+:data:`MESSAGE_OVERHEAD` per message.
+
+Within the open MCAP segment, a chunk is closed, written and flushed to the operating system as
+soon as it holds :data:`CHUNK_BYTES` or ``chunk_seconds`` (default 1 s) of log time, and the
+segment's custom_data is written at its start (a Metadata record named :data:`CUSTOM_DATA_RECORD`):
+a writer killed with SIGKILL, or stopped by a full disk, leaves every chunk but the open one and
+the run's settings on disk, and ``formation-bag repair`` makes a complete file of them. In
+lockstep the log time is simulation time: a crash loses at most the last second of the run.
 """
 
 from __future__ import annotations
@@ -24,9 +31,12 @@ from __future__ import annotations
 import os
 import shutil
 import struct
+from collections import defaultdict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cache
+from importlib.metadata import version as package_version
+from io import BytesIO
 from pathlib import Path
 from types import MappingProxyType, TracebackType
 from typing import TYPE_CHECKING, Any
@@ -45,7 +55,7 @@ from rosbags.interfaces import (
 )
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.errors import WriterError
-from rosbags.rosbag2.storage_mcap import McapWriter
+from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk, write_record, write_string
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -64,6 +74,11 @@ ZERO = QosTime(sec=0, nsec=0)
 MESSAGE_OVERHEAD = 48
 #: rosbags' MCAP writer closes a chunk once it holds more than this
 CHUNK_BYTES = 2**20
+#: log time [s] after which a chunk is closed and flushed even if small (what a crash may lose)
+CHUNK_SECONDS = 1.0
+#: name of the MCAP Metadata record, written at a file's start, that holds the writer's custom_data
+#: (rosbag2 stores it only in the "rosbag2" record written at close, which a killed writer never writes)
+CUSTOM_DATA_RECORD = "formation_custom_data"
 
 
 @cache
@@ -94,12 +109,35 @@ _MCAP_MESSAGE_FIELDS = 2 + 4 + 8 + 8
 
 
 class _McapWriter(McapWriter):
-    """rosbags' MCAP writer with a message write of one ``struct`` pack instead of ~12 calls.
+    """rosbags' MCAP writer with a message write of one ``struct`` pack instead of ~12 calls, and
+    chunks closed by log time too (``chunk_ns``) and flushed when closed.
 
     Every message of a run passes here (~20 per lockstep step): a whole write took 7 µs, now 3.5 µs
-    (BENCHMARKS.md, "Bags"). The bytes are rosbags' own (tests/formation_bag/test_bag_io.py
-    compares the files).
+    (BENCHMARKS.md, "Bags"). With ``chunk_ns`` None the bytes are rosbags' own
+    (tests/formation_bag/test_bag_io.py compares the files).
     """
+
+    #: close the open chunk once its messages span this much log time [ns] (None: by size only)
+    chunk_ns: int | None = None
+
+    def write_custom_data(self, custom_data: dict[str, str]) -> None:
+        """A Metadata record (``name`` :data:`CUSTOM_DATA_RECORD`) in the data section, flushed:
+        the settings a salvaged file needs. Readers of rosbag2 MCAP files ignore other names."""
+        rec = BytesIO()
+        write_string(rec, CUSTOM_DATA_RECORD)
+        body = BytesIO()
+        for key, value in custom_data.items():
+            write_string(body, key)
+            write_string(body, value)
+        rec.write(struct.pack("<I", body.tell()))
+        rec.write(body.getbuffer())
+        write_record(self.bio, 0x0C, rec)
+        self.bio.flush()
+
+    def close_chunk(self) -> None:
+        """Close the open chunk and hand it to the operating system (a killed process loses nothing of it)."""
+        super().close_chunk()
+        self.bio.flush()
 
     def write(self, connection: Connection, timestamp: int, data: bytes | memoryview) -> None:
         chunk = self.chunk
@@ -116,7 +154,9 @@ class _McapWriter(McapWriter):
         chunk.msgs[connection.id].append((timestamp, bio.tell()))
         bio.write(_MCAP_MESSAGE.pack(0x05, _MCAP_MESSAGE_FIELDS + len(data), connection.id, 0, timestamp, timestamp))
         bio.write(data)
-        if bio.tell() > CHUNK_BYTES:
+        if bio.tell() > CHUNK_BYTES or (
+            self.chunk_ns is not None and chunk.message_end_time - chunk.message_start_time >= self.chunk_ns
+        ):
             self.close_chunk()
 
 
@@ -190,6 +230,9 @@ class _Open:
 class SegmentedBagWriter:
     """Write a rosbag2 bag in segments. Use as a context manager; ``close()`` finishes the bag.
 
+    MCAP chunks close at :data:`CHUNK_BYTES` or ``chunk_seconds`` of log time (None: by size
+    only, rosbags' own files) and are flushed when they close.
+
     ``write(topic, timestamp_ns, data)`` takes CDR-serialized messages (what a raw ROS
     subscription delivers). Register topics first with :meth:`add_topic`; topics may be added
     at any time (they appear from the segment that is open then).
@@ -204,6 +247,7 @@ class SegmentedBagWriter:
         segment_bytes: int | None = 64 * 1024 * 1024,
         custom_data: dict[str, str] | None = None,
         store: Typestore | None = None,
+        chunk_seconds: float | None = CHUNK_SECONDS,
     ) -> None:
         self.path = Path(path)
         if storage not in STORAGES:
@@ -214,6 +258,9 @@ class SegmentedBagWriter:
             raise BagWriterError(f"segment_seconds must be positive, got {segment_seconds!r}")
         if segment_bytes is not None and segment_bytes <= 0:
             raise BagWriterError(f"segment_bytes must be positive, got {segment_bytes!r}")
+        if chunk_seconds is not None and chunk_seconds <= 0:
+            raise BagWriterError(f"chunk_seconds must be positive, got {chunk_seconds!r}")
+        self.chunk_ns = None if chunk_seconds is None else round(chunk_seconds * 1e9)
         self.storage = storage
         self.plugin, self.suffix = STORAGES[storage]
         self.segment_ns = None if segment_seconds is None else round(segment_seconds * 1e9)
@@ -320,6 +367,13 @@ class SegmentedBagWriter:
             raise BagWriterError(f"cannot open segment {tmpdir}: {exc}") from exc
         seg = _Open(writer, tmpdir, final)
         seg.storage = writer.storage
+        if isinstance(seg.storage, _McapWriter):
+            seg.storage.chunk_ns = self.chunk_ns
+            if self.custom_data:
+                try:
+                    seg.storage.write_custom_data(self.custom_data)
+                except OSError as exc:
+                    raise BagWriterError(f"cannot write segment {tmpdir}: {exc}") from exc
         seg.counts = writer.counts
         for rec in self.topics.values():
             self._connect(seg, rec)
@@ -376,3 +430,131 @@ class SegmentedBagWriter:
         tmp = self.path / ".metadata.yaml.tmp"
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, self.path / "metadata.yaml")
+
+
+class _McapFileStorage(_McapWriter):
+    """:class:`_McapWriter` on a file of the caller's name (rosbags' names it ``DIR/DIR.mcap``).
+
+    The file's head is rosbags' (magic, Header record with profile ``ros2``); the rest is inherited.
+    """
+
+    def __init__(self, path: Path) -> None:  # rosbags' McapWriter.__init__ with the path as given
+        self.path = path
+        self.bio = path.open("xb")
+        self.bio.write(b"\x89MCAP\x30\r\n")
+        rec = BytesIO()
+        write_string(rec, "ros2")
+        write_string(rec, f"rosbags-{package_version('rosbags')}")
+        write_record(self.bio, 0x01, rec)
+        self.schemas = []
+        self.channels = []
+        self.chunks = []
+        self.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
+        self.compression = ""
+        self.compressor = bytes
+        self.message_start_time = 2**63 - 1
+        self.message_end_time = 0
+        self.channel_stats = {}
+
+
+class McapFileWriter:
+    """One standalone MCAP file at ``path`` (rosbag2's profile and embedded metadata: Foxglove,
+    ``ros2 bag info FILE`` and the ``mcap`` readers open it), with chunks closed and flushed at
+    :data:`CHUNK_BYTES` or ``chunk_seconds`` of log time as a segment's: a killed writer leaves
+    every closed chunk readable (without the index: Foxglove reads such a file by streaming it).
+
+    ``write(topic, timestamp_ns, data)`` takes CDR bytes; :meth:`add_topic` first. ``close()`` writes
+    the index and summary (idempotent).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        chunk_seconds: float | None = CHUNK_SECONDS,
+        custom_data: dict[str, str] | None = None,
+        store: Typestore | None = None,
+    ) -> None:
+        self.path = Path(path)
+        if self.path.exists():
+            raise BagExistsError(self.path, "file")
+        self.store = store or typestore()
+        self.custom_data = dict(custom_data or {})
+        try:
+            self.storage: _McapFileStorage | None = _McapFileStorage(self.path)
+            self.storage.chunk_ns = None if chunk_seconds is None else round(chunk_seconds * 1e9)
+            if self.custom_data:
+                self.storage.write_custom_data(self.custom_data)
+        except OSError as exc:
+            raise BagWriterError(f"cannot write {self.path}: {exc}") from exc
+        self.topics: dict[str, TopicRecord] = {}
+        self.connections: dict[str, Connection] = {}
+        self._types: set[str] = set()
+        self._msgdefs: dict[str, tuple[str, str]] = {}
+        self.start = 2**63 - 1
+        self.end = 0
+
+    def add_topic(self, name: str, msgtype: str, qos: tuple[Qos, ...] | list[Qos] = ()) -> None:
+        """Register a topic (absolute name, ``pkg/msg/Name``); adding it again is a no-op."""
+        if self.storage is None:
+            raise BagWriterError(f"{self.path} is closed")
+        if name in self.topics:
+            return
+        if msgtype not in self.store.types:
+            raise BagWriterError(f"topic {name}: type {msgtype} is not in the ROS2_JAZZY typestore")
+        rec = TopicRecord(name, msgtype, tuple(qos) or (make_qos(),))
+        if msgtype not in self._msgdefs:
+            self._msgdefs[msgtype] = (
+                self.store.generate_msgdef(msgtype, ros_version=2)[0],
+                self.store.hash_rihs01(msgtype),
+            )
+        msgdef, digest = self._msgdefs[msgtype]
+        fmt = MessageDefinitionFormat.IDL if msgdef.startswith("=" * 80 + "\nIDL: ") else MessageDefinitionFormat.MSG
+        conn = Connection(
+            id=len(self.connections) + 1,
+            topic=name,
+            msgtype=msgtype,
+            msgdef=MessageDefinition(fmt, msgdef),
+            digest=digest,
+            msgcount=0,
+            ext=ConnectionExtRosbag2(serialization_format="cdr", offered_qos_profiles=list(rec.qos)),
+            owner=self,
+        )
+        if msgtype not in self._types:
+            self.storage.add_msgtype(conn)
+            self._types.add(msgtype)
+        self.storage.add_connection(conn, qos_yaml(list(rec.qos)))
+        self.topics[name] = rec
+        self.connections[name] = conn
+
+    def write(self, topic: str, timestamp: int, data: bytes | memoryview) -> None:
+        """One serialized message with log time ``timestamp`` [ns]; OSError on an I/O error."""
+        if self.storage is None:
+            raise BagWriterError(f"{self.path} is closed")
+        self.storage.write(self.connections[topic], timestamp, data)
+        self.topics[topic].count += 1
+        if timestamp < self.start:
+            self.start = timestamp
+        if timestamp > self.end:
+            self.end = timestamp
+
+    @property
+    def message_count(self) -> int:
+        return sum(t.count for t in self.topics.values())
+
+    def close(self) -> None:
+        """Write the last chunk, the index, the summary and the embedded metadata (idempotent)."""
+        storage, self.storage = self.storage, None
+        if storage is None:
+            return
+        n = self.message_count
+        info = SegmentInfo(self.path.name, self.start if n else 0, self.end if n else 0, n)
+        storage.close(
+            METADATA_VERSION,
+            metadata_yaml(
+                storage="mcap",
+                segments=[info],
+                topics=[(t.name, t.msgtype, t.qos, self._msgdefs[t.msgtype][1], t.count) for t in self.topics.values()],
+                custom_data=self.custom_data,
+            ),
+        )

@@ -136,7 +136,7 @@ def rate_problems(spec: FormationSpec) -> list[str]:
 
 
 #: What a run leaves in OUT whatever its summary lists (the summary itself may be missing).
-RUN_OUTPUTS = ("summary.json", "trajectory.npz", "bag", "animation.gif")
+RUN_OUTPUTS = ("summary.json", "trajectory.npz", "bag", "view.mcap", "animation.gif")
 
 
 def earlier_outputs(out: Path, extra: tuple[str, ...] = ()) -> list[Path]:

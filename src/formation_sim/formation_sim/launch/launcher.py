@@ -154,8 +154,9 @@ def build_parser() -> OptionParser:
         "formation-launch",
         "Run a formation through ROS 2: the simulator node and one process per agent "
         "(unless --no-record, the simulator records the run's bag). "
-        "Writes OUT as docs/outputs.md with one log per process in "
-        "OUT/logs. " + EXIT_STATUS_HELP + ".",
+        "Writes OUT as docs/outputs.md (summary.json, trajectory.npz, the figures, foxglove_layout.json; "
+        "recorded runs: bag/ and view.mcap, the small file of the display topics to open in Foxglove "
+        "with foxglove_layout.json) with one log per process in OUT/logs. " + EXIT_STATUS_HELP + ".",
     )
 
 

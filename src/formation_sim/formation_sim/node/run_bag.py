@@ -11,12 +11,23 @@ the formation file and the run's settings in custom_data, ``recorder_counts`` an
 from its first to its last message, ``wall_time``), so every bag tool reads both alike.
 
 A write or close that fails (disk full, I/O error) stops the writing: :attr:`RunBag.failed` says
-why and the simulator ends the run INCOMPLETE; the messages it could not write are counted.
+why and the simulator ends the run INCOMPLETE; the messages it could not write are counted. The
+writer closes and flushes a chunk at least every second of log time, so a killed simulator leaves
+all but the last second of the run for ``formation-bag repair`` (docs/bags.md).
+
+``view``: beside the bag, one small MCAP file (``OUT/view.mcap``) of what a viewer shows, written
+as the run goes with the same bytes and log times: every message of the display topics (markers,
+funnels, /tf) and /diagnostics, and /clock and the ground truth decimated to ``view_rate`` (the
+display rate). It costs a step only its own writes (a dictionary look-up per bag message, a write
+per display instant); its chunks are flushed every :data:`VIEW_CHUNK_SECONDS` of log time, so a
+crash keeps all but its last half second (``formation-bag repair OUT/view.mcap`` completes it).
+An I/O error on it stops only it (:attr:`RunBag.view_failed`): the bag is the run's record.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import struct
 import time
 from collections.abc import Iterator
@@ -25,23 +36,58 @@ from pathlib import Path
 from typing import Any
 
 from formation_msgs_py.bag import STAMPED_TYPES
-from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.errors import BagError
+from formation_msgs_py.bag.writer import McapFileWriter, SegmentedBagWriter
+from formation_msgs_py.errors import BagError, BagExistsError
 from formation_msgs_py.wire import stamp_of
+
+#: the view file's name in OUT
+VIEW_FILE = "view.mcap"
+#: log time [s] after which the view file's chunk is closed and flushed (it is small: a chunk of
+#: 1 MiB would take seconds to fill; a crash loses at most this much of it)
+VIEW_CHUNK_SECONDS = 0.5
+#: message types of the view file written whole (they come at the display rate or slower)
+VIEW_ALL_TYPES = frozenset(
+    (
+        "visualization_msgs/msg/MarkerArray",
+        "std_msgs/msg/Float64MultiArray",
+        "tf2_msgs/msg/TFMessage",
+        "diagnostic_msgs/msg/DiagnosticArray",
+    )
+)
+#: message types of the view file decimated to the display rate (/clock, ground truth)
+VIEW_DECIMATED_TYPES = frozenset(("rosgraph_msgs/msg/Clock", "geometry_msgs/msg/PoseArray"))
 
 
 class RunBag:
     """The bag at ``path`` (must not exist); topics are added before their first message.
 
     One file, or files of about ``max_bytes`` each (``--max-bag-size``, as ``ros2 bag record -b``).
+    ``view``: the view file to write beside it (must not exist), ``view_rate`` its rate [Hz of log
+    time] for /clock and the ground truth.
     """
 
     def __init__(
-        self, path: Path, custom_data: dict[str, str], *, wall_log_time: bool = False, max_bytes: int | None = None
+        self,
+        path: Path,
+        custom_data: dict[str, str],
+        *,
+        wall_log_time: bool = False,
+        max_bytes: int | None = None,
+        view: Path | None = None,
+        view_rate: float = 30.0,
     ) -> None:
         self.path = path
         self.wall_log_time = wall_log_time
+        if view is not None and view.exists():  # before the bag: refused, nothing is left behind
+            raise BagExistsError(view, "view file")
         self.writer = SegmentedBagWriter(path, segment_seconds=None, segment_bytes=max_bytes, custom_data=custom_data)
+        self.view = (
+            None if view is None else McapFileWriter(view, chunk_seconds=VIEW_CHUNK_SECONDS, custom_data=custom_data)
+        )
+        self.view_rate = float(view_rate)
+        #: per view topic, the log time [ns] its next message is due at (0: every message)
+        self.view_due: dict[str, int] = {}
+        self.view_failed: str | None = None
         #: monotonic wall clock [s] of the first and the latest message written: the run's wall time
         self.first_wall: float | None = None
         self.last_wall = 0.0
@@ -64,6 +110,9 @@ class RunBag:
         self.stamped[name] = msgtype in STAMPED_TYPES
         if published:
             self.own.add(name)
+        if self.view is not None and msgtype in VIEW_ALL_TYPES | VIEW_DECIMATED_TYPES:
+            self.view.add_topic(name, msgtype, (qos,))
+            self.view_due[name] = -1 if msgtype in VIEW_DECIMATED_TYPES else 0
 
     def write(self, topic: str, data: bytes | memoryview) -> None:
         """One message as sent or received; log time: the wall clock, or its stamp, else :attr:`now_ns`."""
@@ -88,8 +137,24 @@ class RunBag:
                 self.failed = f"I/O error writing the bag {self.path}: {exc}"
             else:
                 self.written[topic] += 1
+                if topic in self.view_due:
+                    self._write_view(topic, ns, data)
                 return
         self.not_written[topic] = self.not_written.get(topic, 0) + 1
+
+    def _write_view(self, topic: str, ns: int, data: bytes | memoryview) -> None:
+        """The view file's copy of a bag message: display topics whole, the others on the display grid."""
+        due = self.view_due[topic]
+        if due:
+            if ns < due or self.view_failed is not None:
+                return
+            # the next instant k/rate after ns (on the grid: no drift; the first message opens it)
+            self.view_due[topic] = round((math.floor(ns * self.view_rate / 1e9 + 1e-6) + 1) * 1e9 / self.view_rate)
+        if self.view_failed is None:
+            try:
+                self.view.write(topic, ns, data)  # type: ignore[union-attr]  # view_due is empty without it
+            except (OSError, BagError) as exc:
+                self.view_failed = f"I/O error writing the view file {self.view.path}: {exc}"  # type: ignore[union-attr]
 
     def write_sent(self, topic: str, data: bytes) -> None:
         """A publication of the simulator as its subscribers receive it: Fast DDS pads the CDR to a
@@ -147,6 +212,14 @@ class RunBag:
             self.writer.close()
         except (OSError, BagError) as exc:
             self.failed = self.failed or f"I/O error closing the bag {self.path}: {exc}"
+        view: dict[str, Any] = {}
+        if self.view is not None:
+            self.view.custom_data.update(self.writer.custom_data)
+            try:
+                self.view.close()
+            except (OSError, BagError) as exc:
+                self.view_failed = self.view_failed or f"I/O error closing the view file {self.view.path}: {exc}"
+            view["view"] = {"path": str(self.view.path), "written": self.view.message_count, "failed": self.view_failed}
         return {
             "received": sum(counts["received"].values()),
             "written": sum(self.written.values()),
@@ -154,4 +227,5 @@ class RunBag:
             "not_recorded_by_topic": dict(self.not_written),
             "missed_start": None,
             "writer": "simulator",
+            **view,
         }

@@ -78,8 +78,8 @@ from formation_sim.core.preflight import Prepared
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Measurements, Simulation
 from formation_sim.core.team import AgentTeam
-from formation_sim.node.display import DisplayPublisher, declare_simulator_parameters
-from formation_sim.node.run_bag import RunBag
+from formation_sim.node.display import DEFAULT_MARKER_RATE, DisplayPublisher, declare_simulator_parameters
+from formation_sim.node.run_bag import VIEW_FILE, RunBag
 from formation_sim.node.sim_options import sim_preflight
 from formation_sim.node.stepping import (
     APPLY,
@@ -736,7 +736,14 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
     if args.bag is not None:
         try:
             realtime = args.mode == "realtime"
-            bag = RunBag(args.bag, bag_custom_data(spec, args), wall_log_time=realtime, max_bytes=args.max_bag_size)
+            bag = RunBag(
+                args.bag,
+                bag_custom_data(spec, args),
+                wall_log_time=realtime,
+                max_bytes=args.max_bag_size,
+                view=out / VIEW_FILE,  # what a viewer shows, at the display rate (docs/bags.md)
+                view_rate=args.marker_rate or DEFAULT_MARKER_RATE,
+            )
         except (BagError, OSError) as exc:
             print(f"formation-sim: {exc}", file=sys.stderr, flush=True)
             return ExitCode.INVALID

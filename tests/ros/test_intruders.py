@@ -4,10 +4,7 @@
 from __future__ import annotations
 
 import json
-import os
 import re
-import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -17,7 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from ros_helpers import BIN, PAPER, REALTIME, read_log, ros_context
+from ros_helpers import BIN, PAPER, REALTIME, launch_beside_a_forger, read_log, ros_context
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import topics
@@ -122,35 +119,8 @@ def test_simulator_applies_an_outsiders_wrench_only_when_reporting(
     cmd = [str(BIN / "formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     # the lag budget is not what this test is about: a loaded machine must not end the run INCOMPLETE
     cmd += ["--duration", "3", "--physics-rate", "100", "--intruder-policy", policy, "--lag-budget", "30"]
-    launch = subprocess.Popen(
-        cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
-    )
-    try:
-        with ros_context(ros_env) as context:
-            node = Node("outsider", context=context)
-            pub = node.create_publisher(WrenchStamped, topics.wrench("3"), qos.CONTROL)
-            wrench, twist = conversions.wrench_codec("3"), conversions.twist_codec("3")
-            force = [50.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-            node.create_subscription(
-                TwistStamped,
-                topics.velocity("3"),
-                lambda data: pub.publish(wrench.encode(twist.decode(data)[0], force)),
-                qos.CONTROL,
-                raw=True,
-            )
-            executor = SingleThreadedExecutor(context=context)
-            executor.add_node(node)
-            deadline = time.monotonic() + 240
-            while launch.poll() is None:
-                assert time.monotonic() < deadline
-                executor.spin_once(timeout_sec=0.05)
-            node.destroy_node()
-    finally:
-        if launch.poll() is None:
-            os.killpg(launch.pid, signal.SIGINT)
-            launch.wait(timeout=60)
-    log = launch.stdout.read().decode(errors="replace") if launch.stdout else ""
-    assert launch.returncode == 4, log
+    code, log, _ = launch_beside_a_forger(cmd, ros_env)
+    assert code == 4, log
     summary = json.loads((out / "summary.json").read_text())
     assert ("/agent_3/wrench", "/outsider") in {(i["topic"], i["node"]) for i in summary["security"]["intruders"]}
     assert summary["verdict"] == "INCOMPLETE" and summary["incomplete_reason"].startswith("untrusted input: "), log

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_helpers import BIN, PAPER, REPO, assert_equals_headless
+from ros_helpers import PAPER, REPO, assert_equals_headless, executable
 
 from formation_msgs_py.spec import load_formation
 
@@ -19,7 +19,7 @@ from formation_msgs_py.spec import load_formation
 def test_secure_lockstep_equals_headless(ros_env: dict[str, str], tmp_path: Path) -> None:
     """0.08 s of the paper preset through TLS (keys made for the run) equals run_headless (|Δe|, |Δψ| ≤ 1e-9)."""
     out = tmp_path / "out"
-    cmd = [str(BIN / "formation-launch"), str(PAPER), "--secure", "--out", str(out), "--no-plots", "--quiet"]
+    cmd = [executable("formation-launch"), str(PAPER), "--secure", "--out", str(out), "--no-plots", "--quiet"]
     cmd += ["--no-record", "--duration", "0.08", "--record-rate", "10000"]
     r = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=240, start_new_session=True)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -71,7 +71,7 @@ def test_agent_refuses_to_run_when_its_secure_profile_does_not_apply(ros_env: di
         "<initialPeersList></initialPeersList></builtin></rtps></participant></profiles></dds>"
     )
     env = dict(ros_env, FORMATION_SECURE="1", FASTRTPS_DEFAULT_PROFILES_FILE=str(broken))
-    cmd = [str(BIN / "formation-agent"), "--ros-args", "-p", f"formation_file:={PAPER}", "-p", "agent_id:='1'"]
+    cmd = [executable("formation-agent"), "--ros-args", "-p", f"formation_file:={PAPER}", "-p", "agent_id:='1'"]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, start_new_session=True)
     assert r.returncode == 2, r.stdout + r.stderr
     assert f"the profile {broken} did not apply" in r.stderr

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from bin_helpers import executable
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / "config" / "paper_5agents.yaml"
@@ -174,7 +175,7 @@ def console_scripts() -> list[str]:
 
 @pytest.mark.parametrize("script", console_scripts())
 def test_every_console_script_has_help(script: str) -> None:
-    exe = REPO / ".venv" / "bin" / script
+    exe = executable(script)
     res = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
     assert "usage" in res.stdout.lower()
@@ -294,3 +295,32 @@ def test_every_doc_link_and_help_pointer_exists() -> None:
                 missing.append(f"{path.relative_to(REPO)} -> {target}")
     missing += [f"{p.relative_to(REPO)} -> DESIGN.md" for p in [*docs, *sources] if "DESIGN.md" in p.read_text("utf-8")]
     assert not missing, missing
+
+
+def test_tests_find_scripts_in_the_install_that_runs_them(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """tests/bin_helpers.py: FORMATION_BIN first, then the interpreter's directory, then a sourced
+    install space (AMENT_PREFIX_PATH/lib/<package>/NAME), then PATH, then the repository's .venv/bin."""
+    import bin_helpers
+
+    def script(directory: Path) -> Path:
+        directory.mkdir(parents=True, exist_ok=True)
+        (directory / "formation-launch").write_text("#!/bin/sh\n")
+        (directory / "formation-launch").chmod(0o755)
+        return directory / "formation-launch"
+
+    forced, interpreter = script(tmp_path / "forced"), script(tmp_path / "venv" / "bin")
+    installed = script(tmp_path / "install" / "formation_sim" / "lib" / "formation_sim")
+    on_path = script(tmp_path / "path")
+    monkeypatch.setattr(sys, "executable", str(interpreter.parent / "python"))
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path / "install" / "formation_sim"))
+    monkeypatch.setenv("PATH", str(on_path.parent))
+    monkeypatch.setenv("FORMATION_BIN", f"{tmp_path / 'empty'}:{forced.parent}")
+    assert bin_helpers.executable("formation-launch") == str(forced)
+    monkeypatch.delenv("FORMATION_BIN")
+    assert bin_helpers.executable("formation-launch") == str(interpreter)
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "python"))
+    assert bin_helpers.executable("formation-launch") == str(installed)
+    monkeypatch.delenv("AMENT_PREFIX_PATH")
+    assert bin_helpers.executable("formation-launch") == str(on_path)
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    assert bin_helpers.executable("formation-launch") == str(REPO / ".venv" / "bin" / "formation-launch")

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import IO
 
 import pytest
+from bin_helpers import executable_dir
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -207,11 +208,11 @@ class Processes:
 
 
 def make_ros_env(domain_id: int, **extra: str) -> dict[str, str]:
-    """The environment of a ROS process of these tests: the project's venv first on PATH, the
-    run's own ROS_DOMAIN_ID (tests/conftest.py's allocator; needed on this host, harmless in
-    the private namespaces, which no other run can hear)."""
+    """The environment of a ROS process of these tests: the directory of the project's scripts
+    (tests/bin_helpers.py) first on PATH, the run's own ROS_DOMAIN_ID (tests/conftest.py's
+    allocator; needed on this host, harmless in the private namespaces, which no other run can hear)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "FASTDDS_", "FASTRTPS_", "RMW_"))}
-    env["PATH"] = f"{REPO / '.venv' / 'bin'}:{env.get('PATH', '/usr/bin:/bin')}"
+    env["PATH"] = f"{executable_dir()}:{env.get('PATH', '/usr/bin:/bin')}"
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["PYTHONUNBUFFERED"] = "1"
     env.update(extra)

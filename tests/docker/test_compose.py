@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 import yaml
+from bin_helpers import executable
 
 from formation_deploy.compose import MARK, main
 
@@ -103,7 +104,7 @@ def test_check_reports_a_stale_file(tmp_path: Path) -> None:
 
 def test_console_script_help() -> None:
     """formation-compose --help works from the project's environment."""
-    exe = REPO / ".venv" / "bin" / "formation-compose"
+    exe = executable("formation-compose")
     result = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0
     assert "--out" in result.stdout

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
+from bin_helpers import executable
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -125,7 +126,7 @@ SHORT = ("--duration", str(SHORT_DURATION), "--no-plots", "--quiet")
 
 def run_headless(out: Path) -> None:
     subprocess.run(
-        [str(REPO / ".venv" / "bin" / "formation-headless"), str(PAPER), *SHORT, "--out", str(out)],
+        [executable("formation-headless"), str(PAPER), *SHORT, "--out", str(out)],
         check=True,
         timeout=300,
         capture_output=True,

@@ -5,11 +5,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from bin_helpers import executable
+
 from formation_msgs_py.spec import FormationSpec, load_formation
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"
-VENV_BIN = REPO / ".venv" / "bin"
 HERE = Path(__file__).resolve().parent
 #: the paper run at a too-low control rate: agent 1 leaves its wz velocity funnel at t ≈ 1.08 s
 VIOLATING = {"duration": 1.3, "control_rate": 700.0, "physics_rate": 700.0}
@@ -20,7 +21,7 @@ def paper_spec(**overrides: float) -> FormationSpec:
 
 
 def script(name: str) -> list[str]:
-    """Command line of a console script in .venv/bin (or of a helper next to this file)."""
+    """Command line of a console script (found by tests/bin_helpers.py) or of a helper next to this file."""
     if name.endswith(".py"):
         return [sys.executable, str(HERE / name)]
-    return [str(VENV_BIN / name)]
+    return [executable(name)]

@@ -6,13 +6,13 @@ from __future__ import annotations
 import itertools
 import re
 import subprocess
-import sys
 import time
 import tracemalloc
 from pathlib import Path
 
 import pytest
 import yaml
+from bin_helpers import executable
 
 from formation_msgs_py import loader
 from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
@@ -20,7 +20,6 @@ from formation_msgs_py.spec import load_formation
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"
-BIN = Path(sys.executable).parent
 
 MINIMAL = """\
 simulation:
@@ -321,7 +320,7 @@ def test_commands_exit_2_without_traceback(tmp_path, case, script) -> None:
     path = write(tmp_path, texts[case])
     out = [] if script == "formation-check" else ["--out", str(tmp_path / "out")]
     started = time.monotonic()
-    r = subprocess.run([str(BIN / script), str(path), *out], capture_output=True, text=True, timeout=60)
+    r = subprocess.run([executable(script), str(path), *out], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr + r.stdout
     assert re.search(rf"{re.escape(str(path))}:\d+:\d+: ", r.stderr), r.stderr

@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from bin_helpers import executable
 
 from formation_msgs_py import options
 from formation_msgs_py.options import OPTIONS, RunOptions
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"
-BIN = Path(sys.executable).parent
 
 NUMERIC = [o for o in OPTIONS if o.kind in (options.positive, options.nonnegative, options.seed, options.byte_count)]
 BAD = {
@@ -113,7 +112,7 @@ def test_console_scripts_refuse_bad_options_without_traceback(script, extra, tmp
     """The installed commands: exit 2, one line naming the option, no traceback, nothing written."""
     out = [] if script == "formation-check" else ["--out", str(tmp_path / "o")]
     r = subprocess.run(
-        [str(BIN / script), str(PAPER), *extra, *out],
+        [executable(script), str(PAPER), *extra, *out],
         capture_output=True,
         text=True,
         timeout=120,
@@ -149,7 +148,7 @@ def test_preflight_refuses_what_cannot_run(script, extra, message, tmp_path) -> 
         out.mkdir()
         (out / "keep.txt").write_text("x")
     r = subprocess.run(
-        [str(BIN / script), str(PAPER), "--out", str(out), *extra], capture_output=True, text=True, timeout=300
+        [executable(script), str(PAPER), "--out", str(out), *extra], capture_output=True, text=True, timeout=300
     )
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert "Traceback" not in r.stderr + r.stdout

@@ -6,6 +6,7 @@ import subprocess
 from pathlib import Path
 
 import yaml
+from bin_helpers import executable
 
 from formation_msgs_py.spec import load_formation
 from formation_sim.cli import check
@@ -68,7 +69,7 @@ def test_spanning_tree_option_prints_dropped_edges(paper_doc, tmp_path, capsys) 
 
 def test_console_script_and_schema(paper_path) -> None:
     """The installed console script runs; --schema prints the reference table."""
-    exe = REPO / ".venv" / "bin" / "formation-check"
+    exe = executable("formation-check")
     res = subprocess.run([str(exe), "--schema"], capture_output=True, text=True, check=True)
     assert "| `agents[].dynamics.mass` | float | required | kg |" in res.stdout
     res = subprocess.run(

@@ -7,10 +7,10 @@ import datetime as dt
 import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from bin_helpers import executable
 
 from formation_deploy.keys import init_keys, process_names
 from formation_msgs_py.faults import FaultLog, write_json
@@ -34,12 +34,9 @@ def test_agent_fault_files_are_merged_and_missing_ones_named(tmp_path: Path) -> 
     assert summary["agent_faults_unknown"] == ["3"]  # killed before it could write its counts
 
 
-BIN = Path(sys.executable).parent
-
-
 def _launch(paper_path: Path, *args: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
-    cmd = [str(BIN / "formation-launch"), str(paper_path), "--quiet", "--no-plots", *args]
+    cmd = [executable("formation-launch"), str(paper_path), "--quiet", "--no-plots", *args]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
 
 

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import socket
 import subprocess
-import sys
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
 import websockets
+from bin_helpers import executable
 from live_client import receive
 from mcap_ros2._dynamic import generate_dynamic
 
@@ -147,7 +146,7 @@ def test_launch_refuses_a_taken_port_before_starting_anything(paper_path, tmp_pa
         s.listen()
         port = s.getsockname()[1]
         assert endpoint_problem(f"127.0.0.1:{port}") is not None
-        launch = Path(sys.executable).with_name("formation-launch")
+        launch = executable("formation-launch")
         cmd = [str(launch), str(paper_path), "--out", str(tmp_path / "out"), "--foxglove", str(port)]
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert res.returncode == 2, res.stdout + res.stderr

@@ -20,7 +20,7 @@ from formation_msgs_py.spec import FormationSpec, load_formation
 from formation_sim.core.loop import initial_rho_v0
 from formation_sim.core.rates import rate_needs
 from formation_sim.core.recorder import RunRecorder
-from formation_sim.views.outputs import format_summary, verdict_line, write_outputs
+from formation_sim.views.outputs import format_summary, tls_reason, verdict_line, write_outputs
 
 T = np.array([0.0, 0.1, 0.2, 0.3, 0.4])
 #: the margins are formed from e/ρ_e with a few float operations: equal to 1e-12
@@ -283,6 +283,25 @@ def test_an_intruder_turns_a_violation_into_untrusted_input(spec: FormationSpec)
     stopped = run(Incomplete(ExitCode.INTERRUPTED, "interrupted (SIGINT)"))
     assert (stopped["verdict"], stopped["exit_status"]) == ("INCOMPLETE", 130)
     assert stopped["incomplete_reason"].startswith("interrupted (SIGINT); untrusted input: ")
+
+
+def test_failed_tls_handshakes_are_named_under_every_verdict(spec: FormationSpec) -> None:
+    """A secure run's failed TLS handshakes (security.tls_handshake_failures): a line per process under
+    PASS, and named in an INCOMPLETE reason with the last error and what to check."""
+    failures = {"agent_4": {"count": 8, "last": "Handshake failed: certificate verify failed"}}
+    s = _recorder(spec, len(T)).summary(
+        wall_time=1.0, requested_duration=0.4, extra={"security": {"tls_handshake_failures": failures}}
+    )
+    assert s["verdict"] == "PASS"  # a refused outsider is no reason to doubt the run's evidence
+    assert verdict_line(s).splitlines()[1:] == [
+        "  TLS: agent_4 failed 8 handshake(s), the last: Handshake failed: certificate verify failed"
+    ]
+    reason = tls_reason(s["security"])
+    assert reason == (
+        "TLS handshake failed (agent_4 8x in their logs; Handshake failed: certificate verify failed): a "
+        "certificate the others refuse (another CA, expired or not yet valid; formation-keys check)"
+    )
+    assert tls_reason({"intruders": []}) is None and tls_reason(None) is None
 
 
 def test_faults_are_counted_with_first_and_last(spec: FormationSpec) -> None:

@@ -11,10 +11,10 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bin_helpers import executable
 from process_hygiene import kill_hard, remove_segments, shm_segments  # noqa: F401 (re-exported)
 
 REPO = Path(__file__).resolve().parents[2]
-BIN = REPO / ".venv" / "bin"
 RUN_SH = REPO / "ros2_ws" / "run.sh"
 PAPER = REPO / "config" / "paper_5agents.yaml"
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
@@ -128,12 +128,12 @@ class Procs:
 
     def agent(self, formation: Path, agent_id: str, *params: str) -> subprocess.Popen:
         """An agent process; ``params`` are more ``NAME:=VALUE`` parameters."""
-        cmd = [str(BIN / "formation-agent"), "--ros-args", "-p", f"formation_file:={formation}"]
+        cmd = [executable("formation-agent"), "--ros-args", "-p", f"formation_file:={formation}"]
         cmd += ["-p", f"agent_id:='{agent_id}'", *(x for p in params for x in ("-p", p))]
         return self.start(f"agent_{agent_id}", cmd)
 
     def sim(self, formation: Path, out: Path, *extra: str) -> subprocess.Popen:
-        return self.start("sim", [str(BIN / "formation-sim"), str(formation), "--out", str(out), "--no-plots", *extra])
+        return self.start("sim", [executable("formation-sim"), str(formation), "--out", str(out), "--no-plots", *extra])
 
     def stop_all(self) -> None:
         alive = [p for p in self.started if p.poll() is None]

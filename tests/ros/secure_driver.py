@@ -30,9 +30,11 @@ from formation_deploy.secure_transport import (
 )
 from formation_msgs_py.spec import load_formation
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: bin_helpers
+from bin_helpers import executable
+
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
-BIN = Path(sys.executable).parent
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
 CERT_LINES = ("<cert_chain_file>", "<private_key_file>")
 
@@ -76,7 +78,7 @@ def main() -> None:
     launch_log = open(work / "launch.log", "wb")
     launch = subprocess.Popen(
         [
-            str(BIN / "formation-launch"),
+            executable("formation-launch"),
             str(REALTIME),
             "--secure",
             "--keys",

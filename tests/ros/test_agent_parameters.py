@@ -11,7 +11,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import BIN, PAPER, read_log, ros_context
+from ros_helpers import PAPER, executable, read_log, ros_context
 from rosgraph_msgs.msg import Clock
 
 from formation_agent.agent_node import AgentNode, resolve_agent_id
@@ -32,7 +32,7 @@ def test_agent_parameters_read_only_live_and_checked(procs, ros_env: dict[str, s
         "/agent_4/formation_agent:\n  ros__parameters:\n    gamma: 99.0\n"
     )
     agent = procs.start(
-        "agent_5", [str(BIN / "formation-agent"), "--ros-args", "--params-file", str(params), "-r", "__ns:=/agent_5"]
+        "agent_5", [executable("formation-agent"), "--ros-args", "--params-file", str(params), "-r", "__ns:=/agent_5"]
     )
     spec = load_formation(PAPER)
     meas = Simulation(simulator_view(spec)).sense()

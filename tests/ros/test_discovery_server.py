@@ -10,7 +10,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from ros_helpers import BIN, PAPER, REPO, assert_equals_headless, processes_mentioning, read_log
+from ros_helpers import PAPER, REPO, assert_equals_headless, executable, processes_mentioning, read_log
 
 from formation_msgs_py.spec import load_formation
 from formation_sim.launch.dds_env import netns_available
@@ -20,7 +20,7 @@ from formation_sim.launch.discovery_server import free_udp_port, udp_port_bound
 def _launch(
     env: dict[str, str], formation: Path, out: Path, *extra: str, timeout: float = 300
 ) -> subprocess.CompletedProcess:
-    cmd = [str(BIN / "formation-launch"), str(formation), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd = [executable("formation-launch"), str(formation), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     cmd += ["--discovery", "server", *extra]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout, start_new_session=True)
 
@@ -52,7 +52,7 @@ def test_forty_agents_in_lockstep_on_one_host_without_a_namespace(ros_env: dict[
     no network namespace: the random 40-agent formation at 1 kHz equals its headless run (≤ 1e-9)."""
     formation = tmp_path / "random40.yaml"
     gen = subprocess.run(
-        [str(BIN / "formation-generate"), "40", "--topology", "random", "--out", str(formation)],
+        [executable("formation-generate"), "40", "--topology", "random", "--out", str(formation)],
         capture_output=True,
         text=True,
         timeout=120,
@@ -117,7 +117,7 @@ def _launch_without_multicast(env: dict[str, str], out: Path, discovery: str) ->
     the launcher's namespace settings (SUBNET discovery, UDP only) are taken as they are."""
     drop = "iptables -A OUTPUT -d 224.0.0.0/4 -j DROP && iptables -A INPUT -d 224.0.0.0/4 -j DROP"
     script = f'ip link set lo up && {drop} && exec "$@"'
-    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd = [executable("formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     cmd += ["--duration", "0.02", "--record-rate", "10000", "--discovery", discovery, "--discovery-timeout", "10"]
     env = {**env, "FORMATION_IN_NETNS": "1"}
     return subprocess.run(

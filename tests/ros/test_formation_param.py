@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import subprocess
 
-from ros_helpers import BIN, PAPER, read_log, wait_for_line
+from ros_helpers import PAPER, executable, read_log, wait_for_line
 
 NODE = "/agent_1/formation_agent"
 
 
 def _param(env: dict[str, str], *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
-    cmd = [str(BIN / "formation-param"), "--timeout", str(timeout), *args]
+    cmd = [executable("formation-param"), "--timeout", str(timeout), *args]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout + 60, start_new_session=True)
 
 

@@ -14,7 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from ros_helpers import BIN, PAPER, REALTIME, launch_beside_a_forger, read_log, ros_context
+from ros_helpers import PAPER, REALTIME, executable, launch_beside_a_forger, read_log, ros_context
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import topics
@@ -46,7 +46,7 @@ def test_agent_reports_an_outsider_and_refuses_its_measurements(procs, ros_env: 
     agent = procs.start(
         "agent_3",
         [
-            str(BIN / "formation-agent"),
+            executable("formation-agent"),
             "--ros-args",
             "-p",
             f"formation_file:={PAPER}",
@@ -116,7 +116,7 @@ def test_simulator_applies_an_outsiders_wrench_only_when_reporting(
     threat), refuse never does and counts what it refused; either way never PASS (nor a FAIL blamed on
     the controller): INCOMPLETE, untrusted input, exit 4, the verdict block naming the outsider."""
     out = tmp_path / "out"
-    cmd = [str(BIN / "formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd = [executable("formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     # the lag budget is not what this test is about: a loaded machine must not end the run INCOMPLETE
     cmd += ["--duration", "3", "--physics-rate", "100", "--intruder-policy", policy, "--lag-budget", "30"]
     code, log, _ = launch_beside_a_forger(cmd, ros_env)

@@ -9,7 +9,7 @@ import subprocess
 from pathlib import Path
 
 from live_client import wait_and_receive
-from ros_helpers import BIN, PAPER
+from ros_helpers import PAPER, executable
 
 from formation_msgs_py import topics
 from formation_msgs_py.bag.writer import typestore
@@ -31,7 +31,7 @@ def test_lockstep_run_serves_markers_of_every_agent(ros_env: dict[str, str], tmp
     port = _free_port()
     out = tmp_path / "out"
     # long enough to be running when the client subscribes; stopped (SIGINT) once it has received
-    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--duration", "5", "--no-record"]
+    cmd = [executable("formation-launch"), str(PAPER), "--out", str(out), "--duration", "5", "--no-record"]
     cmd += ["--no-plots", "--foxglove", f"127.0.0.1:{port}"]
     log = tmp_path / "launch.log"
     with open(log, "wb") as f:

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import yaml
 from ros_helpers import (
-    BIN,
     PAPER,
     REPO,
     assert_equals_headless,
     children_by_node,
+    executable,
     kill_hard,
     read_log,
     remove_segments,
@@ -32,8 +32,8 @@ SHORT = ("--duration", "0.08", "--record-rate", "10000")
 
 
 def _launch(env: dict[str, str], out: Path, *extra: str) -> subprocess.CompletedProcess:
-    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record", *SHORT]
-    cmd += extra
+    cmd = [executable("formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd += [*SHORT, *extra]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=180, start_new_session=True)
 
 
@@ -124,7 +124,7 @@ def test_launcher_stops_everything_when_an_agent_dies(ros_env: dict[str, str], t
     """The launcher notices a dead agent at once, stops the rest and exits 3."""
     out = tmp_path / "out"
     proc = subprocess.Popen(
-        [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--duration", "5", "--no-plots", "--no-record"],
+        [executable("formation-launch"), str(PAPER), "--out", str(out), "--duration", "5", "--no-plots", "--no-record"],
         env=ros_env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -176,9 +176,9 @@ def test_help_of_every_script() -> None:
         [str(REPO / "ros2_ws" / "run.sh"), "--help"],
         [str(REPO / "ros2_ws" / "agent.sh"), "--help"],
         [str(REPO / "ros2_ws" / "sim.sh"), "--help"],
-        [str(BIN / "formation-agent"), "--help"],
-        [str(BIN / "formation-sim"), "--help"],
-        [str(BIN / "formation-launch"), "--help"],
+        [executable("formation-agent"), "--help"],
+        [executable("formation-sim"), "--help"],
+        [executable("formation-launch"), "--help"],
     ):
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
         assert r.returncode == 0, (cmd, r.stderr)
@@ -194,7 +194,7 @@ def test_private_network_namespace(ros_env: dict[str, str], tmp_path: Path) -> N
     if reason is not None:
         pytest.skip(reason)
     out = tmp_path / "out"
-    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--duration", "0.01", "--netns", "on"]
+    cmd = [executable("formation-launch"), str(PAPER), "--out", str(out), "--duration", "0.01", "--netns", "on"]
     r = subprocess.run(
         [*cmd, "--no-plots", "--quiet"],
         env=ros_env,

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from rclpy.node import Node
 from ros_helpers import (
-    BIN,
     PAPER,
     REALTIME,
     RUN_SH,
+    executable,
     kill_hard,
     processes_mentioning,
     read_log,
@@ -243,7 +243,7 @@ def test_realtime_recorder_that_falls_behind_drops_with_an_exact_count(launched,
     """formation-record as an observer of a realtime run, stopped (SIGSTOP) for 2 s: the run does not wait
     for it, and its counts say exactly what is not in its bag (the publishers' sequence numbers)."""
     bag, stats = tmp_path / "observer_bag", tmp_path / "observer_counts.json"
-    cmd = [str(BIN / "formation-record"), "--out", str(bag), "--formation", str(REALTIME), "--stats", str(stats)]
+    cmd = [executable("formation-record"), "--out", str(bag), "--formation", str(REALTIME), "--stats", str(stats)]
     rec = procs.start("recorder", [*cmd, "--quiet"])
     assert wait_for_line(rec, "formation-record: recording", 60), read_log(rec)
     # physics at the control rate keeps the simulator on the wall clock on a loaded machine
@@ -317,5 +317,5 @@ def test_help_states_the_exit_statuses() -> None:
     from formation_msgs_py.outcome import EXIT_STATUS_HELP
 
     for name in ("formation-launch", "formation-sim", "formation-headless", "formation-analyze"):
-        out = subprocess.run([str(BIN / name), "--help"], capture_output=True, text=True, check=True).stdout
+        out = subprocess.run([executable(name), "--help"], capture_output=True, text=True, check=True).stdout
         assert " ".join(EXIT_STATUS_HELP.split()) in " ".join(out.split()), name

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from ros_helpers import BIN, PAPER, kill_hard, remove_segments
+from ros_helpers import PAPER, executable, kill_hard, remove_segments
 
 from formation_bag import messages as m
 from formation_bag.reader import Bag
@@ -27,7 +27,7 @@ CLOCK_PERIOD = 1e-3  # s: /clock at the preset's record rate (1 kHz, the simulat
 
 def _launch(env: dict[str, str], out: Path, duration: str) -> subprocess.Popen:
     cmd = [
-        str(BIN / "formation-launch"),
+        executable("formation-launch"),
         str(PAPER),
         "--out",
         str(out),
@@ -152,7 +152,7 @@ def test_sigkill_of_the_simulator_loses_at_most_a_second(ros_env: dict[str, str]
     assert proc.returncode == 3, stdout  # the launcher names the dead simulator
     progress = [float(x) for x in re.findall(r"progress t=([0-9.]+)", (out / "logs" / "sim.log").read_text())]
 
-    r = subprocess.run([str(BIN / "formation-bag"), "repair", str(out / "bag")], capture_output=True, text=True)
+    r = subprocess.run([executable("formation-bag"), "repair", str(out / "bag")], capture_output=True, text=True)
     assert r.returncode == 0 and "messages recovered into bag_0.mcap" in r.stdout, r.stdout + r.stderr
     with Bag(out / "bag") as bag:
         stamps: dict[str, list[int]] = {}
@@ -173,14 +173,14 @@ def test_sigkill_of_the_simulator_loses_at_most_a_second(ros_env: dict[str, str]
     assert "of log time recovered, the rest lost" in repaired
 
     # the view file: flushed every half second of simulated time, completed in place by repair
-    r = subprocess.run([str(BIN / "formation-bag"), "repair", str(out / "view.mcap")], capture_output=True, text=True)
+    r = subprocess.run([executable("formation-bag"), "repair", str(out / "view.mcap")], capture_output=True, text=True)
     assert r.returncode == 0 and "of log time recovered, the rest lost" in r.stdout, r.stdout + r.stderr
     clock = _mcap_log_times(out / "view.mcap")["/clock"]
     assert clock[0] == 0 and clock[-1] >= 0.5e9 and clock[-1] >= last - 1e9, clock
     assert max(b - a for a, b in itertools.pairwise(clock)) <= (DISPLAY_PERIOD + CLOCK_PERIOD) * 1e9
 
     r = subprocess.run(
-        [str(BIN / "formation-analyze"), str(out / "bag"), "--out", str(tmp_path / "analysis"), "--no-plots"],
+        [executable("formation-analyze"), str(out / "bag"), "--out", str(tmp_path / "analysis"), "--no-plots"],
         capture_output=True,
         text=True,
         env=ros_env,

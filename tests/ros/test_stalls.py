@@ -27,10 +27,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from ros_helpers import (
-    BIN,
     FORGED,
     PAPER,
     assert_equals_headless,
+    executable,
     launch_beside_a_forger,
     read_log,
     ros_context,
@@ -65,7 +65,7 @@ def test_a_forged_answer_is_never_applied(ros_env: dict[str, str], tmp_path: Pat
     the run equals the headless one, and it ends INCOMPLETE (untrusted input) naming the outsider."""
     out = tmp_path / "out"
     duration = 0.05
-    cmd = [str(BIN / "formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd = [executable("formation-launch"), str(PAPER), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     cmd += ["--duration", str(duration), "--record-rate", "10000"]
     code, log, forged = launch_beside_a_forger(cmd, ros_env)
     assert code == 4, log  # the outsider is an intruder: untrusted input, whatever the witness kept out

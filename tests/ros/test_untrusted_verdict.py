@@ -8,7 +8,7 @@ import re
 from pathlib import Path
 
 import pytest
-from ros_helpers import BIN, REALTIME, launch_beside_a_forger
+from ros_helpers import REALTIME, executable, launch_beside_a_forger
 
 
 @pytest.mark.parametrize("policy", ["report", "refuse"])
@@ -17,7 +17,7 @@ def test_lockstep_run_with_a_forged_wrench_is_untrusted(ros_env: dict[str, str],
     exit 4; refuse: agent 3's own wrenches are refused, so it may stop answering (exit 3); either way the
     verdict is INCOMPLETE with the untrusted input named (node, GID, topic, counts) in summary and output."""
     out = tmp_path / "out"
-    cmd = [str(BIN / "formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd = [executable("formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     cmd += ["--mode", "lockstep", "--duration", "1", "--physics-rate", "100", "--intruder-policy", policy]
     cmd += ["--step-timeout", "2"]  # refuse: agent 3 counts as missing after 2 s, not the default's longer wait
     code, log, _ = launch_beside_a_forger(cmd, ros_env)

@@ -39,7 +39,7 @@ from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, de
 from formation_msgs_py.publisher_watch import untrusted_input
 from formation_sim.core.preflight import InvalidRunError, Prepared, launch_outputs, preflight, prepare_out_dir
 from formation_sim.launch import dds_env, discovery_server
-from formation_sim.launch.supervisor import Child, LogFollower, Supervisor
+from formation_sim.launch.supervisor import Child, LogFollower, Supervisor, tls_failures
 from formation_sim.views.live_view import endpoint_problem
 
 if TYPE_CHECKING:
@@ -192,6 +192,8 @@ class Launcher:
         self.timing: dict[str, float] = {}
         #: children sent SIGINT after the last step (their exit is no death)
         self.interrupted: set[str] = set()
+        #: a --secure run: the children's logs are searched for failed TLS handshakes at the end
+        self.secure = False
 
     def on_signal(self, signum: int, _frame: Any) -> None:
         if self.signalled is None:
@@ -338,6 +340,18 @@ class Launcher:
         self.relay()
         self.timing["stopped"] = time.monotonic()
 
+    def _tls_failures(self, summary: dict[str, Any]) -> str | None:
+        """A secure run's failed TLS handshakes, found in its processes' logs (Fast DDS reports them
+        nowhere else), into ``summary["security"]``; the reason's text naming them, or None."""
+        from formation_sim.views.outputs import tls_reason
+
+        failures = _tls_failures_of(self.sup.children) if self.secure else {}
+        if not failures:
+            return None
+        security = summary.get("security")
+        summary["security"] = {**(security if isinstance(security, dict) else {}), "tls_handshake_failures": failures}
+        return tls_reason(summary["security"])
+
     def summary(self) -> dict[str, Any]:
         """The simulator's summary, completed with what only the launcher knows."""
         path = self.out / "summary.json"
@@ -363,6 +377,7 @@ class Launcher:
                     f"{sim.describe_exit()}: no summary written" + _last_error(sim.log),
                 )
         merge_agent_faults(summary, self.out / "logs", self.spec.agent_ids)
+        tls = self._tls_failures(summary)
         incomplete = self.stop
         if incomplete is None and self.agent_died:
             incomplete = Incomplete(ExitCode.PROCESS_DIED, "; ".join(self.agent_died))
@@ -376,6 +391,8 @@ class Launcher:
                 exit_status=int(result.exit_code),
                 funnels_held={"PASS": True, "FAIL": False}.get(result.verdict.value),
             )
+        if tls and summary.get("verdict") == "INCOMPLETE":
+            summary["incomplete_reason"] = f"{summary.get('incomplete_reason')}; {tls}"
         t = self.timing
         done = min(t.get("stepping_done", t["stop_from"]), t["stop_from"])  # stepped to the end, or stopped
         summary["launch"] = {
@@ -393,6 +410,12 @@ class Launcher:
             "wall_figures_s": t.get("figures_s"),  # part of wall_stop_s
         }
         return summary
+
+
+def _tls_failures_of(children: list[Child]) -> dict[str, dict[str, Any]]:
+    """{child name: {"count", "last"}} of the children whose logs hold failed TLS handshakes."""
+    found = {c.name: tls_failures(c.log) for c in children}
+    return {name: {"count": f.count, "last": f.last} for name, f in found.items() if f is not None}
 
 
 def _last_error(log: Path) -> str:
@@ -585,6 +608,7 @@ def main(argv: list[str] | None = None) -> int:
     launcher = Launcher(run.spec, run.options, run.out, env, discovery)
     if secure is not None:
         launcher.sup.process_env = secure.environments
+        launcher.secure = True
     try:
         launcher.run()
     finally:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import re
 import signal
 import subprocess
 import time
@@ -131,6 +132,51 @@ class LogFollower:
         data = self._partial + data
         *lines, self._partial = data.split(b"\n")
         return [line.decode("utf-8", "replace") for line in lines]
+
+
+#: Fast DDS's TLS errors, as a process writes them to its console (its log here), coloured or not:
+#: ``[RTCP_TLS Error] Handshake failed: certificate verify failed -> Function operator()``. A
+#: connecting process logs the handshakes it could not complete; the accepting side logs nothing.
+#: A handshake cut by the network (a peer still starting or stopping: "Connection reset by peer")
+#: happens in sound runs too and is not counted: only what TLS itself refused (an OpenSSL reason:
+#: "certificate verify failed", "tlsv1 alert unknown ca", "EVP lib (asn1 …)", …).
+_CONNECTION_ERRORS = (
+    "connection reset",
+    "connection refused",
+    "connection aborted",
+    "end of file",
+    "stream truncated",
+    "broken pipe",
+    "operation canceled",
+    "timed out",
+)
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_TLS_ERROR = re.compile(r"\[RTCP_TLS Error\]\s*(?P<text>.*?)(?:\s*->\s*Function\b.*)?$")
+
+
+@dataclass(frozen=True)
+class TlsFailures:
+    """The TLS errors in one process's log: how many, and the last one's text."""
+
+    count: int
+    last: str
+
+
+def tls_failures(log: Path) -> TlsFailures | None:
+    """The handshakes TLS refused in ``log`` (Fast DDS's TLS errors but those of a connection cut by
+    the network), or None when it has none."""
+    count, last = 0, ""
+    try:
+        with log.open("rb") as fh:
+            for raw in fh:
+                if b"RTCP_TLS" not in raw:
+                    continue
+                found = _TLS_ERROR.search(_ANSI.sub("", raw.decode("utf-8", "replace")).rstrip())
+                if found and not any(e in found["text"].lower() for e in _CONNECTION_ERRORS):
+                    count, last = count + 1, found["text"][:200]
+    except OSError:
+        return None
+    return TlsFailures(count, last) if count else None
 
 
 @dataclass

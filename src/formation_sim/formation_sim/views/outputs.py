@@ -111,12 +111,14 @@ def verdict_line(summary: dict[str, Any]) -> str:
     verdict = summary["verdict"]
     fv = summary["first_violation"]
     if verdict == Verdict.PASS.value:
-        return f"PASS: every funnel held over {summary['duration']:g} s (worst margin {_f(summary['worst_margin'])})"
+        text = f"PASS: every funnel held over {summary['duration']:g} s (worst margin {_f(summary['worst_margin'])})"
+        return "\n".join([text, *tls_lines(summary.get("security"))])
     if verdict == Verdict.FAIL.value:
         where = fv.get("edge") or fv.get("agent")
         text = f"FAIL: first violation at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
         reason = summary.get("incomplete_reason")
-        return text + (f"; then the run stopped early: {reason}" if reason else "")
+        text += f"; then the run stopped early: {reason}" if reason else ""
+        return "\n".join([text, *tls_lines(summary.get("security"))])
     reason = str(summary.get("incomplete_reason"))
     intruders = intruder_lines(summary.get("security"))
     if intruders:  # the reason names them on one line; here one line each
@@ -128,6 +130,34 @@ def verdict_line(summary: dict[str, Any]) -> str:
         seen = f"no violation in the {_f(summary['duration'])} s checked"
     text = f"INCOMPLETE: {reason} ({seen}, worst margin {_f(summary['worst_margin'])})"
     return "\n".join([text, *(f"  intruder: {line}" for line in intruders)])
+
+
+def _tls_failures(security: Any) -> dict[str, dict[str, Any]]:
+    found = (security or {}).get("tls_handshake_failures") if isinstance(security, dict) else None
+    return found if isinstance(found, dict) else {}
+
+
+def tls_reason(security: Any) -> str | None:
+    """One line naming the failed TLS handshakes of a secure run (``security.tls_handshake_failures``
+    of summary.json: process -> count and the last error), or None when there were none."""
+    failures = _tls_failures(security)
+    if not failures:
+        return None
+    counts = ", ".join(f"{name} {f.get('count')}x" for name, f in failures.items())
+    last = next(reversed(failures.values())).get("last")
+    return (
+        f"TLS handshake failed ({counts} in their logs; {last}): a certificate the others refuse "
+        "(another CA, expired or not yet valid; formation-keys check)"
+    )
+
+
+def tls_lines(security: Any) -> list[str]:
+    """The lines of the failed TLS handshakes under a PASS or FAIL, one per process that saw them
+    (an INCOMPLETE run's reason names them: :func:`tls_reason`)."""
+    return [
+        f"  TLS: {name} failed {f.get('count')} handshake(s), the last: {f.get('last')}"
+        for name, f in _tls_failures(security).items()
+    ]
 
 
 def _f(x: float | None) -> str:

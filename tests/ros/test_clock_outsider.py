@@ -38,7 +38,7 @@ STAMP_KINDS = ("refused_future_stamp", "refused_old_stamp", "refused_past_stamp"
 
 def test_outsiders_clock_and_forged_stamp_reset_nothing(ros_env: dict[str, str], tmp_path: Path) -> None:
     """Realtime, 2.5 s: at 1 s an outsider publishes /clock 1 s back and a velocity of agent 3 stamped
-    25 ms ahead. No agent resets or refuses a genuine stamp (each counts the clock_jump), agent 3
+    25 ms ahead. No agent resets or refuses a genuine stamp (those that saw the jump count it), agent 3
     answers the genuine steps after it, and the run ends INCOMPLETE (untrusted input, exit 4) naming
     the outsider on /clock."""
     out = tmp_path / "out"
@@ -94,11 +94,23 @@ def test_outsiders_clock_and_forged_stamp_reset_nothing(ros_env: dict[str, str],
     assert ("/clock", "/outsider") in {(i["topic"], i["node"]) for i in summary["security"]["intruders"]}, summary
     assert re.search(r"^  intruder: node /outsider gid \w+ on /clock ", log, re.M), log
     faults = summary["faults"]
+    # the forged velocity itself may arrive after the genuine steps passed its stamp (a loaded
+    # machine): then it is refused as past_stamp, rightly; no genuine stamp is refused
+    forged = f"velocity stamped {(injected + FORGED_LEAD_NS) / NS:.9g} s, before the agent's time "
+    saw_jump = []
     for agent in load_formation(REALTIME).agent_ids:
         kinds = faults.get(agent, {})
         assert "reset" not in kinds, (agent, kinds)
-        assert kinds.get("clock_jump", {}).get("count", 0) >= 1, (agent, kinds)
-        assert not [k for k in STAMP_KINDS if k in kinds], (agent, kinds)
+        refused = {k: c for k, c in kinds.items() if k in STAMP_KINDS}
+        past = refused.get("refused_past_stamp")
+        if agent == "3" and past is not None and past["count"] == 1 and past["first"].startswith(forged):
+            del refused["refused_past_stamp"]
+        assert not refused, (agent, kinds)
+        if "clock_jump" in kinds:
+            saw_jump.append(agent)
+    # /clock is kept last 1: an agent lagging at that moment may take the simulator's next /clock
+    # instead, and never see the jump; those that saw it counted it and reset nothing (above)
+    assert saw_jump, faults
     # agent 3 keeps answering: the genuine steps of the window after the injection got their wrench
     window = [ns for ns in genuine if injected < ns <= injected + WINDOW_NS]
     unanswered = [ns for ns in window if ns not in answered]

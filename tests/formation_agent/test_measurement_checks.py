@@ -127,3 +127,25 @@ def test_refused_measurement_of_a_past_step_changes_nothing() -> None:
     assert len(sent) == 1
     sync.refuse(1000, "velocity: non-finite value", now=0.0)
     assert len(sent) == 1 and sync.resets == 0 and sync.last_ns == 2000
+
+
+def test_stamps_are_judged_against_the_agents_confirmed_step_and_clock_only_widens() -> None:
+    """The agent's time is its confirmed step: a /clock jumped back 1 s (an outsider's) refuses no
+    genuine stamp, a /clock far ahead makes none old; a stamp more than MAX_LEAD ahead of both, or
+    more than measurement_timeout behind both, is refused."""
+    c = check()
+    lead = measurement_checks.MAX_LEAD_NS
+    genuine = 5 * NS + 100_000
+    assert c.velocity(genuine, (0.0,) * 6, clock_ns=4 * NS, ref_ns=5 * NS) is None  # /clock back 1 s
+    assert c.pose("3", genuine, GOOD_POSE, clock_ns=4 * NS, ref_ns=5 * NS) is None
+    assert c.velocity(genuine, (0.0,) * 6, clock_ns=60 * NS, ref_ns=5 * NS) is None  # /clock far ahead
+    assert c.velocity(genuine, (0.0,) * 6, clock_ns=0, ref_ns=5 * NS) is None  # no /clock: the stream alone
+    assert not c.counts
+    assert c.velocity(5 * NS + lead + 1, (0.0,) * 6, clock_ns=4 * NS, ref_ns=5 * NS).kind == "future_stamp"
+    assert c.velocity(5 * NS + lead + 1, (0.0,) * 6, clock_ns=0, ref_ns=5 * NS).kind == "future_stamp"
+    # after a stall the simulator's /clock, ahead of the last confirmed step, lets its stamps in
+    assert c.velocity(9 * NS, (0.0,) * 6, clock_ns=9 * NS, ref_ns=5 * NS) is None
+    assert c.velocity(4 * NS - MAX_AGE - 1, (0.0,) * 6, clock_ns=4 * NS, ref_ns=5 * NS).kind == "old_stamp"
+    # a restart of simulation time (a replay's loop): /clock back to the stamps, which pass
+    assert c.velocity(NS // 10, (0.0,) * 6, clock_ns=NS // 10, ref_ns=5 * NS) is None
+    assert c.counts == {"future_stamp": 2, "old_stamp": 1}

@@ -1,8 +1,12 @@
-"""One agent process driven by the test: wrench stamps, and a backward /clock jump."""
+"""One agent process driven by the test: wrench stamps, and simulation time restarting."""
 
 from __future__ import annotations
 
+import json
+import os
+import signal
 import time
+from pathlib import Path
 
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
@@ -18,11 +22,15 @@ from formation_sim.core.simulation import Simulation
 NS = 1_000_000_000
 
 
-def test_agent_answers_each_stamp_and_resets_on_a_backward_clock_jump(procs, ros_env: dict[str, str]) -> None:
-    """Agent 5 (one neighbour, 3): wrench stamped like its measurements; /clock going back resets it."""
+def test_agent_answers_each_stamp_and_resets_when_clock_and_stamps_go_back(
+    procs, ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    """Agent 5 (one neighbour, 3): wrench stamped like its measurements; /clock going back with the
+    measurements (a new run, or a replay's loop) resets it once, and the jump is counted."""
     spec = load_formation(PAPER)
     meas = Simulation(simulator_view(spec)).sense()
-    agent = procs.agent(PAPER, "5")
+    faults_file = tmp_path / "agent_5_faults.json"
+    agent = procs.agent(PAPER, "5", f"faults_file:={faults_file}")
     with ros_context(ros_env) as context:
         node = Node("agent_driver", context=context)
         clock = node.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
@@ -59,3 +67,8 @@ def test_agent_answers_each_stamp_and_resets_on_a_backward_clock_jump(procs, ros
         assert got[-1] == 1 * NS, got
         assert wait_for_line(agent, "clock jumped back", 10), read_log(agent)
         node.destroy_node()
+    os.killpg(agent.pid, signal.SIGINT)
+    agent.wait(timeout=30)
+    faults = json.loads(faults_file.read_text())["5"]
+    assert (faults["clock_jump"]["count"], faults["reset"]["count"]) == (1, 1), faults
+    assert faults["reset"]["first"] == "/clock back to 1.000000 s, measurements at 1.000000 s after 10.001000 s"

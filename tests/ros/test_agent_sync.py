@@ -1,4 +1,4 @@
-"""The agent's step synchroniser (no processes): matching by stamp, gaps, repeats, clock jumps."""
+"""The agent's step synchroniser (no processes): matching by stamp, gaps, repeats, time from the measurements."""
 
 from __future__ import annotations
 
@@ -47,26 +47,100 @@ def test_missing_neighbour_answers_zero_after_pose_wait() -> None:
     }
 
 
-def test_repeated_stamp_gets_the_same_wrench_and_earlier_stamp_resets() -> None:
-    """A re-sent step is answered again identically; a stamp going back resets the controller."""
+def _step(sync, poses, v, ns: int, now: float = 0.0) -> None:
+    """One genuine step: every neighbour's pose, then the velocity."""
+    for j, (p, R) in poses.items():
+        sync.on_pose(j, ns, p, R, now=now)
+    sync.on_velocity(ns, v, now=now)
+
+
+def test_repeated_stamp_gets_the_same_wrench_and_an_earlier_one_is_refused_without_reset() -> None:
+    """A re-sent step is answered again identically; a velocity stamped before the agent's time
+    (no resend) is refused and counted as past_stamp: no answer, no reset, the time unchanged."""
     sync, poses, v, sent = _setup()
-    for ns in (0, 100_000):
-        for j, (p, R) in poses.items():
-            sync.on_pose(j, ns, p, R, now=0.0)
-        sync.on_velocity(ns, v, now=0.0)
+    for ns in (0, 100_000, 200_000):
+        _step(sync, poses, v, ns)
+    sync.on_velocity(100_000, v, now=0.0)  # a resend of a remembered step, not the newest
+    assert sent[-1] == sent[1] and len(sent) == 4
+    sync.on_velocity(200_000, v, now=0.0)
+    assert sent[-1] == sent[2] and len(sent) == 5
+    rho_v0 = sync.controller.rho_v0
+    assert rho_v0 is not None
+    sync.answers.clear()  # a step long forgotten (beyond the memory of answers)
     sync.on_velocity(100_000, v, now=0.0)
-    assert sent[-1] == sent[-2]
-    assert sync.controller.rho_v0 is not None and sync.resets == 0
-    sync.on_velocity(0, v, now=0.0)
-    assert sync.resets == 1
-    for j, (p, R) in poses.items():  # answered again, then back once more: every reset is counted
-        sync.on_pose(j, 100_000, p, R, now=0.0)
-    sync.on_velocity(100_000, v, now=0.0)
-    sync.on_velocity(0, v, now=0.0)
-    assert sync.resets == 2
+    assert len(sent) == 5 and sync.pending is None
+    assert sync.resets == 0 and sync.controller.rho_v0 == rho_v0 and sync.confirmed_ns == 200_000
+    past = sync.faults.as_dict()["1"]["refused_past_stamp"]
+    assert past["count"] == 1 and past["first"] == "velocity stamped 0.0001 s, before the agent's time 0.0002 s"
+    _step(sync, poses, v, 300_000)  # the next step is answered as usual
+    assert sent[-1][0] == 300_000 and any(sent[-1][1]) and sync.confirmed_ns == 300_000
+
+
+def test_forged_velocity_ahead_of_the_genuine_steps_resets_nothing() -> None:
+    """A velocity stamped 5 ms ahead (an outsider's, no pose of that stamp ever comes) is answered
+    alone with zero after pose_wait and confirms nothing: the genuine steps before its stamp are
+    answered as if it had not come, with the controller's wrenches, and nothing is reset."""
+    sync, poses, v, sent = _setup()
+    _step(sync, poses, v, 0)
+    forged = 5_000_000
+    sync.on_velocity(forged, v, now=1.0)
+    sync.try_compute(sync.deadline(), final=True)
+    assert sent[-1] == (forged, (0.0,) * 6) and sync.last_ns == forged and sync.confirmed_ns == 0
+    # the genuine steps of the next 5 ms, poses first or velocity first, each a full answer
+    ref = AgentController(sync.controller.view)
+    ref.compute(0.0, poses, v)
+    for k in range(1, 6):
+        ns = k * 1_000_000
+        if k % 2:
+            _step(sync, poses, v, ns, now=2.0)
+        else:
+            sync.on_velocity(ns, v, now=2.0)
+            for j, (p, R) in poses.items():
+                sync.on_pose(j, ns, p, R, now=2.0)
+        assert sent[-1] == (ns, ref.compute(ns / 1e9, poses, v).wrench), k
+    assert sync.resets == 0 and sync.confirmed_ns == 5_000_000 and sync.last_ns == forged
+    assert "refused_past_stamp" not in sync.faults.as_dict().get("1", {})
+
+
+def test_clock_jumping_back_alone_is_counted_and_resets_nothing() -> None:
+    """/clock back by 1 s (an outsider's): a clock_jump fault; the genuine steps after it are
+    answered normally, and a later velocity of an earlier stamp is still refused (the jump was
+    forgotten at the first confirmed step after it)."""
+    sync, poses, v, sent = _setup()
+    for ns in (2_000_000_000, 2_000_100_000):
+        _step(sync, poses, v, ns)
+    sync.clock_jumped_back(1_000_100_000, -1_000_000_000)
+    _step(sync, poses, v, 2_000_200_000)
+    ref = AgentController(sync.controller.view)
+    ref.compute(2.0, poses, v)
+    assert sent[-1] == (2_000_200_000, ref.compute(2.0002, poses, v).wrench)
+    assert sync.rewind_ns is None and sync.resets == 0
+    sync.answers.clear()
+    _step(sync, poses, v, 1_000_200_000)
+    assert sent[-1][0] == 2_000_200_000 and sync.resets == 0
+    faults = sync.faults.as_dict()["1"]
+    assert faults["clock_jump"]["count"] == 1 and faults["clock_jump"]["first"] == "/clock jumped by -1.000000 s"
+    assert faults["refused_past_stamp"]["count"] == 1
+
+
+def test_time_restarts_when_clock_and_measurements_go_back_together() -> None:
+    """A bag replayed in a loop: /clock back to the start, then a step of that time with its poses:
+    one reset, and the step is answered as the first one of a fresh controller. A velocity of an
+    earlier stamp without any pose after such a jump restarts nothing (refused as past_stamp)."""
+    sync, poses, v, sent = _setup()
+    for ns in (0, 100_000, 200_000):
+        _step(sync, poses, v, ns)
+    sync.clock_jumped_back(0, -200_000)
+    sync.answers.clear()  # the loop's first step is no longer remembered (a long bag)
+    sync.on_velocity(100_000, v, now=1.0)
+    sync.try_compute(sync.deadline(), final=True)  # no pose of that stamp: no restart
+    assert sync.resets == 0 and len(sent) == 3 and sync.confirmed_ns == 200_000
+    _step(sync, poses, v, 0, now=2.0)
+    assert sync.resets == 1 and sync.confirmed_ns == 0 and sync.rewind_ns is None
+    assert sent[-1] == (0, AgentController(sync.controller.view).compute(0.0, poses, v).wrench)
     reset = sync.faults.as_dict()["1"]["reset"]
-    assert (reset["count"], reset["first_t"], reset["last_t"]) == (2, 0.0, 0.0)
-    assert reset["first"] == "measurements stamped 0.000000 s after 0.000100 s"
+    assert reset["first"] == "/clock back to 0.000000 s, measurements at 0.000000 s after 0.000200 s"
+    assert sync.faults.as_dict()["1"]["refused_past_stamp"]["count"] == 1
 
 
 def test_poses_of_a_later_step_wait_and_those_of_answered_steps_are_forgotten() -> None:

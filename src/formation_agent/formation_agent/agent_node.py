@@ -12,11 +12,26 @@ stamp; a neighbour out of sensing range sends nothing, so after ``pose_wait`` wa
 answers anyway with a zero wrench and ERROR (as the headless runner does), and a lockstep
 simulator never waits for it. A repeated stamp (the simulator re-sends a step it has no answer
 for) is answered with the same wrench, or, if that answer lacked a neighbour's pose, computed again
-from the resend's poses; an earlier stamp (clock jumped back) resets the
-controller and the watchdogs. The node checks every message first (:mod:`formation_agent.measurement_checks`):
+from the resend's poses. The node checks every message first (:mod:`formation_agent.measurement_checks`):
 a refused value (non-finite, not a rotation, out of range) answers its step with a zero wrench and
-ERROR; a refused stamp (from the future, or older than ``measurement_timeout`` by the /clock, sim
-time) or malformed bytes name no step and are dropped.
+ERROR; a refused stamp (too far from the agent's time) or malformed bytes name no step and are dropped.
+
+Time only from the simulator's measurements. The controller's time is the stamps of the steps it
+answers. The agent's own time, against which stamps are judged, is its newest *confirmed* step:
+one answered from its velocity and at least one neighbour's pose (two topics agree; one forged
+message cannot confirm a step). /clock, which any process may publish in plain mode, moves nothing:
+it only widens the window of acceptable stamps (measurement_checks), stamps /diagnostics and
+reports staleness there. So:
+
+- a velocity stamped before the confirmed step that is no resend of a step still remembered is
+  refused and counted (``refused_past_stamp``), without an answer and without a reset;
+- a step ahead of the next genuine one (a forged velocity) is answered alone (zero and ERROR after
+  ``pose_wait``, its poses never come) and confirms nothing: the genuine steps before its stamp are
+  still answered, in their order;
+- /clock jumping back (an outsider, or a bag replayed in a loop) is counted (``clock_jump``) and
+  resets nothing by itself. Simulation time restarts (``reset``: controller and watchdogs) only when
+  /clock has jumped back *and* a step earlier than the confirmed one arrives with its velocity and a
+  neighbour's pose, close to that /clock: three topics agreeing, as a replay that loops gives.
 """
 
 from __future__ import annotations
@@ -33,7 +48,7 @@ from typing import Any
 
 from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController, ControlOutput
 from formation_agent.kernel_cache import warm_up
-from formation_agent.measurement_checks import DROPPED_KINDS, InputCheck, Refusal
+from formation_agent.measurement_checks import DROPPED_KINDS, MAX_LEAD_NS, PAST_STAMP, InputCheck, Refusal
 from formation_msgs_py.faults import FaultLog, fault_lines, write_json
 from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.spec import AgentView
@@ -43,6 +58,9 @@ _POSE_MEMORY = 8
 _NS = 1_000_000_000
 
 PoseTuple = tuple[list[float], list[list[float]]]
+#: fault kinds of the synchroniser (formation_msgs_py.faults)
+REFUSED_PAST_STAMP = f"refused_{PAST_STAMP}"
+CLOCK_JUMP = "clock_jump"
 
 
 @dataclass
@@ -92,10 +110,18 @@ class StepSynchroniser:
     #: poses by stamp, then neighbour (refused ones as (None, None)); bounded, see _POSE_MEMORY
     steps: dict[int, dict[str, PoseTuple]] = field(default_factory=dict)
     pending: tuple[int, Sequence[float], float] | None = None
+    #: whether the pending step is earlier than the confirmed one after /clock jumped back (a restart?)
+    pending_restart: bool = False
+    #: the newest answered step [ns]
     last_ns: int | None = None
+    #: the agent's time: the newest step answered from its velocity and at least one pose [ns]
+    confirmed_ns: int | None = None
+    #: /clock after its last backward jump [ns], until a step confirms or restarts the time
+    rewind_ns: int | None = None
+    #: the last answers by stamp: wrench and whether every neighbour's pose was in (else a resend
+    #: of that step is answered anew); bounded, see _POSE_MEMORY
+    answers: dict[int, tuple[tuple[float, ...], bool]] = field(default_factory=dict)
     last_wrench: tuple[float, ...] = (0.0,) * 6
-    #: whether the last answer had every neighbour's pose (else a resend of its step is answered anew)
-    last_complete: bool = True
     last_output: ControlOutput | None = None
     window: Window = None  # type: ignore[assignment]
     #: every fault of this agent by kind (formation_msgs_py.faults): resets, refusals, zero answers
@@ -109,12 +135,23 @@ class StepSynchroniser:
         self.window = Window.empty(len(self.neighbours))
 
     def reset(self, t: float, why: str) -> None:
-        """Forget everything that depends on time (backward clock jump at sim time t [s]): a ``reset`` fault."""
+        """Forget everything that depends on time (simulation time restarted at t [s]): a ``reset`` fault."""
         self.controller.reset()
         self.steps = {}
         self.pending = None
+        self.pending_restart = False
         self.last_ns = None
+        self.confirmed_ns = None
+        self.rewind_ns = None
+        self.answers = {}
+        self.refused = {}
         self.fault(t, "reset", why)
+
+    def clock_jumped_back(self, clock_ns: int, delta_ns: int) -> None:
+        """/clock went back by ``-delta_ns`` to ``clock_ns``: counted (``clock_jump``); nothing is reset
+        until a step of that earlier time arrives with its velocity and a pose (:meth:`on_velocity`)."""
+        self.rewind_ns = clock_ns
+        self.fault(clock_ns / _NS, CLOCK_JUMP, f"/clock jumped by {delta_ns / _NS:.6f} s")
 
     def fault(self, t: float, kind: str, detail: str) -> None:
         self.faults.add(t, self.controller.view.agent_id, kind, detail)
@@ -149,24 +186,33 @@ class StepSynchroniser:
 
     def on_velocity(self, ns: int, v: Sequence[float], now: float) -> None:
         self.last_measurement_wall = now
-        if self.last_ns is not None:
-            if ns == self.last_ns and self.last_complete:  # the simulator re-sent a step: same answer
-                self.publish(ns, self.last_wrench)
+        restart = False
+        answered = self.answers.get(ns)
+        if answered is not None:
+            if answered[1]:  # the simulator re-sent a step: same answer
+                self.publish(ns, answered[0])
                 return
             # a step re-sent after an answer without a neighbour's pose (lost, or later than
             # pose_wait) is answered again from the resend's poses below, as if it were new: the
             # controller's only state, the velocity funnel's start, is set once, so the answer is
             # the one the headless run gives
-            if ns < self.last_ns:
-                self.reset(ns / _NS, f"measurements stamped {ns / _NS:.6f} s after {self.last_ns / _NS:.6f} s")
+        elif self.confirmed_ns is not None and ns <= self.confirmed_ns:
+            rewind = self.rewind_ns
+            if rewind is None or ns - rewind > MAX_LEAD_NS:
+                # an outsider's, or a step long forgotten: the agent's time does not go back for one message
+                detail = f"velocity stamped {ns / _NS:.9g} s, before the agent's time {self.confirmed_ns / _NS:.9g} s"
+                self.fault(ns / _NS, REFUSED_PAST_STAMP, detail)
+                return
+            restart = True  # /clock went back too: a restart if a neighbour's pose confirms the step
         self.pending = (ns, v, now + self.pose_wait)
+        self.pending_restart = restart
         self.try_compute(now, final=False)
 
     def refuse(self, ns: int, reason: str, now: float, neighbour: str | None = None) -> None:
         """A measurement of step ``ns`` was refused (the velocity if ``neighbour`` is None): the step
         is answered with a zero wrench and ERROR naming ``reason``."""
-        if self.last_ns is not None and ns < self.last_ns:
-            return  # a step already behind us: nothing to answer, and no reset (only a real clock jump resets)
+        if self.confirmed_ns is not None and ns < self.confirmed_ns and ns not in self.answers:
+            return  # a step behind the agent's time: nothing to answer, and no reset
         self.refused[ns] = reason
         if len(self.refused) > _POSE_MEMORY:
             del self.refused[next(iter(self.refused))]
@@ -190,8 +236,21 @@ class StepSynchroniser:
             return
         self.pending = None
         t = ns / _NS
-        ctrl = self.controller
         refused = self.refused.pop(ns, None) if self.refused else None
+        # two topics agree on this step: the velocity (not refused) and at least one pose
+        confirms = refused is None and any(p is not None for p, _ in poses.values())
+        if self.pending_restart:
+            self.pending_restart = False
+            if not confirms:
+                detail = f"velocity stamped {t:.9g} s, before the agent's time and without a pose"
+                self.fault(t, REFUSED_PAST_STAMP, detail)
+                return
+            assert self.confirmed_ns is not None and self.rewind_ns is not None
+            before = self.confirmed_ns / _NS
+            why = f"/clock back to {self.rewind_ns / _NS:.6f} s, measurements at {t:.6f} s after {before:.6f} s"
+            self.reset(t, why)
+            steps = self.steps = {ns: poses}
+        ctrl = self.controller
         if refused is not None:
             out = ctrl.fault_output(t, f"refused at t={t:.6f}: {refused}")
         elif not complete:
@@ -200,16 +259,24 @@ class StepSynchroniser:
             out = ctrl.fault_output(t, f"no relative pose of neighbour(s) {missing} at t={t:.6f}")
         else:
             out = ctrl.compute(t, poses, v)
-        self.last_ns = ns
-        self.last_complete = complete
+        if self.last_ns is None or ns > self.last_ns:
+            self.last_ns = ns
+        answers = self.answers
+        answers[ns] = (out.wrench, complete)
+        if len(answers) > _POSE_MEMORY:
+            del answers[next(iter(answers))]
         self.last_wrench = out.wrench
         self.last_output = out
         self.window.add(out)
         self.publish(ns, out.wrench)
-        steps.pop(ns, None)  # this step's poses, and any of earlier steps, are obsolete
-        if steps:
-            for old in [s for s in steps if s < ns]:
-                del steps[old]
+        steps.pop(ns, None)
+        if confirms and (self.confirmed_ns is None or ns > self.confirmed_ns):
+            self.confirmed_ns = ns
+            self.rewind_ns = None  # the simulator's time went on: a later restart needs a new jump
+            if steps:  # the poses of earlier steps are obsolete (not after an unconfirmed step: a
+                # forged velocity ahead of the genuine steps must not throw their poses away)
+                for old in [s for s in steps if s < ns]:
+                    del steps[old]
 
 
 #: Gains that a running agent applies from its next step: {parameter name: description}.
@@ -236,7 +303,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # n
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped  # noqa: E402
 from rcl_interfaces.msg import SetParametersResult  # noqa: E402
 from rclpy._rclpy_pybind11 import RCLError  # noqa: E402
-from rclpy.clock import ClockChange, JumpThreshold, TimeJump  # noqa: E402
+from rclpy.clock import JumpThreshold, TimeJump  # noqa: E402
 from rclpy.duration import Duration  # noqa: E402
 from rclpy.exceptions import ParameterException  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
@@ -331,7 +398,7 @@ class AgentNode(Node):
         # not Node's own _clock (the same object, but ours to name)
         self._ros_clock = self.get_clock()
         self._jump_handle = self._ros_clock.create_jump_callback(
-            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=True),
+            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
             post_callback=self._on_jump,
         )
         self._use_sim_time = bool(self.get_parameter("use_sim_time").value)
@@ -373,7 +440,7 @@ class AgentNode(Node):
         except struct.error:
             self._refuse(0, self.inputs.malformed("velocity"))
             return
-        refusal = self.inputs.velocity(ns, v, self._clock_ns())
+        refusal = self.inputs.velocity(ns, v, self._clock_ns(), self.sync.confirmed_ns)
         if refusal is not None:
             self._refuse(ns, refusal)
             return
@@ -387,7 +454,7 @@ class AgentNode(Node):
         except struct.error:
             self._refuse(0, self.inputs.malformed(f"relative pose of {j}"))
             return
-        refusal = self.inputs.pose(j, ns, values, self._clock_ns())
+        refusal = self.inputs.pose(j, ns, values, self._clock_ns(), self.sync.confirmed_ns)
         if refusal is not None:
             self._refuse(ns, refusal, j)
             return
@@ -427,11 +494,15 @@ class AgentNode(Node):
             # SIGINT/SIGTERM shut the context down (rclpy's handler) since this step began: a stop
 
     def _on_jump(self, info: TimeJump) -> None:
-        changed = info.clock_change in (ClockChange.ROS_TIME_ACTIVATED, ClockChange.ROS_TIME_DEACTIVATED)
-        if info.delta.nanoseconds < 0 or (changed and self.sync.last_ns is not None):
-            self.get_logger().warning("clock jumped back: controller and watchdogs reset")
-            jump = f"/clock jumped by {info.delta.nanoseconds / _NS:.6f} s"
-            self.sync.reset(self._ros_clock.now().nanoseconds / _NS, jump)
+        """/clock went back: counted, and nothing reset (any process may publish /clock in plain mode;
+        the synchroniser restarts time only when the measurements go back with it)."""
+        if info.delta.nanoseconds < 0:
+            clock_ns = self._ros_clock.now().nanoseconds
+            self.get_logger().warning(
+                f"/clock jumped back by {-info.delta.nanoseconds / _NS:.6f} s to {clock_ns / _NS:.6f} s: "
+                "counted, nothing reset (time restarts only if the measurements go back too)"
+            )
+            self.sync.clock_jumped_back(clock_ns, info.delta.nanoseconds)
 
     # the loop: spin, then deadlines (pose wait, diagnostics) on the wall clock
     def spin(self) -> None:
@@ -466,17 +537,24 @@ class AgentNode(Node):
         level, message = w.level, w.message
         age = None if sync.last_measurement_wall is None else now - sync.last_measurement_wall
         stale_s = None
-        if self._use_sim_time and sync.last_ns is not None:
+        if self._use_sim_time and sync.confirmed_ns is not None:
             clock_ns = self._ros_clock.now().nanoseconds
-            stale_s = (clock_ns - sync.last_ns) / _NS
-            if stale_s > self.view.controller.measurement_timeout:
+            stale_s = (clock_ns - sync.confirmed_ns) / _NS
+            timeout = self.view.controller.measurement_timeout
+            # stale when /clock has moved on AND no measurement came for as long in wall time: /clock
+            # alone (any process may publish it) cannot raise the alarm while the measurements flow
+            if stale_s > timeout and age is not None and age > timeout:
                 level, message = ERROR, f"no measurements for {stale_s:.3f} s (sim time)"
         if w.steps == 0 and level == OK:
             message = "waiting for measurements" if sync.last_ns is None else "no new measurements"
         status.level = _DIAG_LEVEL[level]
         status.message = message or LEVEL_NAMES[level]
         values = [KeyValue(key="steps", value=str(w.steps)), KeyValue(key="faults", value=str(w.faults))]
-        values += [KeyValue(key=f"refused/{k}", value=str(n)) for k, n in sorted(self.inputs.counts.items())]
+        refused = dict(self.inputs.counts)
+        past = sync.faults.counts.get((self.agent_id, REFUSED_PAST_STAMP))
+        if past is not None:
+            refused[PAST_STAMP] = past.count
+        values += [KeyValue(key=f"refused/{k}", value=str(n)) for k, n in sorted(refused.items())]
         values.append(KeyValue(key="last_stamp", value="" if sync.last_ns is None else f"{sync.last_ns / _NS:.9f}"))
         values.append(KeyValue(key="measurement_age_wall", value="" if age is None else f"{age:.6f}"))
         values.append(KeyValue(key="measurement_age_sim", value="" if stale_s is None else f"{stale_s:.6f}"))

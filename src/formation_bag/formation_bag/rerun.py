@@ -5,8 +5,10 @@
 As the agent node does (formation_agent.agent_node.StepSynchroniser): for each recorded velocity
 message of agent i (stamp t, in stamp order, duplicates answered once), the controller gets ṽ_i
 and, per tree neighbour j, the relative pose with the *same* stamp, at time t = stamp_ns / 1e9.
-A missing pose, or a measurement older than ``measurement_timeout`` behind the latest recorded
-/clock, gives a zero wrench (a fault). The agent computed from exactly these decoded messages, so
+A missing pose, or a measurement older than ``measurement_timeout`` behind both the latest recorded
+/clock and the agent's time (its last step computed with a pose: the agent judges stamps against
+its measurement stream, /clock only widens the window; formation_agent.measurement_checks), gives a
+zero wrench (a fault). The agent computed from exactly these decoded messages, so
 its wrench (stamped t) must be reproduced to 1e-12. With an
 override file (gains, funnels) the report lists where and how much the wrenches change.
 """
@@ -132,6 +134,7 @@ def rerun_agent(
     messages: dict[int, str] = {}
     n = 0
     last = None
+    confirmed: int | None = None  # the agent's time: its last step computed with a pose [ns]
     for idx, (stamp, log_time) in enumerate(zip(vel.stamps, vel.log_times)):
         if stamp == last:
             continue  # a re-sent step: the agent answers it once
@@ -141,9 +144,10 @@ def rerun_agent(
         c = bisect.bisect_right(clock_logs, log_time) - 1
         clock_ns = clock[c][1] if c >= 0 else 0
         try:
-            if check_age and clock_ns and clock_ns - stamp > timeout_ns:
-                age = (clock_ns - stamp) / m.NS_PER_S
-                out = ctrl.fault_output(t, f"measurement too old: {age:.3f} s behind /clock")
+            behind = clock_ns if confirmed is None else min(clock_ns, confirmed)
+            if check_age and clock_ns and behind - stamp > timeout_ns:
+                age = (behind - stamp) / m.NS_PER_S
+                out = ctrl.fault_output(t, f"measurement too old: {age:.3f} s behind the agent's time")
                 fault = "stale"
             else:
                 out = ctrl.compute(t, poses, vel.value(idx))
@@ -151,6 +155,8 @@ def rerun_agent(
         except MissingMeasurementError as exc:
             out = ctrl.fault_output(t, str(exc))
             fault = ",".join(exc.neighbours)
+        if poses and fault != "stale" and (confirmed is None or stamp > confirmed):
+            confirmed = stamp  # answered from the velocity and at least one pose
         stamps[n] = stamp
         rerun[n] = out.wrench
         margin_v[n] = out.margin_v

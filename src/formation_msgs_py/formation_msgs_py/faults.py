@@ -14,8 +14,11 @@ Who counts what (kinds):
   shadow of the controllers ``measurement`` (a neighbour out of sensing range) and ``controller``
   (saturated: outside a funnel);
 - each agent (formation_agent.agent_node, written to its ``faults_file`` when it stops and merged by
-  formation-launch): ``reset`` (clock jumped back: controller and watchdogs reset),
-  ``refused_<kind>`` (formation_agent.measurement_checks), ``missing_pose`` (answered without a neighbour's
+  formation-launch): ``clock_jump`` (/clock went back: counted, nothing reset), ``reset``
+  (simulation time restarted: /clock and the measurements went back together, as a bag replayed in
+  a loop does; controller and watchdogs reset), ``refused_<kind>`` (formation_agent.measurement_checks;
+  ``refused_past_stamp``: a velocity stamped before the agent's time that is no resend, refused by
+  its synchroniser without an answer), ``missing_pose`` (answered without a neighbour's
   relative pose after ``pose_wait``: out of range or lost; answered with a zero wrench);
 - the recorder: messages published but not in the bag, per topic (summary.json ``recorder``).
 
@@ -117,12 +120,17 @@ MEANINGS = {
     "measurement": "a neighbour was out of sensing range: the agent had no relative pose of it",
     "controller": "an error left its funnel between two control steps and the controller saturated "
     "(ERROR on /diagnostics)",
-    "reset": "the agent's clock jumped back: its controller and watchdogs started again",
+    "reset": "simulation time restarted (/clock and the measurements went back together, as a bag "
+    "replayed in a loop does): the agent's controller and watchdogs started again",
+    "clock_jump": "/clock went back (an outsider's /clock, or a replay that loops): counted; the agent "
+    "takes its time from the measurements, so nothing was reset",
+    "refused_past_stamp": "the agent refused a velocity stamped before its newest confirmed step that "
+    "was no resend of a step (an outsider's, or a step long past): no answer, nothing reset",
     "missing_pose": "the agent answered without a neighbour's relative pose (out of range or lost), with a zero wrench",
     "refused_wrench_": "the simulator refused an agent's wrench (not finite, over the actuator limits, "
     "malformed, or for no step of the run) and applied a zero wrench for that step",
     "refused_": "the agent refused a measurement (not finite, not a rotation, out of sensing range, "
-    "malformed, or stamped too far from its clock) and answered that step with a zero wrench",
+    "malformed, or stamped too far from its time) and answered that step with a zero wrench",
 }
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from geometry_msgs.msg import TwistStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from ros_helpers import BIN, REALTIME, ros_context
+from ros_helpers import REALTIME, executable, ros_context
 from rosgraph_msgs.msg import Clock
 
 from formation_msgs_py import topics
@@ -42,7 +42,7 @@ def test_outsiders_clock_and_forged_stamp_reset_nothing(ros_env: dict[str, str],
     answers the genuine steps after it, and the run ends INCOMPLETE (untrusted input, exit 4) naming
     the outsider on /clock."""
     out = tmp_path / "out"
-    cmd = [str(BIN / "formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd = [executable("formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     # the lag budget is not what this test is about: a loaded machine must not end the run INCOMPLETE for it
     cmd += ["--duration", "2.5", "--physics-rate", "100", "--lag-budget", "30"]
     launch = subprocess.Popen(

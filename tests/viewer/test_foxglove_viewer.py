@@ -1,0 +1,246 @@
+"""Opt-in: a short lockstep run opened in a real viewer. Foxglove Studio 1.48 (the prebuilt web app of
+the npm package @foxglove/studio-base) runs in headless Chromium, reads the run's view.mcap over HTTP
+byte ranges from 127.0.0.1, imports the run's foxglove_layout.json through its own Import button, and
+the page and a screenshot are checked: the whole run on the timeline, the agents' markers drawn, no
+transform-tree message, both funnel plots with data across the run and legends naming each line.
+
+Install what it needs with tests/viewer/install.sh, then
+``FORMATION_VIEWER_CHECK=1 .venv/bin/python -m pytest tests/viewer -q``. ``FORMATION_VIEWER_SCREENSHOTS=DIR``
+also keeps the screenshots in DIR (docs/img holds two of them)."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from studio_server import serving
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = REPO / ".venv" / "bin"
+PAPER = REPO / "config" / "paper_5agents.yaml"
+INSTALL = "tests/viewer/install.sh"
+DURATION_S = 0.5
+CACHE = Path(os.environ.get("FORMATION_VIEWER_CACHE", Path.home() / ".cache" / "formation-viewer"))
+MODULES = CACHE / "node_modules"
+STUDIO = MODULES / "@foxglove" / "studio-base"
+VIEWPORT = {"width": 1600, "height": 1000}
+# Studio calls window.showOpenFilePicker (File System Access API), whose dialog headless Chromium
+# neither shows nor hands to Playwright; this stand-in asks through an <input type=file> instead, whose
+# file chooser Playwright answers. The app's own import code then reads the chosen file as usual.
+FILE_PICKER_THROUGH_INPUT = """
+window.showOpenFilePicker = (options) => new Promise((resolve) => {
+  const input = document.createElement("input");
+  input.type = "file";
+  input.multiple = Boolean(options && options.multiple);
+  input.accept = ".json,application/json";
+  input.addEventListener("change", () => resolve(Array.from(input.files).map((file) => ({
+    kind: "file", name: file.name, getFile: async () => file,
+  }))));
+  input.addEventListener("cancel", () => resolve([]));
+  input.click();
+});
+"""
+# Software WebGL: the 3D panel renders without a GPU.
+CHROMIUM_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+TIMEOUT_MS = 180_000  # page loads and the first WebGL frames take tens of seconds on a busy machine
+
+
+def chromium() -> str | None:
+    """Debian's chromium binary (FORMATION_CHROMIUM overrides), or None."""
+    return os.environ.get("FORMATION_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def missing() -> str | None:
+    """Why the check cannot run here (naming the install script), or None."""
+    if os.environ.get("FORMATION_VIEWER_CHECK") != "1":
+        return f"opt-in (a run, then Foxglove Studio in headless Chromium): {INSTALL}, then FORMATION_VIEWER_CHECK=1"
+    if chromium() is None:
+        return f"no chromium on PATH: {INSTALL} installs Debian's"
+    if not (STUDIO / "assets" / "index.js").is_file() or not (MODULES / "react-dom" / "umd").is_dir():
+        return f"@foxglove/studio-base 1.48 or react 17 not in {MODULES}: {INSTALL}"
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return f"Playwright for Python not installed: {INSTALL}"
+    return None
+
+
+pytestmark = pytest.mark.skipif(missing() is not None, reason=str(missing()))
+
+
+@dataclass
+class Viewed:
+    """What the viewer showed of the run."""
+
+    layout: dict[str, Any]
+    source_text: str  # the Data source sidebar: file, start and end time
+    page_text: str  # the whole page after the layout was imported
+    console: list[str] = field(default_factory=list)
+    screenshot: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.uint8))  # (H, W, 3) RGB
+    boxes: dict[str, tuple[int, int, int, int]] = field(default_factory=dict)  # panel id -> x0, y0, x1, y1 [px]
+
+
+def _box(locator: Any) -> tuple[int, int, int, int]:
+    """A locator's bounding box in screenshot pixels (x0, y0, x1, y1)."""
+    box = locator.bounding_box()
+    assert box is not None
+    return (round(box["x"]), round(box["y"]), round(box["x"] + box["width"]), round(box["y"] + box["height"]))
+
+
+def _keep(png: bytes, name: str) -> None:
+    """Save a screenshot under FORMATION_VIEWER_SCREENSHOTS, 256 colours (small enough for docs/img)."""
+    target = os.environ.get("FORMATION_VIEWER_SCREENSHOTS")
+    if not target:
+        return
+    from PIL import Image
+
+    Path(target).mkdir(parents=True, exist_ok=True)
+    image = Image.open(io.BytesIO(png)).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT)
+    image.save(Path(target) / name, optimize=True)
+
+
+@pytest.fixture(scope="module")
+def viewed(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -> Iterator[Viewed]:
+    """A 0.5 s lockstep paper run, opened in Foxglove Studio with its layout imported."""
+    from PIL import Image
+    from playwright.sync_api import sync_playwright
+
+    out = tmp_path_factory.mktemp("viewer_run")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env.pop("ROS_STATIC_PEERS", None)
+    run = subprocess.run(
+        [str(BIN / "formation-launch"), str(PAPER), "--duration", str(DURATION_S), "--out", str(out / "run")],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env=env,
+        start_new_session=True,
+    )
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    layout = json.loads((out / "run" / "foxglove_layout.json").read_text())
+    mounts = {
+        "/react": MODULES / "react",
+        "/react-dom": MODULES / "react-dom",
+        "/studio": STUDIO,
+        "/run": out / "run",
+    }
+    console: list[str] = []
+    with serving(mounts) as base, sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=chromium(), args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_page(viewport=VIEWPORT)
+            page.set_default_timeout(TIMEOUT_MS)
+            page.on("console", lambda message: console.append(f"{message.type}: {message.text}"))
+            page.on("pageerror", lambda error: console.append(f"pageerror: {error}"))
+            page.add_init_script(FILE_PICKER_THROUGH_INPUT)
+            # Studio's deep link for a file behind a URL (its remote-file source reads it by byte ranges)
+            page.goto(f"{base}/?ds=remote-file&ds.url={base}/run/view.mcap")
+            page.get_by_text("END TIME").wait_for()
+            page.get_by_text(re.compile(r"^\d+\.\d{9}$")).nth(1).wait_for()
+            source_text = page.inner_text("body")
+            # the Layouts tab of the left sidebar, then its Import button
+            page.locator('[role=tab][data-sidebar-key="layouts"]').click()
+            with page.expect_file_chooser() as chooser:
+                page.get_by_label("Import layout").click()
+            chooser.value.set_files(str(out / "run" / "foxglove_layout.json"))
+            page.get_by_text(layout["configById"]["Plot!distance"]["title"]).wait_for()
+            page.locator('[role=tab][data-sidebar-key="layouts"]').click()  # close the sidebar: room for the panels
+            dismiss = page.get_by_label("Dismiss")
+            if dismiss.count():
+                dismiss.first.click()  # the 3D panel's "Open settings" hint would cover the scene
+            panels = {
+                key: page.locator(f'[data-testid="panel-mouseenter-container {key}"]')
+                for key in ("3D!formation", "Plot!distance", "Plot!orientation")
+            }
+            page.wait_for_timeout(15_000)  # plots load their blocks and the 3D scene draws its frames
+            png = page.screenshot()
+            _keep(png, "foxglove_formation.png")
+            boxes = {key: _box(panel.locator("canvas").first) for key, panel in panels.items()}
+            page_text = page.inner_text("body")
+        finally:
+            browser.close()
+    yield Viewed(
+        layout=layout,
+        source_text=source_text,
+        page_text=page_text,
+        console=console,
+        screenshot=np.asarray(Image.open(io.BytesIO(png)).convert("RGB")),
+        boxes=boxes,
+    )
+
+
+def _crop(viewed: Viewed, key: str) -> np.ndarray:
+    x0, y0, x1, y1 = viewed.boxes[key]
+    return viewed.screenshot[y0:y1, x0:x1].astype(int)
+
+
+def _near(image: np.ndarray, rgb: tuple[int, int, int], tolerance: int) -> np.ndarray:
+    """(H, W) mask of pixels within ``tolerance`` of ``rgb`` in every channel."""
+    return np.all(np.abs(image - np.array(rgb)) <= tolerance, axis=-1)
+
+
+def _hex(colour: str) -> tuple[int, int, int]:
+    return int(colour[1:3], 16), int(colour[3:5], 16), int(colour[5:7], 16)
+
+
+def test_timeline_holds_the_whole_run(viewed: Viewed) -> None:
+    """The Data source sidebar gives start 0 and an end within one display period of the duration."""
+    times = re.search(r"START TIME\s+(\d+\.\d+)\s+END TIME\s+(\d+\.\d+)", viewed.source_text)
+    assert times is not None, viewed.source_text[:500]
+    start, end = float(times.group(1)), float(times.group(2))
+    assert start == 0.0
+    # the view file holds the display rate's samples: the last one lies within a display period of the end
+    assert abs(end - DURATION_S) <= 1.0 / 30.0, (start, end)
+    assert "view.mcap" in viewed.source_text
+
+
+def test_markers_are_drawn_in_the_3d_panel(viewed: Viewed) -> None:
+    """The 3D panel shows the bodies (grey-blue boxes) and their body axes (red and green lines)."""
+    scene = _crop(viewed, "3D!formation")
+    red_axes = int((_near(scene, (230, 26, 26), 60)).sum())
+    green_axes = int((_near(scene, (26, 204, 26), 60)).sum())
+    r, g, b = scene[..., 0], scene[..., 1], scene[..., 2]
+    bodies = int(((b - r > 15) & (b - r < 70) & (np.abs(r - g) < 25) & (r > 70) & (r < 190)).sum())
+    # a few hundred pixels each at this viewport; the floors are a tenth of what one frame shows
+    assert red_axes >= 30 and green_axes >= 30 and bodies >= 300, (red_axes, green_axes, bodies)
+
+
+def test_no_transform_tree_message(viewed: Viewed) -> None:
+    """Nothing in the page or the console speaks of a transform tree cycle (relative poses are not TF)."""
+    texts = [viewed.page_text, *viewed.console]
+    assert not [t for t in texts if "cycle" in t.lower()], [t for t in texts if "cycle" in t.lower()]
+
+
+@pytest.mark.parametrize("panel", ["Plot!distance", "Plot!orientation"])
+def test_plots_have_data_across_the_run(viewed: Viewed, panel: str) -> None:
+    """Each funnel plot draws its lines across the plot's width, with no hole, and names each line."""
+    config = viewed.layout["configById"][panel]
+    plot = _crop(viewed, panel)
+    # every path's colour, bounds included: in a short plot the ψ lines lie under their bound and its dots
+    colours = {path["color"] for path in config["paths"]}
+    drawn = np.zeros(plot.shape[:2], bool)
+    for colour in colours:
+        drawn |= _near(plot, _hex(colour), 40)
+    columns = np.flatnonzero(drawn.any(axis=0))
+    width = plot.shape[1]
+    assert columns.size, f"{panel}: no series pixel"
+    span = (columns[-1] - columns[0]) / width
+    largest_gap = int(np.diff(columns).max()) if columns.size > 1 else width
+    # the x axis runs over the run: the lines cover most of the canvas (axis labels and margins aside)
+    assert span >= 0.75, (panel, span)
+    assert largest_gap <= 0.03 * width, (panel, largest_gap, width)
+    for path in config["paths"]:
+        assert path["label"] in viewed.page_text, (panel, path["label"])

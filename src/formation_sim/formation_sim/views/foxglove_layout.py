@@ -4,7 +4,7 @@ e and ψ in their funnels (``/formation/funnels``) and the agents' ``/diagnostic
 Made from the formation (no ROS), so that every run can leave the layout of its own formation in
 OUT (``foxglove_layout.json``); ``foxglove/formation_layout.json`` is the paper scenario's. A plot
 names each line by edge and quantity and shows no values in its legend (a legend of values is
-unreadable while a run plays); edges whose funnels are the same (the same C_col, C_con and
+unreadable while a run plays, and it cut the names); edges whose funnels are the same (the same C_col, C_con and
 performance function) share one pair of bound lines, labelled with every edge they bound.
 """
 
@@ -61,7 +61,9 @@ def _plot(title: str, lines: list[dict[str, Any]]) -> dict[str, Any]:
         "showXAxisLabels": True,
         "showYAxisLabels": True,
         "showLegend": True,
-        "legendDisplay": "top",
+        # beside the plot, wide enough for the longest name: on top it takes most of a short panel's height
+        "legendDisplay": "left",
+        "sidebarDimension": 320,
         "showPlotValuesInLegend": False,
         "isSynced": True,
         "xAxisVal": "timestamp",

@@ -217,3 +217,18 @@ def test_a_non_finite_answer_never_agrees() -> None:
         answer = [1.0] * 6
         answer[k] = float("nan")
         assert witness.judge(0, 0, tuple(answer)) == float("inf")
+
+
+def test_the_first_step_waits_as_long_as_discovery() -> None:
+    """Step 0 may wait first_step_timeout (an agent's reader can match the simulator's writer late); the
+    steps after it wait step_timeout."""
+    w = LockstepWait(IDS, step_timeout=2.0, resend=0.25, first_step_timeout=40.0)
+    book = WrenchBook(3)
+    w.begin(0, now=0.0)
+    assert w.poll(book, now=30.0) == [0, 1, 2]  # past step_timeout: resent, not named
+    assert not w.last_call
+    for i in range(3):
+        book.accept(i, 0, (0.0,) * 6)
+    w.begin(PERIOD_NS, now=31.0)
+    w.poll(book, now=33.5)  # step 1: step_timeout again, the last resend
+    assert w.last_call

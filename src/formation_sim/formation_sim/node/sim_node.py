@@ -471,6 +471,7 @@ class Runner:
             node.ids,
             step_timeout=self.spec.simulation.step_timeout,
             resend=self.args.resend,
+            first_step_timeout=self.args.discovery_timeout or 30.0 + len(self.spec.agents),
         )
         self.started = mono()
         for k in range(self.n_steps + 1):

@@ -294,6 +294,57 @@ def test_interop_flags_a_broken_metadata(tmp_path: Path) -> None:
     assert not report.ok and any("message_count" in p for p in report.problems)
 
 
+def test_interop_decodes_a_sample_with_mcap_ros2_or_every_message(tmp_path: Path) -> None:
+    """mcap_ros2 decodes the first DECODE_SAMPLE messages of every channel of every file (all on
+    request), each equal to rosbags' decoding; mcap reads every message either way."""
+    bag = tmp_path / "bag"
+    _write(bag, "mcap", 150, segment_seconds=None)
+    sampled = check_bag(bag, sample=100)
+    assert sampled.ok, sampled.problems
+    assert sampled.counts_mcap == {"/clock": 150, "/agent_1/velocity": 150}
+    assert sampled.decoded_mcap_ros2 == 2 * 100
+    full = check_bag(bag, sample=None)
+    assert full.ok, full.problems
+    assert full.decoded_mcap_ros2 == 2 * 150
+
+
+def test_interop_reports_bytes_that_differ_between_the_readers(tmp_path: Path, monkeypatch) -> None:
+    """One message whose bytes differ between rosbags and mcap is a problem naming its topic."""
+    import formation_bag.interop as interop
+
+    bag = tmp_path / "bag"
+    _write(bag, "mcap", 20, segment_seconds=None)
+    honest = interop._rosbags_bytes
+
+    def one_byte_off(b: Bag, report: interop.InteropReport):
+        for k, (topic, data) in enumerate(honest(b, report)):
+            yield topic, (data[:-1] + bytes([data[-1] ^ 1]) if k == 7 else data)
+
+    monkeypatch.setattr(interop, "_rosbags_bytes", one_byte_off)
+    report = check_bag(bag)
+    assert not report.ok
+    assert len(report.problems) == 1 and "bytes differ between rosbags and mcap" in report.problems[0]
+
+
+def test_interop_compares_decoded_fields_with_nan_equal_to_nan() -> None:
+    """The field-by-field comparison of the two decoders: NaN equals NaN, -0.0 equals 0.0 as floats
+    do, a changed number or a missing key does not."""
+    from formation_bag.interop import _same, plain
+    from formation_msgs_py.bag.writer import typestore
+
+    enc = m.Encoder()
+    data = enc.twist(5, "1", [float("nan"), -0.0, 1.0, 2.0, 3.0, 4.0])
+    msg = typestore().deserialize_cdr(data, m.TWIST_STAMPED)
+    as_plain = plain(msg)
+    assert as_plain["header"]["frame_id"] == "agent_1" and as_plain["header"]["stamp"]["nanosec"] == 5
+    assert _same(as_plain, plain(typestore().deserialize_cdr(data, m.TWIST_STAMPED)))
+    changed = plain(msg)
+    changed["twist"]["linear"]["z"] = 1.5
+    assert not _same(as_plain, changed)
+    del changed["twist"]
+    assert not _same(as_plain, changed)
+
+
 def test_classify_topics() -> None:
     """Topic names map to their meaning (docs/topics.md), also in a namespace."""
     assert m.classify("/agent_3/relative_pose/agent_5") == m.TopicKind("relative_pose", m.POSE_STAMPED, "3", "5")

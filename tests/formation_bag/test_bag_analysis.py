@@ -152,6 +152,25 @@ def test_rerun_reproduces_and_reports_overrides(violating_bag, tmp_path: Path, c
     assert "agent 3" in out and "DIFFERENT" in out
 
 
+def test_rerun_out_refuses_a_used_directory_unless_forced(short_bags, tmp_path: Path, capsys) -> None:
+    """--out into a non-empty directory exits 2 naming --force; with --force an earlier re-run's
+    outputs (rerun.json, every rerun_<agent>.npz) are replaced and nothing else is touched."""
+    bag, _ = short_bags["mcap"]
+    out = tmp_path / "out"
+    assert rerun.main([str(bag), "--agent", "1", "--out", str(out)]) == 0
+    (out / "notes.txt").write_text("mine\n")
+    assert rerun.main([str(bag), "--agent", "2", "--out", str(out)]) == 2
+    assert "exists and is not empty (use --force to overwrite)" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "rerun.json", "rerun_1.npz"]
+    assert rerun.main([str(bag), "--agent", "2", "--out", str(out), "--force"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "rerun.json", "rerun_2.npz"]
+    assert list(json.loads((out / "rerun.json").read_text())["agents"]) == ["2"]
+    file_out = tmp_path / "a_file"
+    file_out.write_text("")
+    assert rerun.main([str(bag), "--out", str(file_out), "--force"]) == 2
+    assert f"output directory {file_out} is a file, not a directory" in capsys.readouterr().err
+
+
 def test_override_errors_name_the_field(violating_bag) -> None:
     """Bad override files are refused with the offending path."""
     run = load_run(violating_bag[0], need_ground_truth=False)
@@ -168,6 +187,29 @@ def test_rerun_of_one_agent_only(short_bags) -> None:
     run = load_run(short_bags["mcap"][0], need_ground_truth=False)
     only = rerun_all(run, ["4"])
     assert list(only) == ["4"] and only["4"].max_abs_diff <= 1e-12
+
+
+@pytest.mark.parametrize("command", ["analyze", "rerun"])
+def test_a_closed_pipe_keeps_the_verdict_and_prints_no_traceback(violating_bag, tmp_path: Path, command: str) -> None:
+    """`formation-analyze BAG | head -1` (and -rerun): the reader closes the pipe first; the command
+    still ends with its own exit status (1: the run violates a funnel, a wrench differs under the
+    override below) and its outputs, and nothing but progress reaches stderr."""
+    bag, _ = violating_bag
+    out = tmp_path / "out"
+    if command == "analyze":
+        args = ["-m", "formation_bag.analysis", str(bag), "--no-plots", "--out", str(out)]
+        expected = 1
+    else:
+        override = tmp_path / "override.yaml"
+        override.write_text("agents: {'1': {controller: {gamma: 7.0}}}\n")
+        args = ["-m", "formation_bag.rerun", str(bag), "--agent", "1", "--override", str(override), "--out", str(out)]
+        expected = 1
+    proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()  # closed before the first line: every write meets a closed pipe
+    err = proc.stderr.read()
+    assert proc.wait(timeout=300) == expected, err
+    assert "Traceback" not in err and "Error" not in err, err
+    assert (out / ("summary.json" if command == "analyze" else "rerun.json")).is_file()
 
 
 def test_bag_without_formation_needs_one(tmp_path: Path, short_bags) -> None:

@@ -35,6 +35,7 @@ from formation_bag.progress import Progress
 from formation_msgs_py.errors import BagError, FormationSpecError, OverrideError
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.spec import FormationSpec, agent_view
+from formation_sim.core.preflight import InvalidRunError, check_out_dir
 
 
 @dataclass
@@ -206,8 +207,8 @@ def load_override(path: Path) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     args = rerun_parser().parse_args(argv)
     try:
-        if args.out is not None and args.out.exists() and any(args.out.iterdir()):
-            raise FileExistsError(f"output directory {args.out} exists and is not empty, not overwriting")
+        if args.out is not None:
+            check_out_dir(args.out, args.force)  # before the long read: a full or read-only disk, a file
         started = time.perf_counter()
         run = load_run(
             args.bag,
@@ -221,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
             doc = apply_overrides(run.document, load_override(args.override), where=str(args.override))
             spec = spec_from_document(doc, run.spec.source)
         results = rerun_all(run, args.agent, spec, prog="formation-rerun")
-    except (BagError, FormationSpecError, FileExistsError, FileNotFoundError) as exc:
+    except (BagError, FormationSpecError, InvalidRunError, FileNotFoundError) as exc:
         print(f"formation-rerun: {exc}", file=sys.stderr)
         return 2
     report = {
@@ -248,7 +249,15 @@ def main(argv: list[str] | None = None) -> int:
             line += f"; {r['measurements_missing']} steps with a measurement missing from the bag (not compared)"
         print(line)
     if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
+        try:
+            args.out.mkdir(parents=True, exist_ok=True)
+            # an earlier re-run's report and agents (only those: --out may be a run's own OUT), not
+            # to be read as this one's
+            for earlier in [args.out / "rerun.json", *args.out.glob("rerun_*.npz")]:
+                earlier.unlink(missing_ok=True)
+        except OSError as exc:
+            print(f"formation-rerun: INCOMPLETE: output directory {args.out}: {exc.strerror or exc}", file=sys.stderr)
+            return ExitCode.INCOMPLETE
         (args.out / "rerun.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
         for a, r in results.items():
             np.savez(

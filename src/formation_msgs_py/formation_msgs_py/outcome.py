@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import os
 import sys
 import traceback
 from collections.abc import Callable
@@ -92,13 +93,48 @@ def decide(violated: bool, incomplete: Incomplete | None, untrusted: str | None 
     return Outcome(Verdict.PASS, ExitCode.PASS)
 
 
+class _PipeGuard:
+    """Standard output that a closed pipe (``formation-analyze BAG | head -1``) cannot break: the
+    first write or flush that meets it sends the rest of the output to /dev/null, and the command
+    goes on to its own end and exit status (a verdict, outputs on disk) instead of a traceback."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return int(self._stream.write(text))
+        except BrokenPipeError:
+            self._to_devnull()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._to_devnull()
+
+    def _to_devnull(self) -> None:
+        # the file descriptor itself: also the interpreter's last flush of sys.__stdout__ lands there
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())
+        os.close(devnull)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
 def guarded(prog: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
     """Decorate a command's ``main``: a crash exits 4 (internal error, traceback on stderr), never 1;
-    Ctrl-C outside the command's own handling exits 130."""
+    Ctrl-C outside the command's own handling exits 130; a closed standard output ends nothing (the
+    rest of the output is dropped, the exit status is the command's own)."""
 
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def guarded_main(*args: Any, **kwargs: Any) -> int:
+            stdout = sys.stdout
+            if not isinstance(stdout, _PipeGuard) and hasattr(stdout, "fileno"):
+                sys.stdout = _PipeGuard(stdout)
             try:
                 return int(main(*args, **kwargs))
             except KeyboardInterrupt:
@@ -108,6 +144,10 @@ def guarded(prog: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
                 traceback.print_exc()
                 print(f"{prog}: INCOMPLETE: internal error: {exc!r}", file=sys.stderr, flush=True)
                 return ExitCode.INCOMPLETE
+            finally:
+                if isinstance(sys.stdout, _PipeGuard):
+                    sys.stdout.flush()
+                sys.stdout = stdout
 
         return guarded_main
 

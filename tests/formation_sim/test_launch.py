@@ -120,3 +120,13 @@ def test_space_reserve_is_never_a_file_in_out(tmp_path: Path) -> None:
     assert reserve.allocated >= RESERVE_BYTES  # written out, not sparse: the bytes are really held
     reserve.release()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_progress_line_shows_the_eta_when_the_simulator_gives_one() -> None:
+    """The launcher's progress: simulated time, real-time factor, worst margin and, once the simulator
+    has stepped, the wall seconds still to go."""
+    from formation_sim.launch.launcher import progress_text
+
+    line = "progress t=1.2500/5 rtf=0.031 worst_margin=+0.0514 eta=121"
+    assert progress_text(line) == "  sim t=1.2500/5 s  real-time factor 0.031  worst margin +0.0514  ETA 121 s"
+    assert progress_text("progress t=0.0000/5 rtf=0.000 worst_margin=+inf").endswith("worst margin +inf")

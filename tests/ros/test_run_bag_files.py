@@ -150,7 +150,11 @@ def test_sigkill_of_the_simulator_loses_at_most_a_second(ros_env: dict[str, str]
             proc.communicate()
     remove_segments(left)
     assert proc.returncode == 3, stdout  # the launcher names the dead simulator
-    progress = [float(x) for x in re.findall(r"progress t=([0-9.]+)", (out / "logs" / "sim.log").read_text())]
+    sim_log = (out / "logs" / "sim.log").read_text()
+    progress = [float(x) for x in re.findall(r"progress t=([0-9.]+)", sim_log)]
+    # once stepping, every progress line says how long is left (wall seconds at the rate so far)
+    stepping = [ln for ln in sim_log.splitlines() if ln.startswith("progress t=") and " rtf=0.000 " not in ln]
+    assert stepping and all(re.search(r" eta=\d+$", ln) for ln in stepping), sim_log
 
     r = subprocess.run([executable("formation-bag"), "repair", str(out / "bag")], capture_output=True, text=True)
     assert r.returncode == 0 and "messages recovered into bag_0.mcap" in r.stdout, r.stdout + r.stderr

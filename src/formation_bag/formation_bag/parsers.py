@@ -181,7 +181,11 @@ def rerun_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="max |Δu| counted as equal (1e-12)")
     p.add_argument("--namespace", default="", help=NAMESPACE_HELP)
-    p.add_argument("--out", type=Path, help="write rerun.json and rerun_<agent>.npz into this directory (new or empty; see --force)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="write rerun.json and rerun_<agent>.npz into this directory (new or empty; see --force)",
+    )
     p.add_argument(
         "--force",
         action="store_true",

@@ -103,6 +103,15 @@ def check_space(out: Path, spec: FormationSpec, record: bool) -> str | None:
     return None
 
 
+def progress_text(line: str) -> str:
+    """The launcher's progress line from the simulator's (``progress t=T/D rtf=R worst_margin=M eta=S``)."""
+    kv = dict(part.split("=", 1) for part in line.split()[1:] if "=" in part)
+    return (
+        f"  sim t={kv.get('t', '?')} s  real-time factor {kv.get('rtf', '?')}  "
+        f"worst margin {kv.get('worst_margin', '?')}" + (f"  ETA {kv['eta']} s" if "eta" in kv else "")
+    )
+
+
 class SpaceReserve:
     """Room kept on OUT's file system for the final summary and process table, should the disk fill
     up during the run: an unnamed file (O_TMPFILE) of ``size`` bytes, released by :meth:`release`
@@ -248,11 +257,7 @@ class Launcher:
             if line.startswith("progress "):
                 if self.args.quiet:
                     continue
-                kv = dict(part.split("=", 1) for part in line.split()[1:] if "=" in part)
-                text = (
-                    f"  sim t={kv.get('t', '?')} s  real-time factor {kv.get('rtf', '?')}  "
-                    f"worst margin {kv.get('worst_margin', '?')}"
-                )
+                text = progress_text(line)
                 print("\r" + text.ljust(78) if self._tty else text, end="" if self._tty else "\n", flush=True)
             elif line.startswith("formation-sim: all ") and "matched" in line:
                 self.timing["stepping_from"] = time.monotonic()

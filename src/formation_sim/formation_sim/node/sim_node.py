@@ -440,9 +440,11 @@ class Runner:
         self.last_progress = now
         wall = now - self.started
         rtf = t / wall if wall > 0 else 0.0
+        # wall seconds still to go at the real-time factor so far (none before the first step)
+        eta = f" eta={(self.spec.simulation.duration - t) / rtf:.0f}" if rtf > 0 else ""
         print(
             f"progress t={t:.4f}/{self.spec.simulation.duration:g} rtf={rtf:.3f} "
-            f"worst_margin={self.recorder.worst_margin():+.4f}",
+            f"worst_margin={self.recorder.worst_margin():+.4f}{eta}",
             flush=True,
         )
 

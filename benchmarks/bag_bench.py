@@ -124,7 +124,10 @@ def bench_paper(work: Path, duration: float) -> tuple[list[tuple[str, str]], dic
         ("analysis: re-run 5 controllers + funnel check of every step", f"{t_analyze:.1f} s"),
         ("analysis: message ages", f"{t_ages:.1f} s"),
         ("analysis total (formation-analyze without plots)", f"{t_load + t_analyze + t_ages:.1f} s"),
-        ("interop check (rosbags + mcap/mcap_ros2 decode of every message)", f"{t_check:.1f} s, ok={report.ok}"),
+        (
+            "interop check (rosbags and mcap read every message, mcap_ros2 decodes a sample)",
+            f"{t_check:.1f} s, ok={report.ok}",
+        ),
         (
             "analysis vs the run's own summary",
             f"verdict {summary['funnels_held']} = {res.summary['funnels_held']}, max abs Δ min_margin_e {worst:.1e}, "

@@ -78,10 +78,11 @@ def _live_descendants(root: int) -> dict[int, str]:
             state, ppid = stat.rsplit(")", 1)[1].split()[:2]
             if state == "Z":
                 continue
-            parent[int(d.name)] = int(ppid)
-            cmd[int(d.name)] = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:200]
+            line = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:200]
         except (OSError, ValueError):
-            continue
+            continue  # gone meanwhile: then neither its parent nor its command line is kept
+        parent[int(d.name)] = int(ppid)
+        cmd[int(d.name)] = line
     out = {}
     for pid in parent:
         p, hops = parent.get(pid), 0

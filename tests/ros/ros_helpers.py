@@ -298,7 +298,7 @@ SECURE_DRIVER_TIMEOUT = 420.0
 @dataclass
 class SecureOutsidersRun:
     """One run of tests/ros/secure_driver.py (a secure realtime launch beside four outsiders) in a
-    private network namespace; its files (launch.log, out/, stacks/ of a hung launch) in ``work``."""
+    private network namespace; its files (driver.log, launch.log, out/, stacks/ of a hung launch) in ``work``."""
 
     work: Path
     #: the driver's exit status; None: it did not end within SECURE_DRIVER_TIMEOUT
@@ -358,7 +358,10 @@ class SecureOutsidersRun:
         summary = json.loads(summary_file.read_text())
         intruders = {(i["topic"], i["node"]) for i in (summary.get("security") or {}).get("intruders", [])}
         if intruders != {("/agent_3/wrench", "/outsider_member")}:
-            found.append(f"intruders: {sorted(intruders)}")
+            # the agents watch their topics too and log what they see (the summary is the simulator's)
+            logs = sorted((self.work / "out" / "logs").glob("agent_*.log"))
+            seen_by = [log.stem for log in logs if "node /outsider_member" in log.read_text(errors="replace")]
+            found.append(f"intruders: {sorted(intruders)} in the summary; the member in the logs of {seen_by}")
         reason = summary.get("incomplete_reason") or ""
         if not reason.startswith("untrusted input: 1 intruder(s)") or "node /outsider_member gid " not in reason:
             found.append(f"reason: {reason[:200]}")
@@ -379,5 +382,8 @@ def secure_run_beside_outsiders(work: Path, domain: int) -> SecureOutsidersRun:
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=SECURE_DRIVER_TIMEOUT, start_new_session=True)
     except subprocess.TimeoutExpired as exc:
         out, err = (x.decode(errors="replace") if isinstance(x, bytes) else x or "" for x in (exc.stdout, exc.stderr))
-        return SecureOutsidersRun(work, None, out, err, time.monotonic() - started)
-    return SecureOutsidersRun(work, r.returncode, r.stdout, r.stderr, time.monotonic() - started)
+        run = SecureOutsidersRun(work, None, out, err, time.monotonic() - started)
+    else:
+        run = SecureOutsidersRun(work, r.returncode, r.stdout, r.stderr, time.monotonic() - started)
+    (work / "driver.log").write_text(run.stdout + run.stderr)  # its JSON line: the outsiders' reports
+    return run

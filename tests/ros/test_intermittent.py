@@ -5,7 +5,7 @@
 - ``secure_outsiders``: tests/ros/test_secure.py's secure realtime launch in a private network namespace
   beside four outsiders: it ends (exit 4, untrusted input: the member), the outsiders reach nothing.
 
-Opt-in (minutes per run of the second): ``FORMATION_STRESS=1 .venv/bin/python -m pytest
+Opt-in (10-30 s a run, beside the busy loops): ``FORMATION_STRESS=1 .venv/bin/python -m pytest
 tests/ros/test_intermittent.py -s``; ``FORMATION_STRESS_RUNS=N`` runs each scenario N times (default
 20); ``FORMATION_STRESS_REPORT=DIR`` also writes DIR/SCENARIO.json and .txt (runs, failures by kind,
 wall time per run, the 1-minute load at each run's start) and keeps each failed run's files in

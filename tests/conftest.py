@@ -66,34 +66,6 @@ def _set_subreaper() -> None:
 _set_subreaper()
 
 
-def _live_descendants(root: int) -> dict[int, str]:
-    """{pid: command line} of the live (non-zombie) descendants of ``root``."""
-    parent: dict[int, int] = {}
-    cmd: dict[int, str] = {}
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            stat = (d / "stat").read_text()
-            state, ppid = stat.rsplit(")", 1)[1].split()[:2]
-            if state == "Z":
-                continue
-            line = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:200]
-        except (OSError, ValueError):
-            continue  # gone meanwhile: then neither its parent nor its command line is kept
-        parent[int(d.name)] = int(ppid)
-        cmd[int(d.name)] = line
-    out = {}
-    for pid in parent:
-        p, hops = parent.get(pid), 0
-        while p is not None and p > 1 and hops < 64:
-            if p == root:
-                out[pid] = cmd[pid]
-                break
-            p, hops = parent.get(p), hops + 1
-    return out
-
-
 def _shm_mapped(pids: list[int]) -> set[str]:
     from process_hygiene import shm_segments
 
@@ -115,14 +87,16 @@ def no_leftovers() -> Any:
     import threading
     import time
 
+    from process_hygiene import live_descendants
+
     root = os.getpid()
-    before = set(_live_descendants(root))
+    before = set(live_descendants(root))
     seen: set[str] = set()
     stop = threading.Event()
 
     def watch() -> None:
         while not stop.wait(0.25):
-            seen.update(_shm_mapped([p for p in _live_descendants(root) if p not in before]))
+            seen.update(_shm_mapped([p for p in live_descendants(root) if p not in before]))
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
@@ -133,7 +107,7 @@ def no_leftovers() -> Any:
 
     def new() -> dict[int, str]:
         # the interpreter's own helpers live as long as pytest (started on first use by a test)
-        return {p: c for p, c in _live_descendants(root).items() if p not in before and not _helper(c)}
+        return {p: c for p, c in live_descendants(root).items() if p not in before and not _helper(c)}
 
     while (left := new()) and time.monotonic() < deadline:
         time.sleep(0.1)

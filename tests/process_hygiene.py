@@ -42,3 +42,31 @@ def remove_segments(segments: set[Path], timeout: float = 10.0) -> None:
     for seg in segments:
         seg.unlink(missing_ok=True)
         Path(f"{seg}_el").unlink(missing_ok=True)
+
+
+def live_descendants(root: int) -> dict[int, str]:
+    """{pid: command line} of the live (non-zombie) descendants of ``root``."""
+    parent: dict[int, int] = {}
+    cmd: dict[int, str] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            state, ppid = stat.rsplit(")", 1)[1].split()[:2]
+            if state == "Z":
+                continue
+            line = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:200]
+        except (OSError, ValueError):
+            continue  # gone meanwhile: then neither its parent nor its command line is kept
+        parent[int(d.name)] = int(ppid)
+        cmd[int(d.name)] = line
+    out = {}
+    for pid in parent:
+        p, hops = parent.get(pid), 0
+        while p is not None and p > 1 and hops < 64:
+            if p == root:
+                out[pid] = cmd[pid]
+                break
+            p, hops = parent.get(p), hops + 1
+    return out

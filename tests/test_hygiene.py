@@ -1,4 +1,4 @@
-"""The suite's own leftover watch (tests/conftest.py) survives processes that end while it looks."""
+"""The suite's own leftover watch (tests/process_hygiene.py) survives processes that end while it looks."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import conftest
+from process_hygiene import live_descendants
 
 
 def test_a_process_gone_between_two_reads_is_skipped(monkeypatch) -> None:
@@ -23,9 +23,9 @@ def test_a_process_gone_between_two_reads_is_skipped(monkeypatch) -> None:
             return real(self)
 
         monkeypatch.setattr(Path, "read_bytes", vanishing)
-        assert child.pid not in conftest._live_descendants(os.getpid())
+        assert child.pid not in live_descendants(os.getpid())
         monkeypatch.undo()
-        assert child.pid in conftest._live_descendants(os.getpid())
+        assert child.pid in live_descendants(os.getpid())
     finally:
         child.kill()
         child.wait(timeout=10)

@@ -100,6 +100,34 @@ def test_lockstep_takes_answers_sent_while_the_simulator_was_held_up() -> None:
         w.poll(book, now=12.0 + LAST_CALL)
 
 
+def test_answers_waiting_in_the_simulators_queue_are_taken_before_anyone_is_named() -> None:
+    """Held up past the last call (a publish that blocked), the simulator first takes the answers waiting
+    in its queue: only the agent that never answered is named, not those whose callbacks had not run."""
+    w, book = wait(), WrenchBook(3)
+    w.begin(0, now=0.0)
+    assert w.poll(book, now=2.0) == [0, 1, 2]  # the timeout: the last resend
+    queued = [(0, (1.0,) * 6), (2, (2.0,) * 6)]  # agents 1 and 3 answered; their callbacks have not run
+
+    def collect() -> None:
+        for i, u in queued:
+            book.accept(i, 0, u)
+
+    with pytest.raises(ParticipantMissingError, match=r"no answer from agent 2 for the step") as err:
+        w.poll(book, now=2.0 + LAST_CALL, collect=collect)
+    assert err.value.names == ["2"]
+    assert book.value[0] == (1.0,) * 6 and book.value[2] == (2.0,) * 6
+
+
+def test_nothing_is_collected_before_the_last_call_ends() -> None:
+    """Before the last call's end a poll only resends (the loop's spin takes the answers): collect is not run."""
+    w, book = wait(), WrenchBook(3)
+    w.begin(0, now=0.0)
+    calls = []
+    assert w.poll(book, now=0.3, collect=lambda: calls.append(1)) == [0, 1, 2]
+    assert w.poll(book, now=2.0, collect=lambda: calls.append(1)) == [0, 1, 2]  # the last resend
+    assert calls == []
+
+
 def test_command_hold_counts_stale_and_zeroed_wrenches() -> None:
     """Realtime: the latest wrench is held (a stale command) until older than the command timeout,
     then zero (a zeroed wrench); an agent that answered the step is no fault."""

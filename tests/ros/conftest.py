@@ -1,10 +1,12 @@
 """Fixtures of the multi-process ROS 2 tests: an isolated environment (own ROS_DOMAIN_ID, LOCALHOST
 discovery, logs under tmp_path) and a process group that always stops exactly the processes it
-started (by PID, SIGINT then SIGTERM then SIGKILL), also when a test fails."""
+started (by PID, SIGINT then SIGTERM then SIGKILL), also when a test fails; two busy loops for the
+tests under CPU starvation."""
 
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -38,3 +40,15 @@ def procs(ros_env: dict[str, str], tmp_path: Path) -> Iterator[Procs]:
         yield group
     finally:
         group.stop_all()
+
+
+@pytest.fixture(scope="module")
+def busy_loops() -> Iterator[list[int]]:
+    """Two busy-loop processes beside the runs (CPU starvation), stopped by their PIDs afterwards."""
+    loops = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True) for _ in range(2)]
+    try:
+        yield [p.pid for p in loops]
+    finally:
+        for p in loops:
+            p.kill()
+            p.wait(timeout=10)

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -200,3 +202,188 @@ def children_by_node(parent: int) -> dict[str, int]:
             if arg.startswith(b"agent_id:="):
                 found["agent_" + arg.split(b":=", 1)[1].decode().strip("'\"")] = int(d.name)
     return found
+
+
+def stacks(pid: int) -> str:
+    """Every thread's native stack of process ``pid`` (gdb, where installed): what a process that
+    does not end is waiting on. With PYTHONFAULTHANDLER=1 in its environment, SIGABRT afterwards
+    adds its Python stacks to its log."""
+    if shutil.which("gdb") is None:
+        return "gdb is not installed: no stacks\n"
+    cmd = ["gdb", "-p", str(pid), "-batch", "-nx", "-ex", "thread apply all bt"]
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        return f"gdb -p {pid}: no answer within 120 s\n"
+    return r.stdout + r.stderr
+
+
+# --- the intermittent failures (tests/ros/test_intermittent.py runs each many times) -----------------
+
+#: how long a killed agent may take to be named: the step timeout (2 s), the last call and the writing of OUT
+KILLED_AGENT_BOUND = 2 + 8
+
+
+@dataclass
+class KilledAgentRun:
+    """One paper lockstep run (5 s, step timeout 2 s) in which agent ``victim`` was SIGKILLed mid-run."""
+
+    victim: str
+    #: the simulator's exit status; None: no progress before the kill, or still running 30 s after it
+    code: int | None
+    #: wall s from the kill to the simulator's exit (or to the end of the wait)
+    elapsed: float
+    log: str
+    summary_written: bool
+    started: bool
+
+    def failures(self) -> list[str]:
+        """What went wrong, one ``kind: detail`` item each (empty: the simulator named the agent in time)."""
+        if not self.started:
+            return ["no progress: the simulator printed no progress line within 90 s"]
+        if self.code is None:
+            return [f"timeout: the simulator still ran {self.elapsed:.1f} s after the kill"]
+        found = []
+        if self.code != 3:
+            found.append(f"exit {self.code}: not 3")
+        if f"no answer from agent {self.victim} " not in self.log:
+            named = [line for line in self.log.splitlines() if "no answer" in line or "ERROR" in line]
+            found.append(f"not named: {named[-1] if named else 'no ERROR line'}")
+        if self.elapsed >= KILLED_AGENT_BOUND:
+            found.append(f"slow: exit {self.elapsed:.1f} s after the kill (bound {KILLED_AGENT_BOUND} s)")
+        if not self.summary_written:
+            found.append("no summary: OUT/summary.json missing")
+        return found
+
+
+def lockstep_with_a_killed_agent(procs: Procs, out: Path, victim: str = "3") -> KilledAgentRun:
+    """Start the paper formation's agents and simulator (lockstep, 5 s, step timeout 2 s), SIGKILL
+    agent ``victim`` once the simulator reports progress and wait up to 30 s for the simulator; every
+    process stopped afterwards. A simulator still running then leaves its native stacks in the log
+    directory (stacks.txt) and is stopped by SIGABRT first."""
+    from formation_msgs_py.spec import load_formation
+
+    agents = {a.id: procs.agent(PAPER, a.id) for a in load_formation(PAPER).agents}
+    sim = procs.sim(PAPER, out, "--duration", "5", "--step-timeout", "2", "--progress-period", "0.2")
+    if not wait_for_line(sim, "progress t=", 90):
+        return KilledAgentRun(victim, sim.poll(), 0.0, read_log(sim), False, started=False)
+    left = kill_hard(agents[victim].pid)
+    killed = time.monotonic()
+    code: int | None
+    try:
+        code = sim.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        code = None
+        (procs.logdir / "stacks.txt").write_text(stacks(sim.pid))
+        os.kill(sim.pid, signal.SIGABRT)  # its Python stacks into its log, where PYTHONFAULTHANDLER is set
+    elapsed = time.monotonic() - killed
+    procs.stop_all()  # the other agents too: then nothing maps the victim's segments any more
+    remove_segments(left)
+    return KilledAgentRun(victim, code, elapsed, read_log(sim), (out / "summary.json").is_file(), started=True)
+
+
+def netns_refused() -> str | None:
+    """Why ``unshare -n`` (a private network namespace) cannot run here, or None."""
+    if shutil.which("unshare") is None or subprocess.run(["unshare", "-n", "true"]).returncode != 0:
+        return "unshare -n is not permitted here (needs root or CAP_SYS_ADMIN)"
+    return None
+
+
+#: brings the namespace's loopback up, then runs the rest of the command line
+_LO_UP = 'ip link set lo up && exec "$@"'
+#: how long secure_driver.py may take: its launch's 240 s, then the stacks of a launch still running
+SECURE_DRIVER_TIMEOUT = 420.0
+
+
+@dataclass
+class SecureOutsidersRun:
+    """One run of tests/ros/secure_driver.py (a secure realtime launch beside four outsiders) in a
+    private network namespace; its files (driver.log, launch.log, out/, stacks/ of a hung launch) in ``work``."""
+
+    work: Path
+    #: the driver's exit status; None: it did not end within SECURE_DRIVER_TIMEOUT
+    code: int | None
+    stdout: str
+    stderr: str
+    elapsed: float
+
+    def result(self) -> dict | None:
+        """The driver's JSON line (None if it printed none)."""
+        import json
+
+        lines = self.stdout.strip().splitlines()
+        try:
+            return json.loads(lines[-1]) if lines else None
+        except json.JSONDecodeError:
+            return None
+
+    def describe(self) -> str:
+        log = self.work / "launch.log"
+        text = log.read_text(errors="replace") if log.is_file() else "(none)"
+        return f"{self.stdout}{self.stderr}\n--- launch.log\n{text}"
+
+    def failures(self) -> list[str]:
+        """What went wrong, one ``kind: detail`` item each (empty: outsiders saw and commanded nothing,
+        the member was connected and reported, and the run ended untrusted input, exit 4)."""
+        import json
+
+        import numpy as np
+
+        from formation_msgs_py.spec import load_formation
+
+        if self.code is None:
+            return [f"driver timeout: still running {self.elapsed:.0f} s after its start"]
+        result = self.result()
+        if self.code != 0 or result is None:
+            return [f"driver exit {self.code}: {(self.stderr or self.stdout).strip().splitlines()[-1:]}"]
+        if result["launch"] is None:
+            return [f"launch timeout: running at the driver's timeout: {sorted(result.get('hung', {}).values())}"]
+        found = []
+        if result["launch"] != 4:
+            # the member's wrench publisher is an intruder: untrusted input, exit 4 (also over a funnel left
+            # under heavy load); a process that died or an agent missing (3) is a failure
+            found.append(f"launch exit {result['launch']}: not 4")
+        for kind in ("plain", "nocert", "otherca"):
+            report = result["outsiders"][kind]
+            if report != {"name": f"outsider_{kind}", "seen": [], "received": 0, "matched": 0}:
+                found.append(f"outsider {kind} reached the run: {report}")
+        # the control: a member of the CA joins (sees the run's graph; the simulator reports its wrench
+        # publisher below). How many velocities it got depends on when, under load, it finished joining.
+        member = result["outsiders"]["member"]
+        if member is None or "/agent_3/relative_pose/agent_1" not in member["seen"]:
+            found.append(f"member not joined: {member}")
+        summary_file = self.work / "out" / "summary.json"
+        if not summary_file.is_file():
+            return [*found, "no summary: out/summary.json missing"]
+        summary = json.loads(summary_file.read_text())
+        intruders = {(i["topic"], i["node"]) for i in (summary.get("security") or {}).get("intruders", [])}
+        if intruders != {("/agent_3/wrench", "/outsider_member")}:
+            # the agents watch their topics too and log what they see (the summary is the simulator's)
+            logs = sorted((self.work / "out" / "logs").glob("agent_*.log"))
+            seen_by = [log.stem for log in logs if "node /outsider_member" in log.read_text(errors="replace")]
+            found.append(f"intruders: {sorted(intruders)} in the summary; the member in the logs of {seen_by}")
+        reason = summary.get("incomplete_reason") or ""
+        if not reason.startswith("untrusted input: 1 intruder(s)") or "node /outsider_member gid " not in reason:
+            found.append(f"reason: {reason[:200]}")
+        u = np.load(self.work / "out" / "trajectory.npz")["u"]
+        agent3 = load_formation(REALTIME).agent_ids.index("3")
+        if np.any(u[:, agent3, 0] == 50.0):
+            found.append("forged wrench applied: u of agent 3 held an outsider's 50 N")
+        return found
+
+
+def secure_run_beside_outsiders(work: Path, domain: int) -> SecureOutsidersRun:
+    """Run tests/ros/secure_driver.py WORK DOMAIN in a private network namespace (``unshare -n``: only a
+    loopback, nothing leaves the machine); the driver is killed if it outlives SECURE_DRIVER_TIMEOUT."""
+    driver = REPO / "tests" / "ros" / "secure_driver.py"
+    cmd = ["unshare", "-n", "sh", "-c", _LO_UP, "sh", sys.executable, str(driver), str(work), str(domain)]
+    started = time.monotonic()
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=SECURE_DRIVER_TIMEOUT, start_new_session=True)
+    except subprocess.TimeoutExpired as exc:
+        out, err = (x.decode(errors="replace") if isinstance(x, bytes) else x or "" for x in (exc.stdout, exc.stderr))
+        run = SecureOutsidersRun(work, None, out, err, time.monotonic() - started)
+    else:
+        run = SecureOutsidersRun(work, r.returncode, r.stdout, r.stderr, time.monotonic() - started)
+    (work / "driver.log").write_text(run.stdout + run.stderr)  # its JSON line: the outsiders' reports
+    return run

@@ -9,12 +9,18 @@ outsiders on the same domain, aimed at the run's ports: ``plain`` (default UDP/s
 transports), ``nocert`` (TLS without a certificate), ``otherca`` (a certificate of another CA)
 and, as the control, ``member`` (a certificate of the run's own CA, publishing a harmless
 stamp-0 wrench). Prints one JSON line: the launcher's exit status and each outsider's report.
+
+A launch still running after :data:`LAUNCH_TIMEOUT` s is reported as ``"launch": null`` with
+``"hung"``, its processes still running then; their native stacks are kept in WORKDIR/stacks/ and,
+stopped by SIGABRT, each writes its Python stacks to its log (PYTHONFAULTHANDLER) before the
+launcher's process group is stopped.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -32,11 +38,15 @@ from formation_msgs_py.spec import load_formation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: bin_helpers
 from bin_helpers import executable
+from process_hygiene import live_descendants
+from ros_helpers import stacks
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
 CERT_LINES = ("<cert_chain_file>", "<private_key_file>")
+#: wall s the 8 s run may take: discovery (35 s at most), the run and its lag budget (60 s), stopping
+LAUNCH_TIMEOUT = 240.0
 
 
 def outsider_env(
@@ -71,7 +81,13 @@ def main() -> None:
     run_keys, other_keys = work / "keys", work / "other_ca"
     init_keys(run_keys, process_names(spec.agent_ids))
     init_keys(other_keys, process_names(spec.agent_ids))
-    base = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1", ROS_LOG_DIR=str(work / "roslog"))
+    base = dict(
+        os.environ,
+        ROS_DOMAIN_ID=str(domain),
+        PYTHONUNBUFFERED="1",
+        PYTHONFAULTHANDLER="1",
+        ROS_LOG_DIR=str(work / "roslog"),
+    )
     base.pop("FASTDDS_BUILTIN_TRANSPORTS", None)
     # the launcher's ports: in a fresh namespace the first block it looks at is free
     peers = peers_of(spec.agent_ids, port_base=single_host_port_start(domain))
@@ -119,8 +135,12 @@ def main() -> None:
             text=True,
             start_new_session=True,
         )
+    hung: dict[str, str] = {}
     try:
-        code = launch.wait(timeout=240)
+        try:
+            code: int | None = launch.wait(timeout=LAUNCH_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            code, hung = None, stop_hung(launch, work / "stacks")
     finally:
         stop.touch()
         reports = {}
@@ -133,7 +153,27 @@ def main() -> None:
                 reports[kind] = None
         if launch.poll() is None:
             launch.kill()
-    print(json.dumps({"launch": code, "outsiders": reports}), flush=True)
+    print(json.dumps({"launch": code, "outsiders": reports, **({"hung": hung} if hung else {})}), flush=True)
+
+
+def stop_hung(launch: subprocess.Popen, dest: Path) -> dict[str, str]:
+    """The launch and its processes, still running: {pid: command line}; their native stacks into
+    ``dest``, then SIGABRT to each (Python stacks into its log) and to the launcher's group."""
+    hung = {launch.pid: " ".join(map(str, launch.args)), **live_descendants(launch.pid)}
+    dest.mkdir(parents=True, exist_ok=True)
+    for pid in hung:
+        (dest / f"{pid}.txt").write_text(stacks(pid))
+    for pid in hung:
+        try:
+            os.kill(pid, signal.SIGABRT)
+        except ProcessLookupError:
+            pass
+    try:
+        launch.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(launch.pid, signal.SIGKILL)
+        launch.wait()
+    return {str(pid): cmd[:160] for pid, cmd in hung.items()}
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from ros_helpers import (
     children_by_node,
     executable,
     kill_hard,
+    lockstep_with_a_killed_agent,
     read_log,
     remove_segments,
     wait_for_line,
@@ -88,19 +89,8 @@ def test_every_process_has_a_log_and_outputs(ros_env: dict[str, str], tmp_path: 
 
 def test_lockstep_names_a_killed_agent(procs, tmp_path: Path) -> None:
     """kill -9 of an agent mid-run: the simulator names it and exits 3 within its step timeout."""
-    agents = {a.id: procs.agent(PAPER, a.id) for a in load_formation(PAPER).agents}
-    sim = procs.sim(PAPER, tmp_path / "out", "--duration", "5", "--step-timeout", "2", "--progress-period", "0.2")
-    assert wait_for_line(sim, "progress t=", 90), read_log(sim)
-    left = kill_hard(agents["3"].pid)
-    killed = time.monotonic()
-    code = sim.wait(timeout=30)
-    elapsed = time.monotonic() - killed
-    remove_segments(left)
-    log = read_log(sim)
-    assert code == 3, log
-    assert "no answer from agent 3 " in log, log
-    assert elapsed < 2 + 8, elapsed
-    assert (tmp_path / "out" / "summary.json").is_file()
+    run = lockstep_with_a_killed_agent(procs, tmp_path / "out")
+    assert not run.failures(), (run.failures(), run.log)
 
 
 def test_lockstep_blames_no_agent_for_a_stopped_simulator(procs, tmp_path: Path) -> None:

@@ -10,9 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
-from ros_helpers import PAPER, REPO, assert_equals_headless, executable
+from ros_helpers import PAPER, assert_equals_headless, executable, netns_refused, secure_run_beside_outsiders
 
 from formation_deploy.keys import init_keys, process_names
 from formation_msgs_py.spec import load_formation
@@ -71,34 +70,11 @@ def test_outsiders_neither_see_nor_command_a_secure_run(ros_domain_id: int, tmp_
     """In a private network namespace: plain, certificate-less and other-CA outsiders see no topic of the
     run and their 50 N wrench never reaches the simulator; a member of the run's CA (the control) is
     connected and reported as an intruder by node name."""
-    if shutil.which("unshare") is None or subprocess.run(["unshare", "-n", "true"]).returncode != 0:
-        pytest.skip("unshare -n is not permitted here (needs root or CAP_SYS_ADMIN)")
-    script = 'ip link set lo up && exec "$@"'
-    cmd = ["unshare", "-n", "sh", "-c", script, "sh", sys.executable, str(REPO / "tests/ros/secure_driver.py")]
-    r = subprocess.run(
-        [*cmd, str(tmp_path), str(ros_domain_id)], capture_output=True, text=True, timeout=300, start_new_session=True
-    )
-    assert r.returncode == 0, r.stdout + r.stderr
-    result = json.loads(r.stdout.strip().splitlines()[-1])
-    log = (tmp_path / "launch.log").read_text(errors="replace")
-    # the member's wrench publisher is an intruder: the run is no evidence (untrusted input, exit 4, also
-    # over a funnel left under heavy load); a process that died or an agent missing (3) would be a failure
-    assert result["launch"] == 4, log
-    for kind in ("plain", "nocert", "otherca"):
-        report = result["outsiders"][kind]
-        assert report == {"name": f"outsider_{kind}", "seen": [], "received": 0, "matched": 0}, (kind, report)
-    # the control: a member of the CA joins (sees the run's graph; the simulator reports its wrench
-    # publisher below). How many velocities it got depends on when, under load, it finished joining.
-    member = result["outsiders"]["member"]
-    assert "/agent_3/relative_pose/agent_1" in member["seen"], member
-    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    intruders = {(i["topic"], i["node"]) for i in summary["security"]["intruders"]}
-    assert intruders == {("/agent_3/wrench", "/outsider_member")}, summary["security"]
-    assert summary["incomplete_reason"].startswith("untrusted input: 1 intruder(s)"), summary["incomplete_reason"]
-    assert "node /outsider_member gid " in summary["incomplete_reason"]
-    u = np.load(tmp_path / "out" / "trajectory.npz")["u"]
-    agent3 = load_formation(REPO / "config" / "realtime_5agents_100hz.yaml").agent_ids.index("3")
-    assert not np.any(u[:, agent3, 0] == 50.0)  # the outsiders' command was never applied
+    reason = netns_refused()
+    if reason is not None:
+        pytest.skip(reason)
+    run = secure_run_beside_outsiders(tmp_path, ros_domain_id)
+    assert not run.failures(), (run.failures(), run.describe())
 
 
 def test_agent_refuses_to_run_when_its_secure_profile_does_not_apply(ros_env: dict[str, str], tmp_path: Path) -> None:

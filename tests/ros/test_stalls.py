@@ -15,9 +15,7 @@ import random
 import re
 import signal
 import subprocess
-import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -45,18 +43,6 @@ DURATION = 0.2
 RUN = ("--duration", str(DURATION), "--record-rate", "10000", "--step-timeout", "1", "--progress-period", "1e-6")
 #: the simulator prints its progress every 64 steps (a tiny progress period)
 PROGRESS_EVERY = 64
-
-
-@pytest.fixture(scope="module")
-def busy_loops() -> Iterator[list[int]]:
-    """Two busy-loop processes beside the runs (CPU starvation), stopped by their PIDs afterwards."""
-    loops = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True) for _ in range(2)]
-    try:
-        yield [p.pid for p in loops]
-    finally:
-        for p in loops:
-            p.kill()
-            p.wait(timeout=10)
 
 
 def test_a_forged_answer_is_never_applied(ros_env: dict[str, str], tmp_path: Path) -> None:

@@ -498,7 +498,8 @@ class Runner:
                 if wait.done(node.wrenches):
                     break
                 now = mono()
-                late = wait.poll(node.wrenches, now, node.witness.mismatched)  # type: ignore[union-attr]
+                # answers waiting in our own queue count: held up, we may not have run their callbacks yet
+                late = wait.poll(node.wrenches, now, node.witness.mismatched, self.drain)  # type: ignore[union-attr]
                 if late:
                     node.publish_step(meas, ns, only=late)
                     timing.resends += 1

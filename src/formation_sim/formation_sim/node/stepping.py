@@ -21,7 +21,7 @@ Times: ``ns`` are simulation stamps in integer nanoseconds, ``now`` wall seconds
 from __future__ import annotations
 
 import math
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -116,14 +116,27 @@ class LockstepWait:
     def done(self, wrenches: WrenchBook) -> bool:
         return all(s == self.ns for s in wrenches.stamp)
 
-    def poll(self, wrenches: WrenchBook, now: float, mismatched: Collection[int] = ()) -> list[int]:
+    def poll(
+        self,
+        wrenches: WrenchBook,
+        now: float,
+        mismatched: Collection[int] = (),
+        collect: Callable[[], object] | None = None,
+    ) -> list[int]:
         """Agents to send the step again now (empty: keep waiting until :meth:`wake_at`).
 
         At the step timeout the late agents get a last resend; raises ParticipantMissingError
         naming those still late :data:`LAST_CALL` s after it (those in ``mismatched``, whose
-        answers to the step all differed from the witness, as such).
+        answers to the step all differed from the witness, as such). Before naming anyone,
+        ``collect`` takes the answers already received into ``wrenches``: a simulator held up in its
+        own thread (beside two busy loops, ~1.9 s between publishing the step in which an agent was
+        SIGKILLed and its first look at the answers) may not have run their callbacks yet, and an
+        answer waiting in its queue is no silence.
         """
         late = self.late_agents(wrenches)
+        if late and collect is not None and self.last_call and now >= self.deadline:
+            collect()
+            late = self.late_agents(wrenches)
         if not late:
             return []
         if now >= self.deadline:

@@ -11,6 +11,7 @@ from formation_msgs_py.publisher_watch import (
     PublisherInfo,
     PublisherWatch,
     expected_publishers,
+    merge_security,
     untrusted_input,
 )
 
@@ -223,3 +224,41 @@ def test_nameless_beside_another_publisher_stays_an_intruder() -> None:
     w.observe("/agent_3/wrench", [AGENT3, nameless], NAME_GRACE)
     w.observe("/agent_3/wrench", [nameless], 2 * NAME_GRACE)  # the agent's endpoint gone: still not the only one ever
     assert [i["gid"] for i in w.report()["intruders"]] == ["dd11"]  # type: ignore[union-attr]
+
+
+def _intruder(topic: str, gid: str, first_seen: float, agent: str = "3") -> dict[str, object]:
+    return {
+        "topic": topic,
+        "agent": agent,
+        "node": "/outsider",
+        "gid": gid,
+        "first_seen": first_seen,
+        "last_seen": first_seen + 1.0,
+        "reason": "not a process of the formation",
+    }
+
+
+def test_reports_of_several_watches_merge_into_one() -> None:
+    """The simulator's and the agents' reports: every intruder once (earliest sighting), counts summed
+    per topic, a withdrawal undone where another watch saw an intruder, None without a report."""
+    pose = "/agent_3/relative_pose/agent_1"
+    sim = {
+        "policy": "report",
+        "intruders": [_intruder("/agent_3/wrench", "g1", 2.0)],
+        "refused_messages": {},
+        "applied_while_intruder": {"/agent_3/wrench": 4},
+        "withdrawn": [_intruder(pose, "g2", 1.0)],
+    }
+    agent3 = {
+        "policy": "report",
+        "intruders": [_intruder(pose, "g2", 5.4), _intruder("/agent_3/wrench", "g1", 1.5)],
+        "refused_messages": {},
+        "applied_while_intruder": {pose: 7},
+        "withdrawn": [],
+    }
+    merged = merge_security([sim, None, agent3])
+    assert merged is not None
+    assert [(i["topic"], i["first_seen"]) for i in merged["intruders"]] == [("/agent_3/wrench", 1.5), (pose, 5.4)]
+    assert merged["applied_while_intruder"] == {"/agent_3/wrench": 4, pose: 7}
+    assert merged["intruders_per_agent"] == {"3": 2} and merged["withdrawn"] == []
+    assert merge_security([None, None]) is None

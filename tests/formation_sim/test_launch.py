@@ -130,3 +130,40 @@ def test_progress_line_shows_the_eta_when_the_simulator_gives_one() -> None:
     line = "progress t=1.2500/5 rtf=0.031 worst_margin=+0.0514 eta=121"
     assert progress_text(line) == "  sim t=1.2500/5 s  real-time factor 0.031  worst margin +0.0514  ETA 121 s"
     assert progress_text("progress t=0.0000/5 rtf=0.000 worst_margin=+inf").endswith("worst margin +inf")
+
+
+def test_an_intruder_only_an_agent_saw_makes_the_run_untrusted(tmp_path: Path) -> None:
+    """An agent's intruder (the simulator's graph never saw it) enters summary.json's security and
+    turns a PASS into INCOMPLETE, untrusted input, exit 4; a run INCOMPLETE for its own reason keeps
+    it, with the intruder added; no agent report changes nothing."""
+    from formation_msgs_py.publisher_watch import security_file
+    from formation_sim.launch.launcher import merge_agent_security
+
+    pose = "/agent_3/relative_pose/agent_1"
+    intruder = {
+        "topic": pose,
+        "agent": "3",
+        "node": "/member",
+        "gid": "01.0f",
+        "first_seen": 5.4,
+        "last_seen": 8.0,
+        "reason": "not a process of the formation",
+    }
+    quiet = {"policy": "report", "intruders": [], "refused_messages": {}, "applied_while_intruder": {}, "withdrawn": []}
+    seen = {**quiet, "intruders": [intruder], "applied_while_intruder": {pose: 12}}
+    write_json(security_file(agent_faults_file(tmp_path, "3")), seen)
+    write_json(security_file(agent_faults_file(tmp_path, "1")), quiet)
+
+    passed = {"verdict": "PASS", "exit_status": 0, "incomplete_reason": None, "funnels_held": True, "security": quiet}
+    merge_agent_security(passed, tmp_path, ["1", "2", "3"])
+    assert (passed["verdict"], passed["exit_status"], passed["funnels_held"]) == ("INCOMPLETE", 4, None)
+    assert passed["incomplete_reason"].startswith("untrusted input: 1 intruder(s) (policy report): node /member")
+    assert f"on {pose} (12 applied, 0 refused)" in passed["incomplete_reason"]
+
+    lagging = {"verdict": "INCOMPLETE", "exit_status": 4, "incomplete_reason": "lag budget exceeded", "security": quiet}
+    merge_agent_security(lagging, tmp_path, ["3"])
+    assert lagging["incomplete_reason"].startswith("lag budget exceeded; untrusted input: 1 intruder(s)")
+
+    alone = {"verdict": "PASS", "exit_status": 0, "incomplete_reason": None, "security": quiet}
+    merge_agent_security(alone, tmp_path, ["1", "2"])
+    assert (alone["verdict"], alone["exit_status"]) == ("PASS", 0)

@@ -312,7 +312,12 @@ from rclpy.node import Node  # noqa: E402
 
 from formation_msgs_py import topics  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
-from formation_msgs_py.publisher_watch import POLICIES, PublisherWatch, expected_publishers  # noqa: E402
+from formation_msgs_py.publisher_watch import (  # noqa: E402
+    POLICIES,
+    PublisherWatch,
+    expected_publishers,
+    security_file,
+)
 from formation_msgs_py.ros import conversions, parameters, qos, stopping  # noqa: E402
 from formation_msgs_py.ros.graph_watch import GraphWatch  # noqa: E402
 from formation_msgs_py.spec import agent_view, load_formation  # noqa: E402
@@ -482,6 +487,9 @@ class AgentNode(Node):
         if self.faults_file:
             try:
                 write_json(Path(self.faults_file), faults)
+                # intruders on this agent's own topics: the launcher names them in the verdict
+                # (the simulator's graph may never see one that reached only this agent)
+                write_json(security_file(self.faults_file), self._watch.watch.report())
             except OSError as exc:
                 print(f"formation-agent {self.agent_id}: could not write {self.faults_file}: {exc}", flush=True)
 

@@ -33,9 +33,12 @@ an outsider would be a second publisher), so its report is withdrawn when the wa
 
 from __future__ import annotations
 
+import math
+import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 from formation_msgs_py import topics
 
@@ -231,6 +234,48 @@ class PublisherWatch:
             "applied_while_intruder": dict(self.applied),
             "withdrawn": [i.as_dict() for i in self.withdrawn],
         }
+
+
+def security_file(faults_file: str | os.PathLike[str]) -> Path:
+    """Where a process that writes its faults to ``faults_file`` writes its :meth:`PublisherWatch.report`."""
+    path = Path(faults_file)
+    return path.with_name(f"{path.stem}_security.json")
+
+
+def merge_security(reports: Sequence[Mapping[str, Any] | None]) -> dict[str, Any] | None:
+    """One report of several watches' :meth:`PublisherWatch.report` (the simulator's and the agents'):
+    every intruder once (by topic and GID, earliest first sighting), messages applied and refused
+    summed per topic (each watch counts only the topics its node takes messages from), the first
+    report's policy. None when there is no report."""
+    present = [r for r in reports if isinstance(r, Mapping)]
+    if not present:
+        return None
+    intruders: dict[tuple[str, str], dict[str, Any]] = {}
+    withdrawn: dict[tuple[str, str], dict[str, Any]] = {}
+    refused: dict[str, int] = {}
+    applied: dict[str, int] = {}
+    for report in present:
+        for into, key in ((intruders, "intruders"), (withdrawn, "withdrawn")):
+            for i in report.get(key) or []:
+                k = (str(i.get("topic")), str(i.get("gid")))
+                if k not in into or i.get("first_seen", math.inf) < into[k].get("first_seen", math.inf):
+                    into[k] = dict(i)
+        for counts, key in ((refused, "refused_messages"), (applied, "applied_while_intruder")):
+            for topic, n in (report.get(key) or {}).items():
+                counts[topic] = counts.get(topic, 0) + int(n)
+    for k in intruders:
+        withdrawn.pop(k, None)  # withdrawn by one watch, an intruder to another
+    per_agent: dict[str, int] = {}
+    for i in intruders.values():
+        per_agent[str(i.get("agent"))] = per_agent.get(str(i.get("agent")), 0) + 1
+    return {
+        "policy": present[0].get("policy"),
+        "intruders": list(intruders.values()),
+        "intruders_per_agent": per_agent,
+        "refused_messages": refused,
+        "applied_while_intruder": applied,
+        "withdrawn": list(withdrawn.values()),
+    }
 
 
 UNTRUSTED = "untrusted input"

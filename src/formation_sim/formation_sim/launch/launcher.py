@@ -25,7 +25,7 @@ import signal
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -36,7 +36,7 @@ from formation_msgs_py.errors import FormationError
 from formation_msgs_py.faults import FaultLog
 from formation_msgs_py.options import Discovery, OptionParser, RunOptions
 from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
-from formation_msgs_py.publisher_watch import untrusted_input
+from formation_msgs_py.publisher_watch import merge_security, security_file, untrusted_input
 from formation_sim.core.preflight import InvalidRunError, Prepared, launch_outputs, preflight, prepare_out_dir
 from formation_sim.launch import dds_env, discovery_server
 from formation_sim.launch.supervisor import Child, LogFollower, Supervisor, tls_failures
@@ -155,6 +155,35 @@ def merge_agent_faults(summary: dict[str, Any], logs: Path, agent_ids: Sequence[
     summary["faults"] = faults.as_dict()
     if unknown:
         summary["agent_faults_unknown"] = unknown
+
+
+def merge_agent_security(summary: dict[str, Any], logs: Path, agent_ids: Sequence[str]) -> None:
+    """The intruders every agent saw on its own topics into ``summary["security"]`` and the verdict:
+    one that reached an agent only (the simulator's graph did not see it before the run ended)
+    makes the run INCOMPLETE (untrusted input, exit 4) as one the simulator saw does; a run
+    INCOMPLETE for a reason of its own keeps it, and the intruders are added to it."""
+    reports: list[Mapping[str, Any] | None] = [summary.get("security")]
+    for a in agent_ids:
+        try:
+            reports.append(json.loads(security_file(agent_faults_file(logs, a)).read_text(encoding="utf-8")))
+        except (OSError, ValueError):
+            continue  # an agent that wrote none: killed or never started (agent_faults_unknown says so)
+    before = untrusted_input(summary.get("security"))
+    merged = merge_security(reports)
+    if merged is None:
+        return
+    summary["security"] = merged
+    after = untrusted_input(merged)
+    if after is None or after == before:
+        return
+    reason = summary.get("incomplete_reason")
+    if summary.get("verdict") in ("PASS", "FAIL") or (reason and reason == before):
+        summary.update(verdict="INCOMPLETE", incomplete_reason=after, exit_status=int(ExitCode.INCOMPLETE))
+        summary["funnels_held"] = None
+    elif before and reason and before in reason:
+        summary["incomplete_reason"] = reason.replace(before, after)
+    else:
+        summary["incomplete_reason"] = f"{reason}; {after}" if reason else after
 
 
 def build_parser() -> OptionParser:
@@ -382,6 +411,7 @@ class Launcher:
                     f"{sim.describe_exit()}: no summary written" + _last_error(sim.log),
                 )
         merge_agent_faults(summary, self.out / "logs", self.spec.agent_ids)
+        merge_agent_security(summary, self.out / "logs", self.spec.agent_ids)
         tls = self._tls_failures(summary)
         incomplete = self.stop
         if incomplete is None and self.agent_died:

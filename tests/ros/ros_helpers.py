@@ -358,7 +358,7 @@ class SecureOutsidersRun:
         summary = json.loads(summary_file.read_text())
         intruders = {(i["topic"], i["node"]) for i in (summary.get("security") or {}).get("intruders", [])}
         if intruders != {("/agent_3/wrench", "/outsider_member")}:
-            # the agents watch their topics too and log what they see (the summary is the simulator's)
+            # which agents' logs name the member: the summary merges the simulator's and the agents' reports
             logs = sorted((self.work / "out" / "logs").glob("agent_*.log"))
             seen_by = [log.stem for log in logs if "node /outsider_member" in log.read_text(errors="replace")]
             found.append(f"intruders: {sorted(intruders)} in the summary; the member in the logs of {seen_by}")

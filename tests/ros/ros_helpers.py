@@ -282,13 +282,6 @@ def lockstep_with_a_killed_agent(procs: Procs, out: Path, victim: str = "3") -> 
     return KilledAgentRun(victim, code, elapsed, read_log(sim), (out / "summary.json").is_file(), started=True)
 
 
-def netns_refused() -> str | None:
-    """Why ``unshare -n`` (a private network namespace) cannot run here, or None."""
-    if shutil.which("unshare") is None or subprocess.run(["unshare", "-n", "true"]).returncode != 0:
-        return "unshare -n is not permitted here (needs root or CAP_SYS_ADMIN)"
-    return None
-
-
 #: brings the namespace's loopback up, then runs the rest of the command line
 _LO_UP = 'ip link set lo up && exec "$@"'
 #: how long secure_driver.py may take: its launch's 240 s, then the stacks of a launch still running

@@ -24,7 +24,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from ros_helpers import Procs, lockstep_with_a_killed_agent, netns_refused, secure_run_beside_outsiders
+from ros_helpers import Procs, lockstep_with_a_killed_agent, secure_run_beside_outsiders
+
+from formation_sim.launch.dds_env import netns_available
 
 pytestmark = pytest.mark.skipif(
     os.environ.get("FORMATION_STRESS") != "1",
@@ -102,7 +104,7 @@ def test_a_secure_run_beside_outsiders_ends_in_every_run(
 ) -> None:
     """The secure realtime launch beside four outsiders in a private network namespace, RUNS times beside
     two busy loops: every time it ends, exit 4 (untrusted input: the member), no outsider reached it."""
-    reason = netns_refused()
+    reason = netns_available()
     if reason is not None:
         pytest.skip(reason)
 

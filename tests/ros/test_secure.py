@@ -11,10 +11,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from ros_helpers import PAPER, assert_equals_headless, executable, netns_refused, secure_run_beside_outsiders
+from ros_helpers import PAPER, assert_equals_headless, executable, secure_run_beside_outsiders
 
 from formation_deploy.keys import init_keys, process_names
 from formation_msgs_py.spec import load_formation
+from formation_sim.launch.dds_env import netns_available
 
 #: formation-launch with the certificate pre-flight (check_run_keys) switched off: the only way a
 #: certificate the others refuse still reaches a running process (the launcher refuses it otherwise)
@@ -70,7 +71,7 @@ def test_outsiders_neither_see_nor_command_a_secure_run(ros_domain_id: int, tmp_
     """In a private network namespace: plain, certificate-less and other-CA outsiders see no topic of the
     run and their 50 N wrench never reaches the simulator; a member of the run's CA (the control) is
     connected and reported as an intruder by node name."""
-    reason = netns_refused()
+    reason = netns_available()
     if reason is not None:
         pytest.skip(reason)
     run = secure_run_beside_outsiders(tmp_path, ros_domain_id)

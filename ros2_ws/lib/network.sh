@@ -1,7 +1,9 @@
 # Network options shared by sim.sh, agent.sh and record.sh (sourced, not run).
 #
 #   --network host   discovery on this machine only (default): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-#                    unless the environment sets it (docker/compose.yaml and the image set SUBNET)
+#                    unless the environment sets it (docker/compose.yaml and the image set SUBNET),
+#                    carried out as UDP on 127.0.0.1 only (formation_msgs_py/fastdds_loopback.xml);
+#                    every non-secure process uses UDP only, never Fast DDS's shared memory
 #   --network lan    the ROS default: multicast discovery on the local network (SUBNET)
 #   --secure KEYS    TLS over TCP only, with this process's key from KEYS (formation-keys init KEYS):
 #                    no UDP, no shared memory; every process of the run needs --secure (docs/security.md)
@@ -55,6 +57,13 @@ formation_network_options() {
     ds_env="$("$ROOT/.venv/bin/python" -m formation_sim.launch.discovery_server env "$DISCOVERY" "${super[@]+"${super[@]}"}")" \
       || return 2
     eval "$ds_env"
+  fi
+  if [ "$DISCOVERY" = simple ] && [ -z "$keys" ]; then
+    # UDP only, never Fast DDS's shared memory: LOCALHOST becomes the loopback profile
+    # (formation_sim.launch.dds_env.transport_environment; docs/ros2.md, "Transports")
+    local transports
+    transports="$("$ROOT/.venv/bin/python" -m formation_sim.launch.dds_env transports)" || return 2
+    eval "$transports"
   fi
   if [ -n "$keys" ] && [ -z "$file" ]; then
     echo "--secure needs the formation file (the ports follow its agents)" >&2; return 2

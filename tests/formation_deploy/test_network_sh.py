@@ -11,7 +11,11 @@ from formation_deploy.keys import init_keys, process_names
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"
-SHOW = "ROS_AUTOMATIC_DISCOVERY_RANGE ROS_STATIC_PEERS FASTRTPS_DEFAULT_PROFILES_FILE OPENSSL_CONF"
+SHOW = (
+    "ROS_AUTOMATIC_DISCOVERY_RANGE ROS_STATIC_PEERS FASTRTPS_DEFAULT_PROFILES_FILE FASTDDS_BUILTIN_TRANSPORTS"
+    " OPENSSL_CONF"
+)
+PROFILES = REPO / "src" / "formation_msgs_py" / "formation_msgs_py"
 
 
 def _options(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
@@ -21,7 +25,7 @@ def _options(*args: str, env: dict[str, str] | None = None) -> subprocess.Comple
         f'formation_network_options agent_1 "{PAPER}" "$@" || exit $?; '
         f'for v in {SHOW}; do echo "$v=${{!v-}}"; done; echo "REST=${{REST[*]-}}"'
     )
-    base = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "FASTRTPS", "OPENSSL"))}
+    base = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "FASTRTPS", "FASTDDS", "OPENSSL"))}
     return subprocess.run(
         ["bash", "-c", script, "bash", *args], env={**base, **(env or {})}, capture_output=True, text=True, timeout=60
     )
@@ -32,17 +36,25 @@ def _vars(r: subprocess.CompletedProcess) -> dict[str, str]:
 
 
 def test_default_is_this_host_and_lan_is_explicit() -> None:
-    """No option: LOCALHOST; --network lan: SUBNET; an explicit environment value is kept; other args pass on."""
+    """No option: this host, as UDP on 127.0.0.1 (LOCALHOST carried out by the loopback profile under
+    SYSTEM_DEFAULT); --network lan: SUBNET, UDP only; an explicit environment value is kept; a profile
+    of the environment's own is left alone with LOCALHOST; other args pass on."""
     assert _vars(_options("--ros-args", "-p", "x:=1")) == {
-        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT",
         "ROS_STATIC_PEERS": "",
-        "FASTRTPS_DEFAULT_PROFILES_FILE": "",
+        "FASTRTPS_DEFAULT_PROFILES_FILE": str(PROFILES / "fastdds_loopback.xml"),
+        "FASTDDS_BUILTIN_TRANSPORTS": "",
         "OPENSSL_CONF": "",
         "REST": "--ros-args -p x:=1",
     }
-    assert _vars(_options("--network", "lan"))["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    lan = _vars(_options("--network", "lan"))
+    assert lan["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET" and lan["FASTDDS_BUILTIN_TRANSPORTS"] == "UDPv4"
+    assert lan["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(PROFILES / "fastdds_profile.xml")
     kept = _options(env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})
     assert _vars(kept)["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    own = _vars(_options(env={"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"}))
+    assert own["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert own["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/etc/mine.xml"
 
 
 def test_bad_network_and_hosts_without_secure_exit_2() -> None:

@@ -25,19 +25,21 @@ def test_client_environment_names_the_server_and_drops_simple_discovery_settings
 
 
 def test_env_lines_set_the_client_environment_in_sh() -> None:
-    """``env SPEC`` prints lines that sh evaluates into the client environment (default port 11811)."""
+    """``env SPEC``, run in the shell's environment (as ros2_ws/lib/network.sh does), prints lines that
+    sh evaluates into the client environment (default port 11811, UDP only)."""
+    shell_env = {"ROS_STATIC_PEERS": "10.0.0.9", "PATH": "/usr/bin:/bin"}
     lines = subprocess.run(
         [sys.executable, "-m", "formation_sim.launch.discovery_server", "env", "server"],
         capture_output=True,
         text=True,
         timeout=60,
         check=True,
+        env=shell_env,
     ).stdout
-    script = lines + 'echo "$ROS_DISCOVERY_SERVER/$ROS_AUTOMATIC_DISCOVERY_RANGE/${ROS_STATIC_PEERS-unset}"'
-    shown = subprocess.run(
-        ["sh", "-c", script], capture_output=True, text=True, timeout=30, env={"ROS_STATIC_PEERS": "10.0.0.9"}
-    )
-    assert shown.stdout.strip() == "127.0.0.1:11811/SYSTEM_DEFAULT/unset"
+    script = lines + '\necho "$ROS_DISCOVERY_SERVER/$ROS_AUTOMATIC_DISCOVERY_RANGE/${ROS_STATIC_PEERS-unset}"'
+    script += '\necho "$FASTDDS_BUILTIN_TRANSPORTS"'
+    shown = subprocess.run(["sh", "-c", script], capture_output=True, text=True, timeout=30, env=shell_env)
+    assert shown.stdout.split() == ["127.0.0.1:11811/SYSTEM_DEFAULT/unset", "UDPv4"]
 
 
 def test_serve_runs_the_command_as_client_and_stops_the_server(tmp_path: Path) -> None:

@@ -12,17 +12,23 @@ from __future__ import annotations
 
 import fcntl
 import os
+import shlex
 import shutil
 import subprocess
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import IO
 
 from formation_msgs_py import errors
 from formation_msgs_py.options import Discovery
 
-#: the Fast DDS profile every non-secure process of a run loads (the file says what it sets and why)
+#: the Fast DDS profile of a non-secure process whose discovery range is not LOCALHOST (the file
+#: says what it sets and why)
 FASTDDS_PROFILE = Path(errors.__file__).with_name("fastdds_profile.xml")
+#: the profile of a non-secure process kept on this host: UDP on 127.0.0.1 only, no shared memory
+FASTDDS_LOOPBACK_PROFILE = Path(errors.__file__).with_name("fastdds_loopback.xml")
+_OUR_PROFILES = {str(FASTDDS_PROFILE), str(FASTDDS_LOOPBACK_PROFILE)}
 
 #: Ids Fast DDS accepts whose port blocks stay clear of Linux's ephemeral ports (102..214 may collide).
 DOMAIN_IDS = (*range(1, 102), *range(215, 233))
@@ -97,20 +103,57 @@ def in_netns() -> bool:
     return os.environ.get(IN_NETNS) == "1"
 
 
+def transport_environment(base: Mapping[str, str]) -> dict[str, str]:
+    """``base`` with Fast DDS's transports of a non-secure process: UDP only, never shared memory.
+
+    Discovery range LOCALHOST (or unset) without ``ROS_STATIC_PEERS`` becomes
+    :data:`FASTDDS_LOOPBACK_PROFILE` under ``SYSTEM_DEFAULT``: the rmw's LOCALHOST adds a
+    shared-memory transport that no setting removes (the profile says why that matters). Any other
+    range, or a client of a discovery server, gets :data:`FASTDDS_PROFILE` and
+    ``FASTDDS_BUILTIN_TRANSPORTS=UDPv4``. A profile of the environment's own (not one of ours)
+    is left alone, with the range it came with. Secure mode replaces all of it per process.
+    """
+    env = dict(base)
+    profile = env.get("FASTRTPS_DEFAULT_PROFILES_FILE")
+    if profile and profile not in _OUR_PROFILES:
+        env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        return env
+    requested = env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
+    if profile == str(FASTDDS_LOOPBACK_PROFILE) and requested == "SYSTEM_DEFAULT":
+        requested = "LOCALHOST"  # this function's own earlier answer
+    if env.get("ROS_DISCOVERY_SERVER"):
+        requested = "SYSTEM_DEFAULT"  # a client (discovery_client_environment)
+    if requested == "LOCALHOST" and not env.get("ROS_STATIC_PEERS"):
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_LOOPBACK_PROFILE)
+        env.pop("FASTDDS_BUILTIN_TRANSPORTS", None)  # the profile names its transport itself
+    else:
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = requested
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_PROFILE)
+        env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+    return env
+
+
+def transport_name(env: Mapping[str, str]) -> str:
+    """What :func:`transport_environment` chose, in words (``summary.json`` ``launch.transport``)."""
+    profile = env.get("FASTRTPS_DEFAULT_PROFILES_FILE")
+    if profile == str(FASTDDS_LOOPBACK_PROFILE):
+        return "UDP on 127.0.0.1 only (fastdds_loopback.xml)"
+    if profile == str(FASTDDS_PROFILE):
+        return f"Fast DDS builtin transports {env.get('FASTDDS_BUILTIN_TRANSPORTS') or 'default'} (fastdds_profile.xml)"
+    return f"the profile {profile}" if profile else "Fast DDS defaults"
+
+
 def run_environment(base: dict[str, str], *, log_dir: Path) -> dict[str, str]:
     """The environment of every process of a run: a reserved domain unless ROS_DOMAIN_ID is set,
-    LOCALHOST discovery unless set (in a private namespace: its own loopback, UDP only)."""
+    discovery on this host unless the range is set (in a private namespace: its own loopback), and
+    UDP only (:func:`transport_environment`)."""
     env = dict(base)
     env["PYTHONUNBUFFERED"] = "1"
     env["ROS_LOG_DIR"] = str(log_dir)
     if in_netns():
         env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"  # multicast on the namespace's own loopback only
-        # UDP on the namespace's loopback only: Fast DDS's shared-memory transport would use /dev/shm,
-        # which the namespace shares with the host (port files of other runs: "open_and_lock_file failed")
-        env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
-    else:
-        env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))  # secure mode sets its own per process
+    env = transport_environment(env)  # secure mode sets its own per process
     if not env.get("ROS_DOMAIN_ID"):
         env["ROS_DOMAIN_ID"] = str(reserve_domain_id())
     return env
@@ -136,4 +179,27 @@ def discovery_client_environment(
         env["ROS_SUPER_CLIENT"] = "TRUE"
     else:
         env.pop("ROS_SUPER_CLIENT", None)
-    return env
+    # UDP only, on every interface: the server may be on another host
+    return transport_environment(env)
+
+
+def shell_lines(before: Mapping[str, str], after: Mapping[str, str]) -> str:
+    """``export``/``unset`` lines that turn the environment ``before`` into ``after`` (for ``eval``)."""
+    lines = [f"export {k}={shlex.quote(v)}" for k, v in after.items() if before.get(k) != v]
+    gone = sorted(k for k in before if k not in after)
+    return "\n".join(lines + ([f"unset {' '.join(gone)}"] if gone else []))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m formation_sim.launch.dds_env transports``: the shell lines of
+    :func:`transport_environment` for this environment (ros2_ws/lib/network.sh evaluates them)."""
+    args = sys.argv[1:] if argv is None else argv
+    if args != ["transports"]:
+        print("usage: python -m formation_sim.launch.dds_env transports", file=sys.stderr)
+        return 2
+    print(shell_lines(os.environ, transport_environment(os.environ)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shlex
 import shutil
 import signal
 import socket
@@ -28,7 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from formation_msgs_py.options import DEFAULT_DISCOVERY_PORT, Discovery, discovery
-from formation_sim.launch.dds_env import discovery_client_environment
+from formation_sim.launch.dds_env import discovery_client_environment, shell_lines
 
 #: the server executable of the ros_fastrtps wheel (in the environment's bin/)
 SERVER = "fast-discovery-server"
@@ -72,7 +71,8 @@ def server_environment(base: dict[str, str]) -> dict[str, str]:
     site = Path(sysconfig.get_paths()["purelib"])
     dirs = [str(p) for p in sorted(site.glob("ros_*.libs"))] + [str(Path(sys.prefix) / "lib")]
     old = [d for d in base.get("LD_LIBRARY_PATH", "").split(os.pathsep) if d and d not in dirs]
-    return {**base, "LD_LIBRARY_PATH": os.pathsep.join(dirs + old)}
+    # UDP only, as its clients (dds_env.transport_environment): no shared-memory port files
+    return {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4", **base, "LD_LIBRARY_PATH": os.pathsep.join(dirs + old)}
 
 
 def server_command(spec: Discovery) -> list[str]:
@@ -178,9 +178,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         p.error("SPEC must be server or server:HOST:PORT")
     spec = with_port(args.spec, DEFAULT_DISCOVERY_PORT)
     if args.action == "env":
-        env = discovery_client_environment({}, spec, super_client=args.super_client)
-        print("\n".join(f"export {k}={shlex.quote(v)}" for k, v in env.items()))
-        print("unset ROS_STATIC_PEERS" + ("" if args.super_client else " ROS_SUPER_CLIENT"))
+        client = discovery_client_environment(dict(os.environ), spec, super_client=args.super_client)
+        print(shell_lines(os.environ, client))
         return 0
     if not cmd:
         p.error("serve needs the command after --")

@@ -433,6 +433,7 @@ class Launcher:
         summary["launch"] = {
             "ros_domain_id": int(self.sup.env["ROS_DOMAIN_ID"]),
             "discovery_range": self.sup.env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
+            "transport": dds_env.transport_name(self.sup.env),
             "discovery": str(self.discovery or Discovery()),
             "network_namespace": dds_env.in_netns(),
             "processes": len(self.sup.children),
@@ -544,6 +545,7 @@ def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
     summary = launcher.summary()
     if secure is not None:
         summary["launch"]["secure"] = secure.describe()
+        summary["launch"]["transport"] = "TLS over TCP only (a profile per process)"
     code = int(summary.get("exit_status", ExitCode.INCOMPLETE))
     try:
         write_json(out / "logs" / "processes.json", launcher.sup.process_table(out))
@@ -563,6 +565,8 @@ def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
 
 def _discovery_text(discovery: Discovery | None, env: dict[str, str]) -> str:
     if discovery is None:
+        if env.get("FASTRTPS_DEFAULT_PROFILES_FILE") == str(dds_env.FASTDDS_LOOPBACK_PROFILE):
+            return "discovery on this host (UDP on 127.0.0.1)"
         return f"discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
     return f"discovery server {discovery.address()} ({discovery_server.SERVER})"
 

@@ -167,3 +167,23 @@ def test_an_intruder_only_an_agent_saw_makes_the_run_untrusted(tmp_path: Path) -
     alone = {"verdict": "PASS", "exit_status": 0, "incomplete_reason": None, "security": quiet}
     merge_agent_security(alone, tmp_path, ["1", "2"])
     assert (alone["verdict"], alone["exit_status"]) == ("PASS", 0)
+
+
+def test_hang_timeout_covers_the_longest_silence_of_a_working_simulator(paper_path: Path, tmp_path: Path) -> None:
+    """Default --hang-timeout: the longer of the discovery timeout (30 s + 1 per agent, or the option) and,
+    in lockstep, the step timeout, plus HANG_MARGIN; the option wins."""
+    from formation_msgs_py.options import RunOptions
+    from formation_msgs_py.spec import load_formation
+    from formation_sim.launch.launcher import HANG_MARGIN, Launcher
+
+    spec = load_formation(paper_path)
+
+    def timeout(mode: str, **options: float) -> float:
+        args = RunOptions(command="launch", mode=mode, **options)
+        return Launcher(spec, args, tmp_path, {}).hang_timeout()
+
+    n = len(spec.agents)
+    assert timeout("lockstep") == max(30.0 + n, spec.simulation.step_timeout) + HANG_MARGIN
+    assert timeout("lockstep", discovery_timeout=400.0) == 400.0 + HANG_MARGIN
+    assert timeout("realtime", discovery_timeout=2.0) == 2.0 + HANG_MARGIN  # no step timeout in realtime
+    assert timeout("lockstep", hang_timeout=7.0) == 7.0

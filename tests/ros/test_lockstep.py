@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from process_hygiene import live_descendants
 from ros_helpers import (
     PAPER,
     REPO,
@@ -134,6 +135,36 @@ def test_launcher_stops_everything_when_an_agent_dies(ros_env: dict[str, str], t
         assert "agent_2 was killed by SIGKILL" in stdout
         table = json.loads((out / "logs" / "processes.json").read_text())
         assert all(row["returncode"] is not None for row in table)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def test_a_simulator_that_goes_silent_is_stopped_as_hung(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """The simulator frozen (SIGSTOP) while it steps writes nothing more: after --hang-timeout the
+    launcher stops every process (SIGKILL reaches a stopped one), exits 3, and its summary says so.
+    Without the bound the launcher would wait for it for ever."""
+    out = tmp_path / "out"
+    cmd = [executable("formation-launch"), str(PAPER), "--out", str(out), "--duration", "5", "--no-plots"]
+    cmd += ["--no-record", "--hang-timeout", "6"]
+    proc = subprocess.Popen(
+        cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+    )
+    try:
+        deadline = time.monotonic() + 90
+        while not (out / "logs" / "sim.log").exists() or "progress" not in (out / "logs" / "sim.log").read_text():
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.1)
+        (sim,) = [p for p, c in live_descendants(proc.pid).items() if "formation_sim.node.sim_node" in c]
+        os.kill(sim, signal.SIGSTOP)
+        stdout, _ = proc.communicate(timeout=120)
+        assert proc.returncode == 3, stdout
+        assert "the simulator wrote nothing for 6 s (hung; --hang-timeout)" in stdout
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["verdict"] == "INCOMPLETE" and "wrote nothing for 6 s" in summary["incomplete_reason"]
+        table = {row["name"]: row["returncode"] for row in json.loads((out / "logs" / "processes.json").read_text())}
+        assert table["sim"] == -9 and all(code is not None for code in table.values()), table
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

@@ -68,6 +68,14 @@ def _bin(name: str) -> Path:
 #: write its summary and trajectory; at load 10 on 2 cores each gets about a fifth of a core
 STOP_GRACE = 2.5
 
+#: wall s added to the longer of the discovery and step timeouts for the default --hang-timeout: the
+#: simulator prints while it waits for discovery (every 5 s) and while it steps (every second); silent
+#: longer, it is stuck (the rmw's shared-memory transport once hung it inside node creation, deaf to
+#: SIGINT), and without a bound the launcher would wait for it for ever
+HANG_MARGIN = 120.0
+#: … and this much more once it has stepped to the end and writes OUT
+WRITING_MARGIN = 600.0
+
 #: bytes kept free on OUT's file system for the final summary.json and processes.json
 RESERVE_BYTES = 2_000_000
 
@@ -227,6 +235,8 @@ class Launcher:
         self.agent_died: list[str] = []
         self._tty = sys.stdout.isatty()
         self._follow: LogFollower | None = None
+        #: when the simulator's log last grew [monotonic s]
+        self._heard = time.monotonic()
         self.timing: dict[str, float] = {}
         #: children sent SIGINT after the last step (their exit is no death)
         self.interrupted: set[str] = set()
@@ -279,10 +289,21 @@ class Launcher:
             self.sup.start(f"agent_{a.id}", "agent", cmd)
         return sim
 
+    def hang_timeout(self) -> float:
+        """Wall s of silence in the simulator's log after which the run is stopped as hung."""
+        if self.args.hang_timeout is not None:
+            return self.args.hang_timeout
+        discovery = self.args.discovery_timeout or 30.0 + len(self.spec.agents)  # as the simulator's default
+        step = self.spec.simulation.step_timeout if self.mode == "lockstep" else 0.0
+        return max(discovery, step) + HANG_MARGIN
+
     def relay(self) -> None:
         """Show the simulator's new log lines: progress compactly, messages as they are."""
         assert self._follow is not None
-        for line in self._follow.new_lines():
+        lines = self._follow.new_lines()
+        if lines:
+            self._heard = time.monotonic()
+        for line in lines:
             if line.startswith("progress "):
                 if self.args.quiet:
                     continue
@@ -322,9 +343,20 @@ class Launcher:
         print(f"formation-launch: {text}", file=sys.stderr, flush=True)
 
     def watch(self, sim: Child) -> None:
-        """Until the simulator exits, a signal arrives or a process dies."""
+        """Until the simulator exits, a signal arrives, a process dies or the simulator hangs."""
+        self._heard = time.monotonic()
         while True:
             self.relay()
+            # writing OUT (figures, a long trajectory) prints nothing until it is done: more time then
+            limit = self.hang_timeout() + (WRITING_MARGIN if "stepping_done" in self.timing else 0.0)
+            if time.monotonic() - self._heard > limit and sim.poll() is None:
+                silent = [c.name for c in self.sup.children if c.poll() is None and _log_is_empty(c.log)]
+                why = f"the simulator wrote nothing for {limit:g} s (hung; --hang-timeout)"
+                if silent:
+                    why += f"; no output at all from {', '.join(silent)}"
+                self.note(why + "; stopping every process")
+                self.stop = Incomplete(ExitCode.PROCESS_DIED, why)
+                return
             if self.signalled is not None:
                 name = signal.Signals(self.signalled).name
                 self.stop = Incomplete(ExitCode.INTERRUPTED, f"interrupted ({name})")
@@ -561,6 +593,13 @@ def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
             report_animation(out, launcher.spec, dict(data))
     print(f"outputs in {out}/ (exit status {code})", flush=True)
     return code
+
+
+def _log_is_empty(log: Path) -> bool:
+    try:
+        return log.stat().st_size == 0
+    except OSError:
+        return True
 
 
 def _discovery_text(discovery: Discovery | None, env: dict[str, str]) -> str:

@@ -1,8 +1,10 @@
 """What a test must not leave behind: processes it started and Fast DDS shared-memory segments.
 
-A process killed with SIGKILL cannot remove its Fast DDS segments from /dev/shm (rmw_fastrtps uses
-the shared-memory transport for LOCALHOST discovery whatever FASTDDS_BUILTIN_TRANSPORTS says):
-tests that kill on purpose note the victim's segments first and remove exactly those afterwards.
+A process killed with SIGKILL cannot remove its Fast DDS segments from /dev/shm. The processes of a
+run that formation-launch or the scripts start use UDP only and have none; a process a test starts
+itself with the tests' ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST has them (the rmw adds its
+shared-memory transport under LOCALHOST whatever FASTDDS_BUILTIN_TRANSPORTS says). Tests that kill
+on purpose note the victim's segments first and remove exactly those afterwards.
 """
 
 from __future__ import annotations

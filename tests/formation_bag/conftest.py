@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from formation_bag.synth import SynthResult, write_run_bag
+from formation_sim.launch.dds_env import transport_environment
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bag_helpers, next to this file
 from bag_helpers import PAPER, VIOLATING, paper_spec
@@ -131,7 +132,7 @@ def ros_procs(tmp_path: Path, ros_domain_id: int) -> Iterator[Processes]:
         ROS_LOG_DIR=str(tmp_path / "ros_log"),
         PYTHONUNBUFFERED="1",
     )
-    procs = Processes(env)
+    procs = Processes(transport_environment(env))  # UDP only, as the scripts give it (record.sh, replay.sh)
     try:
         yield procs
     finally:

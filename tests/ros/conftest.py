@@ -16,6 +16,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from ros_helpers import Procs
 
+from formation_sim.launch.dds_env import transport_environment
+
 
 @pytest.fixture
 def ros_env(ros_domain_id: int, tmp_path: Path) -> dict[str, str]:
@@ -35,7 +37,8 @@ def ros_env(ros_domain_id: int, tmp_path: Path) -> dict[str, str]:
 def procs(ros_env: dict[str, str], tmp_path: Path) -> Iterator[Procs]:
     logdir = tmp_path / "proclogs"
     logdir.mkdir()
-    group = Procs(ros_env, logdir)
+    # the processes get what sim.sh/agent.sh give them: UDP only (the whole environment, profile included)
+    group = Procs(transport_environment(ros_env), logdir)
     try:
         yield group
     finally:

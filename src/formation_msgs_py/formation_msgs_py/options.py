@@ -192,8 +192,7 @@ OPTIONS: tuple[Option, ...] = (
            forward=True),
     Option("--hang-timeout", "wall s the simulator may write nothing to its log before the run is stopped as "
            "hung, exit 3 (default: the longer of the discovery and step timeouts, plus 120 s; 600 s more while it "
-           "writes OUT)", frozenset({LAUNCH}),
-           positive),
+           "writes OUT)", frozenset({LAUNCH}), positive),
     Option("--settle", "wall s to wait after discovery", frozenset({SIM}), nonnegative, 0.3),
     Option("--resend", "lockstep: re-send an unanswered step after [wall s]", frozenset({SIM}), positive, 0.25),
     Option("--bag", "write the run's bag into DIR (must not exist) in this process: every message the simulator "

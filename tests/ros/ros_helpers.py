@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -380,3 +381,47 @@ def secure_run_beside_outsiders(work: Path, domain: int) -> SecureOutsidersRun:
         run = SecureOutsidersRun(work, r.returncode, r.stdout, r.stderr, time.monotonic() - started)
     (work / "driver.log").write_text(run.stdout + run.stderr)  # its JSON line: the outsiders' reports
     return run
+
+
+@dataclass
+class FortyAgentsRun:
+    """One lockstep run of the random 40-agent formation at 1 kHz (0.05 s) in discovery-server mode,
+    no network namespace: 42 processes (the server, the simulator, 40 agents) on one host."""
+
+    formation: Path
+    out: Path
+    code: int | None
+    text: str
+
+    def failures(self) -> list[str]:
+        """What went wrong, one ``kind: detail`` item each (empty: exit 0, every process ended by itself)."""
+        if self.code is None:
+            return ["timeout: formation-launch still ran after 600 s"]
+        found = [] if self.code == 0 else [f"exit {self.code}: " + self.text.strip().splitlines()[-1][:200]]
+        try:
+            rows = json.loads((self.out / "logs" / "processes.json").read_text())
+        except (OSError, ValueError):
+            return [*found, "no processes.json"]
+        killed = sorted(r["name"] for r in rows if r["returncode"] == -signal.SIGKILL)
+        if killed:
+            found.append(f"sigkill: {', '.join(killed)} did not stop within the grace")
+        return found
+
+
+def forty_agents_through_a_discovery_server(env: dict[str, str], work: Path) -> FortyAgentsRun:
+    """Generate the random 40-agent formation into ``work`` and launch it (lockstep, 0.05 s, recorded
+    at every step) with ``--discovery server --netns off``."""
+    formation = work / "random40.yaml"
+    gen = [executable("formation-generate"), "40", "--topology", "random", "--out", str(formation)]
+    subprocess.run(gen, capture_output=True, text=True, timeout=120, check=True)
+    out = work / "out"
+    cmd = [executable("formation-launch"), str(formation), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    cmd += ["--discovery", "server", "--duration", "0.05", "--record-rate", "1000", "--netns", "off"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        text = proc.communicate(timeout=600)[0].decode(errors="replace")
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGINT)  # the launcher stops its own processes
+        text = proc.communicate(timeout=60)[0].decode(errors="replace")
+        return FortyAgentsRun(formation, out, None, text)
+    return FortyAgentsRun(formation, out, proc.returncode, text)

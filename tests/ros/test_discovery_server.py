@@ -10,7 +10,15 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from ros_helpers import PAPER, REPO, assert_equals_headless, executable, processes_mentioning, read_log
+from ros_helpers import (
+    PAPER,
+    REPO,
+    assert_equals_headless,
+    executable,
+    forty_agents_through_a_discovery_server,
+    processes_mentioning,
+    read_log,
+)
 
 from formation_msgs_py.spec import load_formation
 from formation_sim.launch.dds_env import netns_available
@@ -49,25 +57,17 @@ def test_paper_lockstep_through_a_discovery_server_equals_headless(ros_env: dict
 @pytest.mark.slow
 def test_forty_agents_in_lockstep_on_one_host_without_a_namespace(ros_env: dict[str, str], tmp_path: Path) -> None:
     """41 processes (beyond the ~32 that LOCALHOST simple discovery matches) in discovery-server mode,
-    no network namespace: the random 40-agent formation at 1 kHz equals its headless run (≤ 1e-9)."""
-    formation = tmp_path / "random40.yaml"
-    gen = subprocess.run(
-        [executable("formation-generate"), "40", "--topology", "random", "--out", str(formation)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert gen.returncode == 0, gen.stderr
-    assert load_formation(formation).simulation.control_rate == 1000.0
-    out = tmp_path / "out"
+    no network namespace: the random 40-agent formation at 1 kHz equals its headless run (≤ 1e-9), and
+    every process ended by itself (no SIGKILL)."""
+    run = forty_agents_through_a_discovery_server(ros_env, tmp_path)
+    assert load_formation(run.formation).simulation.control_rate == 1000.0
+    assert not run.failures(), (run.failures(), run.text[-3000:])
     # 50 steps recorded at each: enough to compare every control step; the start of 41 processes dominates
-    r = _launch(ros_env, formation, out, "--duration", "0.05", "--record-rate", "1000", "--netns", "off", timeout=600)
-    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    assert_equals_headless(out / "trajectory.npz", 0.05, formation=formation, record_rate=1000.0)
-    summary = json.loads((out / "summary.json").read_text())
+    assert_equals_headless(run.out / "trajectory.npz", 0.05, formation=run.formation, record_rate=1000.0)
+    summary = json.loads((run.out / "summary.json").read_text())
     assert summary["launch"]["processes"] == 42  # the server, the simulator, 40 agents
     assert summary["launch"]["network_namespace"] is False
-    assert _server_row(out)["returncode"] == 0
+    assert _server_row(run.out)["returncode"] == 0
 
 
 def test_secure_with_a_discovery_server_is_refused_before_anything_starts(

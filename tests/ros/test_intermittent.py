@@ -2,6 +2,8 @@
 
 - ``killed_agent``: tests/ros/test_lockstep.py's killed agent (SIGKILL of agent 3 mid-run in a paper
   lockstep run): the simulator names it and exits 3 within its step timeout and the last call.
+- ``forty_agents``: tests/ros/test_discovery_server.py's 40-agent lockstep run through a discovery
+  server (42 processes starting at once): it ends with exit 0 and no process needs SIGKILL.
 - ``secure_outsiders``: tests/ros/test_secure.py's secure realtime launch in a private network namespace
   beside four outsiders: it ends (exit 4, untrusted input: the member), the outsiders reach nothing.
 
@@ -24,9 +26,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from ros_helpers import Procs, lockstep_with_a_killed_agent, secure_run_beside_outsiders
+from ros_helpers import (
+    Procs,
+    forty_agents_through_a_discovery_server,
+    lockstep_with_a_killed_agent,
+    secure_run_beside_outsiders,
+)
 
-from formation_sim.launch.dds_env import netns_available
+from formation_sim.launch.dds_env import netns_available, transport_environment
 
 pytestmark = pytest.mark.skipif(
     os.environ.get("FORMATION_STRESS") != "1",
@@ -89,7 +96,7 @@ def test_a_killed_agent_is_named_in_every_run(busy_loops: list[int], ros_env: di
 
     def run_once(work: Path) -> tuple[list[str], dict]:
         (work / "proclogs").mkdir()
-        procs = Procs(env, work / "proclogs")
+        procs = Procs(transport_environment(env), work / "proclogs")  # as the procs fixture
         try:
             run = lockstep_with_a_killed_agent(procs, work / "out")
         finally:
@@ -113,3 +120,16 @@ def test_a_secure_run_beside_outsiders_ends_in_every_run(
         return run.failures(), {"launch_exit": (run.result() or {}).get("launch"), "driver_s": round(run.elapsed, 1)}
 
     _stress("secure_outsiders", tmp_path, run_once)
+
+
+def test_forty_agents_through_a_discovery_server_end_cleanly_in_every_run(
+    busy_loops: list[int], ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    """The 40-agent discovery-server run, RUNS times beside two busy loops: every time exit 0, and every
+    process stopped by itself (no SIGKILL)."""
+
+    def run_once(work: Path) -> tuple[list[str], dict]:
+        run = forty_agents_through_a_discovery_server(ros_env, work)
+        return run.failures(), {"exit": run.code}
+
+    _stress("forty_agents", tmp_path, run_once)

@@ -187,3 +187,11 @@ def test_hang_timeout_covers_the_longest_silence_of_a_working_simulator(paper_pa
     assert timeout("lockstep", discovery_timeout=400.0) == 400.0 + HANG_MARGIN
     assert timeout("realtime", discovery_timeout=2.0) == 2.0 + HANG_MARGIN  # no step timeout in realtime
     assert timeout("lockstep", hang_timeout=7.0) == 7.0
+
+
+def test_the_stop_grace_grows_with_the_processes_stopped_at_once() -> None:
+    """2.5 s up to six processes (the paper run), 0.1 s more per process beyond: 6.1 s for 42."""
+    from formation_sim.launch.launcher import stop_grace
+
+    assert stop_grace(6) == stop_grace(1) == 2.5
+    assert abs(stop_grace(42) - 6.1) < 1e-9  # float sum: 2.5 + 0.1 · 36

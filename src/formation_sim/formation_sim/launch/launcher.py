@@ -67,6 +67,16 @@ def _bin(name: str) -> Path:
 #: ~10-50 ms of CPU to stop (formation_msgs_py.ros.stopping), the interrupted simulator a little more to
 #: write its summary and trajectory; at load 10 on 2 cores each gets about a fifth of a core
 STOP_GRACE = 2.5
+#: … plus this much per process beyond six stopped at once: 40 agents stopping together at load 58
+#: on 2 cores are each scheduled a few percent of a core, and one of them (its faults written with
+#: the others') was still destroying its node 2.5 s later (1 of 12 stress runs of 40 agents)
+GRACE_PER_PROCESS = 0.1
+
+
+def stop_grace(processes: int) -> float:
+    """Wall s from SIGINT to SIGKILL when ``processes`` processes stop at once."""
+    return STOP_GRACE + GRACE_PER_PROCESS * max(0, processes - 6)
+
 
 #: wall s added to the longer of the discovery and step timeouts for the default --hang-timeout: the
 #: simulator prints while it waits for discovery (every 5 s) and while it steps (every second); silent
@@ -389,20 +399,22 @@ class Launcher:
             except discovery_server.DiscoveryServerError as exc:
                 self.stop = Incomplete(ExitCode.INCOMPLETE, f"nothing started: {exc}")
                 self.note(str(exc))
-                self.sup.stop(self.sup.children, STOP_GRACE, self.note)
+                self.sup.stop(self.sup.children, stop_grace(len(self.sup.children)), self.note)
                 self.timing["stop_from"] = self.timing["stopped"] = time.monotonic()
                 return
         sim = self.start_all()
         self.watch(sim)
         self.timing["stop_from"] = time.monotonic()
         if sim.poll() is None:
-            self.sup.stop(self.sup.children, STOP_GRACE, self.note)  # the simulator writes OUT on SIGINT
+            grace = stop_grace(len(self.sup.children))
+            self.sup.stop(self.sup.children, grace, self.note)  # the simulator writes OUT on SIGINT
         else:
             if sim.returncode not in tuple(ExitCode) and self.stop is None:
                 self.stop = Incomplete(ExitCode.PROCESS_DIED, sim.describe_exit() + _last_error(sim.log))
                 self.note(f"{sim.describe_exit()} (log: {sim.log})")
             self.stop_others()
-            self.sup.stop(self.sup.alive(), STOP_GRACE, self.note, interrupted=self.interrupted)
+            grace = stop_grace(len(self.sup.children))
+            self.sup.stop(self.sup.alive(), grace, self.note, interrupted=self.interrupted)
         self.relay()
         self.timing["stopped"] = time.monotonic()
 

@@ -19,11 +19,14 @@ from the cost per round (wake-ups, the answer):
 
 Configurations (each changes one thing from ``baseline``; ``lean`` combines the chosen ones):
 receive loop (rclpy EventsExecutor ``spin_once``, SingleThreadedExecutor ``spin_once``, a plain
-wait-set loop with raw takes, :func:`waitset_spin`), transport (Fast DDS
-shared memory, UDP loopback), publish mode (synchronous, asynchronous), reliability (reliable,
-best effort), and the writer settings of the profile the project ships
-(``formation_msgs_py/fastdds_profile.xml``). Nothing is asserted; results in
-BENCHMARKS.md ("Cost of a message").
+wait-set loop with raw takes, :func:`waitset_spin`), transport (Fast DDS shared memory and UDP,
+the rmw's LOCALHOST; or UDP on 127.0.0.1 only, ``formation_msgs_py/fastdds_loopback.xml`` under
+SYSTEM_DEFAULT, with that profile's writer settings: ``shipped``, what a run uses), publish mode
+(synchronous, asynchronous), reliability (reliable, best effort), and the writer settings of the
+profile the project ships (``formation_msgs_py/fastdds_profile.xml``). Under LOCALHOST
+``FASTDDS_BUILTIN_TRANSPORTS`` changes nothing (the rmw sets its transports itself), so the
+transport is chosen by the profile. Nothing is asserted; results in BENCHMARKS.md ("Cost of a
+message").
 """
 
 from __future__ import annotations
@@ -40,13 +43,15 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "src" / "formation_msgs_py" / "formation_msgs_py" / "fastdds_profile.xml"
+LOOPBACK = PROFILE.with_name("fastdds_loopback.xml")
 
-#: name -> (receive loop, FASTDDS_BUILTIN_TRANSPORTS, RMW_FASTRTPS_PUBLICATION_MODE, reliability, profile)
+#: name -> (receive loop, transports: DEFAULT (LOCALHOST) or loopback, RMW_FASTRTPS_PUBLICATION_MODE,
+#: reliability, profile)
 CONFIGS: dict[str, tuple[str, str, str, str, bool]] = {
     "baseline": ("events", "DEFAULT", "SYNCHRONOUS", "reliable", False),
     "single": ("single", "DEFAULT", "SYNCHRONOUS", "reliable", False),
     "waitset": ("waitset", "DEFAULT", "SYNCHRONOUS", "reliable", False),
-    "udp": ("events", "UDPv4", "SYNCHRONOUS", "reliable", False),
+    "shipped": ("events", "loopback", "SYNCHRONOUS", "reliable", True),
     "async": ("events", "DEFAULT", "ASYNCHRONOUS", "reliable", False),
     "best-effort": ("events", "DEFAULT", "SYNCHRONOUS", "best-effort", False),
     "profile": ("events", "DEFAULT", "SYNCHRONOUS", "reliable", True),
@@ -182,11 +187,13 @@ def child(role: str, loop: str, reliability: str, m: int, rounds: int, warmup: i
 def run_pair(name: str, m: int, rounds: int, warmup: int, domain: int, profile_file: Path) -> dict[str, Any]:
     loop, transports, mode, reliability, profile = CONFIGS[name]
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    env["FASTDDS_BUILTIN_TRANSPORTS"] = transports
+    env.pop("FASTDDS_BUILTIN_TRANSPORTS", None)
     env["RMW_FASTRTPS_PUBLICATION_MODE"] = mode
     env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
     if profile:
         env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(profile_file)
+    if transports == "loopback":  # UDP on 127.0.0.1 only, with the profile's writers
+        env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="SYSTEM_DEFAULT", FASTRTPS_DEFAULT_PROFILES_FILE=str(LOOPBACK))
     args = [
         sys.executable,
         __file__,

@@ -261,9 +261,9 @@ def main() -> int:
     if args.child:
         print(json.dumps(child(args.child, args.loop, args.reliability, args.m, args.rounds, args.warmup)))
         return 0
-    from formation_sim.launch.launcher import pick_domain_id
+    from formation_sim.launch.dds_env import reserve_domain_id
 
-    domain = int(os.environ.get("ROS_DOMAIN_ID") or pick_domain_id())
+    domain = int(os.environ.get("ROS_DOMAIN_ID") or reserve_domain_id())
     names = args.only.split(",") if args.only else list(CONFIGS)
     results = {}
     print(

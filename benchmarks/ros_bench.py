@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/ros_bench.py [--only lockstep,realtime,scale] [--out DIR]
 
 Every run goes through ``formation-launch`` (what ``ros2_ws/run.sh`` runs): real processes, a
-picked free ROS_DOMAIN_ID, LOCALHOST discovery (a private network namespace above 30 processes).
+picked free ROS_DOMAIN_ID, discovery on this host over UDP loopback (a private network namespace above 30 processes).
 Figures come from each run's ``summary.json`` (wall time, real-time factor, latency from the
 measurements' publication to each wrench's reception, on-time fraction, real-time lag) and
 ``logs/processes.json`` (CPU time and peak RSS of every process, from wait4). Nothing is asserted:
@@ -15,8 +15,9 @@ the numbers depend on the machine and its load, which is printed with them.
   recorder; ``logs/processes.json``) of a ``--duration 0.55`` run minus that of a ``--duration
   0.05`` run, divided by the 5 000 steps between them, per variant of ``--variants`` (``NAME=LAUNCH
   [ARG ...]``: another checkout's formation-launch gives the "before" of a side-by-side comparison;
-  ``profile=off`` in the arguments runs without the shipped Fast DDS profile), ``--repeat`` times,
-  interleaved.
+  ``profile=FILE`` in the arguments names a Fast DDS profile of one's own, which the launcher leaves
+  alone with the rmw's LOCALHOST, shared memory included; ``profile=off``: an empty one, Fast DDS's
+  defaults), ``--repeat`` times, interleaved.
 - realtime: config/realtime_5agents_100hz.yaml as written and with ``--physics-rate 100`` (one
   integrator step per tick), 10 s each.
 - sweep: the realtime preset at 200, 500, 1000 Hz control (physics = control rate), 10 s: the
@@ -133,6 +134,17 @@ def total_cpu(procs: list[dict[str, Any]]) -> dict[str, float]:
     return out
 
 
+def own_profile(base: Path, given: str) -> Path:
+    """The Fast DDS profile file of ``profile=given``: ``off`` an empty one written into ``base``."""
+    if given != "off":
+        return Path(given).resolve()
+    empty = base / "empty_fastdds_profile.xml"
+    empty.write_text(
+        '<?xml version="1.0" encoding="UTF-8"?>\n<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"/>\n'
+    )
+    return empty
+
+
 def step_cpu(base: Path, variants: list[str], repeat: int) -> dict[str, Any]:
     """CPU per lockstep step of the paper preset, (CPU(0.55 s) − CPU(0.05 s)) / 5000, per variant."""
     runs: dict[str, list[dict[str, Any]]] = {}
@@ -152,10 +164,11 @@ def step_cpu(base: Path, variants: list[str], repeat: int) -> dict[str, Any]:
             name, _, rest = v.partition("=")
             words = rest.split()
             launcher = Path(words[0]) if words else LAUNCH
-            extra = [w for w in words[1:] if w != "profile=off"]
+            extra = [w for w in words[1:] if not w.startswith("profile=")]
             env = dict(os.environ)
-            if "profile=off" in words:
-                env["FASTRTPS_DEFAULT_PROFILES_FILE"] = ""
+            for w in words[1:]:
+                if w.startswith("profile="):
+                    env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(own_profile(base, w.partition("=")[2]))
             res = {}
             for d in (0.05, 0.55):
                 res[d] = launch(

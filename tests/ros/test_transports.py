@@ -60,7 +60,7 @@ def test_a_default_launch_uses_no_shared_memory_and_equals_headless(ros_env: dic
             os.killpg(launch.pid, signal.SIGINT)
             launch.wait(timeout=30)
     assert launch.returncode == 0, text
-    assert len(watched) >= 6  # the simulator and five agents were looked at (and their python children)
+    assert len(watched) >= 6  # the simulator and the five agents were among the processes looked at
     assert seen == set()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["launch"]["transport"] == "UDP on 127.0.0.1 only (fastdds_loopback.xml)"

@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 
 
-def shm_segments(pid: int) -> set[Path]:
-    """The Fast DDS shared-memory segments process ``pid`` maps (port lock files excluded)."""
+def shm_segments(pid: int, *, ports: bool = False) -> set[Path]:
+    """The Fast DDS shared-memory segments process ``pid`` maps (``ports``: its port files too)."""
     try:
         maps = Path(f"/proc/{pid}/maps").read_text()
     except OSError:
@@ -24,7 +24,7 @@ def shm_segments(pid: int) -> set[Path]:
     return {
         Path(line.split(None, 5)[-1].replace(" (deleted)", ""))
         for line in maps.splitlines()
-        if "/dev/shm/fastrtps_" in line and "/dev/shm/fastrtps_port" not in line
+        if "/dev/shm/fastrtps_" in line and (ports or "/dev/shm/fastrtps_port" not in line)
     }
 
 

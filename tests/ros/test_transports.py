@@ -12,22 +12,10 @@ import threading
 import time
 from pathlib import Path
 
-from process_hygiene import live_descendants
+from process_hygiene import live_descendants, shm_segments
 from ros_helpers import PAPER, REPO, assert_equals_headless, executable, ros_context
 
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
-
-
-def _fastdds_files_mapped(pids: list[int]) -> set[str]:
-    """Every /dev/shm Fast DDS file (segments and port files) the processes ``pids`` map."""
-    found: set[str] = set()
-    for pid in pids:
-        try:
-            maps = Path(f"/proc/{pid}/maps").read_text()
-        except OSError:
-            continue
-        found |= {line.split(None, 5)[-1] for line in maps.splitlines() if "/dev/shm/fastrtps" in line}
-    return found
 
 
 def test_a_default_launch_uses_no_shared_memory_and_equals_headless(ros_env: dict[str, str], tmp_path: Path) -> None:
@@ -47,7 +35,7 @@ def test_a_default_launch_uses_no_shared_memory_and_equals_headless(ros_env: dic
         while not stop.wait(0.1):
             pids = list(live_descendants(launch.pid))
             watched.update(pids)
-            seen.update(_fastdds_files_mapped(pids))
+            seen.update(str(f) for pid in pids for f in shm_segments(pid, ports=True))
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()

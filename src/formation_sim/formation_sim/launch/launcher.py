@@ -355,10 +355,11 @@ class Launcher:
     def watch(self, sim: Child) -> None:
         """Until the simulator exits, a signal arrives, a process dies or the simulator hangs."""
         self._heard = time.monotonic()
+        hang = self.hang_timeout()
         while True:
             self.relay()
             # writing OUT (figures, a long trajectory) prints nothing until it is done: more time then
-            limit = self.hang_timeout() + (WRITING_MARGIN if "stepping_done" in self.timing else 0.0)
+            limit = hang + (WRITING_MARGIN if "stepping_done" in self.timing else 0.0)
             if time.monotonic() - self._heard > limit and sim.poll() is None:
                 silent = [c.name for c in self.sup.children if c.poll() is None and _log_is_empty(c.log)]
                 why = f"the simulator wrote nothing for {limit:g} s (hung; --hang-timeout)"

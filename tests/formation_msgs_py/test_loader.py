@@ -265,6 +265,62 @@ def test_every_error_is_reported_up_to_a_cap(tmp_path) -> None:
     assert len(lines) == 21 and re.fullmatch(r"… and \d+ more errors", lines[-1])
 
 
+#: Four mistakes of four kinds: a duplicate key (YAML), an unknown key (schema), a matrix that is not
+#: a rotation and a desired distance at d_con (semantic checks).
+FOUR_MISTAKES = (
+    MINIMAL.replace("  duration: 1.0\n", "  duration: 1.0\n  duration: 500.0\n")
+    .replace("    position: [0, 0, 0]\n", "    position: [0, 0, 0]\n    controller: {gama: 3.0}\n")
+    .replace(
+        "    position: [2, 0, 0]\n",
+        "    position: [2, 0, 0]\n    orientation: {matrix: [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}\n",
+    )
+    .replace("distance: 1.5", "distance: 3.0")
+)
+
+
+def four_mistakes_lines(path: Path) -> list[str]:
+    """The four errors of FOUR_MISTAKES written at ``path``, in file order, as printed."""
+    return [
+        f"{path}:3:3: simulation.duration: duplicate key (first at line 2); YAML would silently keep the last one",
+        f"{path}:11:18: agents[0].controller.gama: unknown key (did you mean 'gamma'?) (expected one of: delta, "
+        "gamma, max_force, max_torque, measurement_timeout, saturation_margin, velocity_funnel)",
+        f"{path}:17:19: agents[1].orientation.matrix: is not a rotation (‖RᵀR − I‖_F = 0, det = -1.0000)",
+        f"{path}:20:24: edges[0].distance: 3.0 is not inside (d_col=1.0, d_con=3.0)",
+    ]
+
+
+def test_four_kinds_of_mistake_in_one_load(tmp_path) -> None:
+    """YAML, schema and semantic errors of one file come from one load, each at its line, in file order."""
+    path = write(tmp_path, FOUR_MISTAKES)
+    assert str(error_of(path)).splitlines() == four_mistakes_lines(path)
+
+
+def test_errors_are_in_file_order(tmp_path) -> None:
+    """Edges written before the agents: the edge's error comes first, as in the file."""
+    agents, edges = MINIMAL.split("edges:\n")
+    text = "edges:\n" + edges.replace("distance: 1.5", "distance: 3.0") + agents.replace("mass: 1.0", "mass: -1", 1)
+    path = write(tmp_path, text)
+    assert str(error_of(path)).splitlines() == [
+        f"{path}:2:24: edges[0].distance: 3.0 is not inside (d_col=1.0, d_con=3.0)",
+        f"{path}:12:16: agents[0].dynamics.mass: -1 must be > 0",
+    ]
+
+
+def test_duplicate_keys_collected_keep_the_first_value() -> None:
+    """collect_duplicates: each duplicate is listed, the first value kept (the one whose line is indexed)."""
+    raw = b"a: 1\nb: {c: 2, c: 3}\na: 4\n"
+    document = loader.parse_document(raw, "t.yaml", collect_duplicates=True)
+    assert document.data == {"a": 1, "b": {"c": 2}}
+    assert [str(e) for e in document.errors] == [
+        "t.yaml:2:11: b.c: duplicate key (first at line 2); YAML would silently keep the last one",
+        "t.yaml:3:1: a: duplicate key (first at line 1); YAML would silently keep the last one",
+    ]
+    assert document.location("a") == "t.yaml:1:1"
+    with pytest.raises(CollectedFormationSpecError) as info:  # without it, the duplicates are raised
+        loader.parse_document(raw, "t.yaml")
+    assert [e.path for e in info.value.errors] == ["b.c", "a"]
+
+
 def test_values_in_messages_are_shortened(tmp_path) -> None:
     """A 10 000-element list where a number belongs: the message stays short."""
     text = MINIMAL.replace("  duration: 1.0", "  duration: [" + ", ".join(["1"] * 10_000) + "]")

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from formation_msgs_py.errors import FormationSpecError
+from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
+from formation_msgs_py.schema import AGENT_FIELDS, Parsed, UnusableValueError, block, parse_mapping, parse_partial
 from formation_msgs_py.spec import agent_view, formation_from_dict, load_formation, simulator_view
 
 
@@ -197,3 +198,74 @@ def test_defaults_fill_a_minimal_file() -> None:
     np.testing.assert_array_equal(e.R_des, np.eye(3))
     assert spec.agents[0].controller.gamma == 15.0
     assert spec.agents[0].controller.velocity_funnel.rho_0 is None  # auto
+
+
+def error_paths(doc: dict[str, Any]) -> list[str]:
+    """The field path of every error formation_from_dict reports for ``doc``, in the order found."""
+    with pytest.raises(FormationSpecError) as info:
+        formation_from_dict(doc)
+    return [e.path for e in getattr(info.value, "errors", [info.value])]
+
+
+def test_semantic_checks_run_beside_field_errors() -> None:
+    """An unknown key and a wrong type do not hide a reflection or a distance outside its bounds."""
+    doc = minimal_doc()
+    doc["agents"][0]["controller"] = {"gama": 3.0}
+    doc["agents"][0]["dynamics"] = {"mass": "heavy", "inertia": [0.1, 0.1, 0.1]}
+    doc["agents"][1]["orientation"] = {"matrix": [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}
+    doc["edges"][0]["distance"] = 3.0
+    assert error_paths(doc) == [
+        "agents[0].controller.gama",
+        "agents[0].dynamics.mass",
+        "agents[1].orientation.matrix",
+        "edges[0].distance",
+    ]
+
+
+def test_every_semantic_check_of_an_edge_runs() -> None:
+    """Three broken constraints of one edge: three errors, not the first only."""
+    doc = minimal_doc()
+    doc["edges"][0].update(distance=3.0, orientation_funnel={"rho_0": 2.0, "rho_inf": 2.5})
+    assert error_paths(doc) == [
+        "edges[0].distance",
+        "edges[0].orientation_funnel.rho_0",
+        "edges[0].orientation_funnel.rho_inf",
+    ]
+
+
+def test_a_check_that_needs_a_broken_value_is_skipped() -> None:
+    """Agent b's position is unusable: the initial distance of its edge is not checked (no invented
+    error), the edge's other checks run."""
+    doc = minimal_doc()
+    doc["agents"][1]["position"] = [2, 0]
+    doc["edges"][0]["distance"] = 3.0
+    assert error_paths(doc) == ["agents[1].position", "edges[0].distance"]
+
+
+def test_an_agent_without_a_usable_id_hides_no_edge_error() -> None:
+    """Agent b's id is a list: no edge is called unknown or the graph disconnected, yet the edge's own
+    checks that need no agent still run."""
+    doc = minimal_doc()
+    doc["agents"][1]["id"] = ["b"]
+    doc["edges"][0]["orientation_funnel"] = {"rho_0": 2.0}
+    assert error_paths(doc) == ["agents[1].id", "edges[0].orientation_funnel.rho_0"]
+
+
+def test_every_cycle_is_reported(paper_doc) -> None:
+    """Two edges that each close a cycle: both named; their own checks are skipped (each must go)."""
+    paper_doc["edges"] += [{"tail": 2, "head": 3}, {"tail": 4, "head": 5}]
+    assert error_paths(paper_doc) == ["edges[4]", "edges[5]"]
+
+
+def test_parse_partial_keeps_what_parsed() -> None:
+    """A bad field and an unknown key in the controller: every error, and the other fields' values;
+    reading the bad one raises UnusableValueError."""
+    fields = block(AGENT_FIELDS, "controller")
+    values, errors = parse_partial({"gamma": "x", "gama": 3.0, "delta": 0.2}, fields, "agents[0].controller")
+    assert [e.path for e in errors] == ["agents[0].controller.gama", "agents[0].controller.gamma"]
+    assert isinstance(values, Parsed) and values["delta"] == 0.2
+    assert values["velocity_funnel"]["rho_inf"] == (0.1,) * 6  # a nested map parsed field by field
+    with pytest.raises(UnusableValueError):
+        values["gamma"]
+    with pytest.raises(CollectedFormationSpecError):  # parse_mapping: the same errors, raised
+        parse_mapping({"gamma": "x", "gama": 3.0}, fields, "agents[0].controller")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 from pathlib import Path
 
@@ -49,6 +50,34 @@ def test_invalid_file_exits_2_naming_the_field(paper_doc, tmp_path, capsys) -> N
     path.write_text(yaml.safe_dump(paper_doc))
     assert check.main([str(path)]) == 2
     assert "edges[2].distance: 4.5 is not inside (d_col=2.0, d_con=4.0)" in capsys.readouterr().err
+
+
+def test_four_mistakes_are_reported_in_one_run(paper_path, tmp_path, capsys) -> None:
+    """A duplicate key, an unknown key, a matrix that is not a rotation and a distance beyond d_con:
+    one run names all four (FILE:LINE:COL and field, in file order) and exits 2."""
+    text = paper_path.read_text()
+    for old, new in [
+        ("  duration: 5.0\n", "  duration: 5.0\n  duration: 50.0\n"),
+        ("    position: [-2.0, 3.25, 2.2]\n", "    position: [-2.0, 3.25, 2.2]\n    controller: {gama: 3.0}\n"),
+        ("      project: true\n    dynamics:\n      mass: 0.807941\n", "    dynamics:\n      mass: 0.807941\n"),
+        ("  - {tail: 3, head: 5}", "  - {tail: 3, head: 5, distance: 4.5}"),
+    ]:
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    path = tmp_path / "four.yaml"
+    path.write_text(text)
+    assert check.main([str(path)]) == 2
+    err = capsys.readouterr().err
+    expected = [
+        "simulation.duration: duplicate key (first at line 11)",
+        "agents[1].orientation.matrix: is not a rotation",
+        "agents[3].controller.gama: unknown key (did you mean 'gamma'?)",
+        "edges[3].distance: 4.5 is not inside (d_col=2.0, d_con=4.0)",
+    ]
+    found = [re.search(rf"{re.escape(str(path))}:\d+:\d+: {re.escape(message)}", err) for message in expected]
+    assert all(found), err
+    assert [m.start() for m in found if m] == sorted(m.start() for m in found if m), err  # file order
+    assert err.count(f"{path}:") == 4, err
 
 
 def test_duration_without_a_control_step_is_invalid(paper_path, capsys) -> None:

@@ -42,9 +42,7 @@ class CollectedFormationSpecError(FormationSpecError):
     """Every error found in one formation file (``errors``, in file order); behaves as the first."""
 
     def __init__(self, errors: list[FormationSpecError]) -> None:
-        flat: list[FormationSpecError] = []
-        for e in errors:
-            flat.extend(e.errors if isinstance(e, CollectedFormationSpecError) else [e])
+        flat = [x for e in errors for x in each_error(e)]
         self.errors: list[FormationSpecError] = flat
         first = flat[0]
         super().__init__(first.path, first.message, first.value)
@@ -62,6 +60,16 @@ class CollectedFormationSpecError(FormationSpecError):
         if len(self.errors) > MAX_ERRORS_SHOWN:
             lines.append(f"… and {len(self.errors) - MAX_ERRORS_SHOWN} more errors")
         return "\n".join(lines)
+
+
+def each_error(error: FormationSpecError) -> list[FormationSpecError]:
+    """The errors ``error`` stands for: its ``errors`` if it collects several, else itself."""
+    return error.errors if isinstance(error, CollectedFormationSpecError) else [error]
+
+
+def one_error(errors: list[FormationSpecError]) -> FormationSpecError:
+    """``errors`` (at least one) as one exception: the error itself, or a CollectedFormationSpecError."""
+    return errors[0] if len(errors) == 1 else CollectedFormationSpecError(errors)
 
 
 class RotationError(FormationError, ValueError):

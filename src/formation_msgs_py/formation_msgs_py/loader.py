@@ -8,10 +8,13 @@ The one reader of formation files (:func:`read_document`, :func:`parse_document`
   :data:`ALIAS_BUDGET` nodes, counted on the composed graph before anything is constructed:
   an alias bomb is refused in bounded time and memory; recursive aliases are refused;
 - a key given twice in one mapping is an error naming both lines (YAML would keep the last);
+  raised, or kept in :attr:`Document.errors` (``collect_duplicates``) with the first value read so
+  that the rest of the file can still be checked;
 - numbers in exponent form without a dot (``1e4``) are floats, as in YAML 1.2 (PyYAML's YAML
   1.1 reads them as strings);
 - :class:`Document` maps every field path (``agents[0].controller.gamma``) to its position,
-  so that :func:`locate` can give each :class:`FormationSpecError` its ``FILE:LINE:COL``.
+  so that :func:`locate` can give each :class:`FormationSpecError` its ``FILE:LINE:COL`` and put
+  the errors of a file in file order.
 """
 
 from __future__ import annotations
@@ -19,13 +22,14 @@ from __future__ import annotations
 import os
 import re
 import stat
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
+from formation_msgs_py.errors import FormationSpecError, each_error, one_error
 
 #: No formation file comes near this (a 50-agent file is ~40 kB).
 MAX_BYTES = 4_000_000
@@ -59,11 +63,15 @@ _Loader.add_implicit_resolver(
 
 @dataclass
 class Document:
-    """A parsed formation file: the plain data and the position of every node, by field path."""
+    """A parsed formation file: the plain data and the position of every node, by field path.
+
+    ``errors``: the duplicate keys, when parsed with ``collect_duplicates`` (``data`` holds the
+    first value of each)."""
 
     data: Any
     source: str
     positions: dict[PathKey, tuple[int, int]]
+    errors: list[FormationSpecError] = field(default_factory=list)
 
     def location(self, path: str) -> str:
         """``FILE:LINE:COL`` of the node at ``path``, or of its nearest enclosing node."""
@@ -137,7 +145,10 @@ def _check_graph(root: yaml.Node, source: str) -> None:
 
 
 def _index(root: yaml.Node, source: str) -> tuple[dict[PathKey, tuple[int, int]], list[FormationSpecError]]:
-    """Positions of every node by path, and the duplicate keys (each error names both lines)."""
+    """Positions of every node by path, and the duplicate keys (each error names both lines).
+
+    A duplicate key is removed from its mapping node: the document built from it keeps the first
+    value, the one whose position is indexed (errors about it then point at the right line)."""
     positions: dict[PathKey, tuple[int, int]] = {}
     errors: list[FormationSpecError] = []
 
@@ -151,9 +162,11 @@ def _index(root: yaml.Node, source: str) -> tuple[dict[PathKey, tuple[int, int]]
         elif isinstance(node, yaml.MappingNode):
             seen: dict[Any, yaml.Node] = {}
             merged: list[yaml.Node] = []
+            kept: list[tuple[yaml.Node, yaml.Node]] = []
             for k, v in node.value:
                 if isinstance(k, yaml.ScalarNode) and k.tag == "tag:yaml.org,2002:merge":
                     merged.extend(v.value if isinstance(v, yaml.SequenceNode) else [v])
+                    kept.append((k, v))
                     continue
                 name = k.value if isinstance(k, yaml.ScalarNode) else id(k)
                 if name in seen:
@@ -169,7 +182,9 @@ def _index(root: yaml.Node, source: str) -> tuple[dict[PathKey, tuple[int, int]]
                     )
                     continue
                 seen[name] = k
+                kept.append((k, v))
                 walk(v, (*path, name), k.start_mark)
+            node.value = kept
             for m in merged:  # merge keys (<<: *defaults) add only keys not given here
                 if isinstance(m, yaml.MappingNode):
                     for k, v in m.value:
@@ -187,10 +202,11 @@ def _format_path(key: PathKey) -> str:
     return out
 
 
-def parse_document(raw: bytes, source: str, *, size: int | None = None) -> Document:
+def parse_document(raw: bytes, source: str, *, size: int | None = None, collect_duplicates: bool = False) -> Document:
     """Bytes of a formation file -> :class:`Document`; raises FormationSpecError(s) with FILE:LINE:COL.
 
-    ``size``: the file's size [bytes] when ``raw`` holds only its first :data:`MAX_BYTES` + 1."""
+    ``size``: the file's size [bytes] when ``raw`` holds only its first :data:`MAX_BYTES` + 1.
+    ``collect_duplicates``: duplicate keys go to :attr:`Document.errors` instead of being raised."""
     if len(raw) > MAX_BYTES:
         whole = f"{size} bytes" if size is not None and size >= len(raw) else f"more than {MAX_BYTES} bytes"
         raise _error(source, None, "", f"{whole} is more than any formation file (limit {MAX_BYTES} bytes)")
@@ -209,8 +225,8 @@ def parse_document(raw: bytes, source: str, *, size: int | None = None) -> Docum
             raise _error(source, None, "", "the file is empty: a formation file is a mapping (agents, edges, …)")
         _check_graph(root, source)
         positions, duplicates = _index(root, source)
-        if duplicates:
-            raise CollectedFormationSpecError(duplicates)
+        if duplicates and not collect_duplicates:
+            raise one_error(duplicates)
         data = loader.construct_document(root)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
@@ -220,10 +236,10 @@ def parse_document(raw: bytes, source: str, *, size: int | None = None) -> Docum
         raise _error(source, None, "", "YAML nesting too deep") from None
     finally:
         loader.dispose()
-    return Document(data, source, positions)
+    return Document(data, source, positions, duplicates)
 
 
-def read_document(path: str | Path) -> Document:
+def read_document(path: str | Path, *, collect_duplicates: bool = False) -> Document:
     """Read and parse a formation file (see :func:`parse_document`)."""
     path = Path(path)
     try:
@@ -237,14 +253,25 @@ def read_document(path: str | Path) -> Document:
         raise FormationSpecError("", f"{str(path)!r} is a directory, not a formation file", str(path)) from None
     except OSError as exc:
         raise FormationSpecError("", f"cannot read {str(path)!r}: {exc.strerror}", str(path)) from None
-    return parse_document(raw, str(path), size=size)
+    return parse_document(raw, str(path), size=size, collect_duplicates=collect_duplicates)
 
 
-def locate(error: FormationSpecError, document: Document) -> FormationSpecError:
-    """``error`` (or each of several) with its FILE:LINE:COL from ``document`` (kept if already set)."""
-    for e in error.errors if isinstance(error, CollectedFormationSpecError) else [error]:
+_LINE_COL = re.compile(r":(\d+):(\d+)$")
+
+
+def _file_order(error: FormationSpecError) -> tuple[int, int]:
+    """(line, column) of a located error; (0, 0), first, for one about the whole file."""
+    found = _LINE_COL.search(error.location)
+    return (int(found[1]), int(found[2])) if found else (0, 0)
+
+
+def locate(errors: Iterable[FormationSpecError], document: Document) -> FormationSpecError:
+    """``errors`` (each, or each of several) with its FILE:LINE:COL from ``document`` (kept if already
+    set), as one exception, in file order (errors at one position stay in the order given)."""
+    flat = [e for error in errors for e in each_error(error)]
+    for e in flat:
         if not e.location:
             e.location = document.location(e.path)
         for element in e.elements:
             element[2] = element[2] or document.location(element[1])
-    return error
+    return one_error(sorted(flat, key=_file_order))

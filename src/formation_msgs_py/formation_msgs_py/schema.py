@@ -4,6 +4,8 @@ Every field has a kind, a default (or ``REQUIRED``), a unit and a description.
 :func:`parse_mapping` walks a YAML document against the schema and returns plain Python values
 with defaults filled in; it reports every unknown key (with the nearest valid one) and wrong
 type of a mapping as :class:`FormationSpecError` naming the field path (shortened values).
+:func:`parse_partial` returns the errors with the values that did parse (a :class:`Parsed`), so
+that the checks that need only those can still run.
 :func:`schema_markdown` renders the reference table of ``docs/formation_file.md``, and
 :func:`documented` the attribute list of the docstring of each frozen dataclass a block builds
 (``SimulationSpec``, ``AgentSpec``, ``EdgeSpec``, ``ControllerGains``, ``VelocityFunnel``, ``Dynamics``,
@@ -28,7 +30,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
+from formation_msgs_py.errors import FormationSpecError, each_error, one_error
 
 
 class _Required:
@@ -530,35 +532,53 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
     raise AssertionError(f"schema kind {kind!r} has no parser")  # pragma: no cover
 
 
+class UnusableValueError(KeyError):
+    """A value read from a :class:`Parsed` that is missing because the file gets it wrong (its error
+    is reported already): the check that reads it is skipped."""
+
+
+class Parsed(dict[str, Any]):
+    """The fields of a mapping that parsed; reading one that did not raises :class:`UnusableValueError`."""
+
+    def __missing__(self, key: str) -> Any:
+        raise UnusableValueError(key)
+
+
+def parse_partial(node: Any, fields: tuple[Field, ...], path: str) -> tuple[Parsed, list[FormationSpecError]]:
+    """Validate ``node`` against ``fields``: every field that parsed (defaults filled in; a nested
+    ``map`` is parsed field by field too) and every error (unknown keys, bad or missing fields)."""
+    if node is None:
+        node = {}
+    if not isinstance(node, Mapping):
+        return Parsed(), [_fail(path, f"expected a mapping, got {_type_name(node)} {short(node)}", node)]
+    known = [f.name for f in fields]
+    errors = [unknown_key(f"{path}.{key}" if path else str(key), key, known) for key in node if key not in known]
+    out = Parsed()
+    for f in fields:
+        where = f"{path}.{f.name}" if path else f.name
+        # defaults go through the same parser, so they are normalised like given values
+        value = node[f.name] if f.name in node else f.default
+        if value is REQUIRED:
+            errors.append(_fail(where, "is required"))
+        elif f.kind == "map":
+            out[f.name], errs = parse_partial(value, f.children, where)
+            errors.extend(errs)
+        else:
+            try:
+                out[f.name] = _parse_value(f, value, where)
+            except FormationSpecError as exc:
+                errors.extend(each_error(exc))
+    return out, errors
+
+
 def parse_mapping(node: Any, fields: tuple[Field, ...], path: str) -> dict[str, Any]:
     """Validate ``node`` against ``fields``; returns a dict with every field set.
 
     Every unknown key and bad field is reported: one FormationSpecError, or CollectedFormationSpecError.
     """
-    if node is None:
-        node = {}
-    if not isinstance(node, Mapping):
-        raise _fail(path, f"expected a mapping, got {_type_name(node)} {short(node)}", node)
-    known = [f.name for f in fields]
-    errors: list[FormationSpecError] = []
-    for key in node:
-        if key not in known:
-            errors.append(unknown_key(f"{path}.{key}" if path else str(key), key, known))
-    out: dict[str, Any] = {}
-    for f in fields:
-        where = f"{path}.{f.name}" if path else f.name
-        try:
-            if f.name in node:
-                out[f.name] = _parse_value(f, node[f.name], where)
-            elif f.default is REQUIRED:
-                raise _fail(where, "is required")
-            else:
-                # defaults go through the same parser, so they are normalised like given values
-                out[f.name] = _parse_value(f, f.default, where)
-        except FormationSpecError as exc:
-            errors.append(exc)
+    out, errors = parse_partial(node, fields, path)
     if errors:
-        raise errors[0] if len(errors) == 1 else CollectedFormationSpecError(errors)
+        raise one_error(errors)
     return out
 
 
@@ -579,7 +599,7 @@ def check_partial(node: Any, fields: tuple[Field, ...], path: str) -> list[Forma
             try:
                 _parse_value(f, value, where)
             except FormationSpecError as exc:
-                errors.extend(exc.errors if isinstance(exc, CollectedFormationSpecError) else [exc])
+                errors.extend(each_error(exc))
     return errors
 
 

@@ -11,16 +11,16 @@ specification of its incident edges (what the paper lets an agent know). The sim
 
 from __future__ import annotations
 
-import contextlib
 import copy
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecError
+from formation_msgs_py.errors import FormationSpecError, each_error, one_error
 from formation_msgs_py.loader import locate, read_document, split_path
 from formation_msgs_py.rotations import (
     is_rotation,
@@ -34,10 +34,13 @@ from formation_msgs_py.schema import (
     EDGE_FIELDS,
     SIMULATION_FIELDS,
     TOP_FIELDS,
+    Field,
+    Parsed,
+    UnusableValueError,
     block,
     check_partial,
     documented,
-    parse_mapping,
+    parse_partial,
     record_values,
     short,
     unknown_key,
@@ -48,6 +51,7 @@ from formation_msgs_py.schema import (
 #: matrix has no nearest rotation worth taking.
 PROJECT_TOLERANCE = 0.5
 _SIGNALS = ("disturbance", "velocity_noise")
+_T = TypeVar("_T")
 
 # --- result objects ---------------------------------------------------------------------------
 
@@ -289,10 +293,11 @@ def simulator_view(spec: FormationSpec) -> SimulatorView:
 def load_formation(path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> FormationSpec:
     """Read, validate and return a formation file; ``overrides`` replace ``simulation`` keys.
 
-    Raises FormationSpecError (CollectedFormationSpecError for several) with FILE:LINE:COL on each.
+    Raises FormationSpecError (CollectedFormationSpecError for several) with FILE:LINE:COL on each:
+    every error of the file at once (duplicate keys, fields, semantic checks), in file order.
     """
     path = Path(path)
-    document = read_document(path)
+    document = read_document(path, collect_duplicates=True)
     data = document.data
     if overrides and isinstance(data, dict):
         data = copy.deepcopy(data)
@@ -300,9 +305,12 @@ def load_formation(path: str | Path, *, overrides: Mapping[str, Any] | None = No
         if isinstance(data["simulation"], dict):
             data["simulation"].update(overrides)
     try:
-        return formation_from_dict(data, source=str(path), default_name=path.stem)
+        spec = formation_from_dict(data, source=str(path), default_name=path.stem)
     except FormationSpecError as exc:
-        raise locate(exc, document) from None
+        raise locate([*document.errors, exc], document) from None
+    if document.errors:
+        raise locate(document.errors, document)
+    return spec
 
 
 def _deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
@@ -360,55 +368,76 @@ def _check_rates(physics_rate: float, control_rate: float) -> None:
 def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: str = "formation") -> FormationSpec:
     """Validate a parsed YAML document (see :func:`load_formation`).
 
-    Every error is collected (CollectedFormationSpecError when there are several); the semantic checks
-    of an agent or edge run only once its fields are valid, the tree checks once every edge is.
+    Every error is collected (CollectedFormationSpecError when there are several). A check that needs
+    a value the document gets wrong (missing, of the wrong type, a matrix that is not a rotation, an
+    agent an edge cannot find) is skipped; every other check runs. The tree is checked once every
+    agent and edge is known.
     """
     if not isinstance(document, Mapping):
         raise FormationSpecError("", f"a formation file is a mapping at the top level, got {type(document).__name__}")
     errors = _Collector()
     top = _parse_top(document, errors)
     defaults = _parse_defaults(document, errors)
-    raw_agents, raw_edges = _item_lists(document, errors)
-    agents, ids = _parse_agents(raw_agents, defaults["agent"], errors)
-    agents_ok = not errors.items
-    edges_parsed = _parse_edges(raw_edges, defaults["edge"], ids if agents_ok else None, errors)
+    raw_agents, raw_edges, lists_ok = _item_lists(document, errors)
+    agents = _parse_items(raw_agents, "agents", AGENT_FIELDS, defaults["agent"], errors)
+    edges = _parse_items(raw_edges, "edges", EDGE_FIELDS, defaults["edge"], errors)
+    for a in agents:
+        _check_item(a, _AGENT_CHECKS, errors)
+    by_id, ids_complete = _agent_ids(agents, errors)
+    ids_complete = ids_complete and lists_ok and len(agents) == len(raw_agents)
+    kept, dropped = _sensing_tree(edges, by_id, ids_complete, len(edges) == len(raw_edges), top, errors)
+    ends = {k: _ends(edges[k], by_id) for k in kept}
+    for k in kept:
+        _check_item(edges[k], _EDGE_CHECKS, errors, *ends[k])
     errors.raise_if_any()
-    assert top is not None  # parsed: no error was found
+
     sim = top["simulation"]
-
-    kept, dropped = _tree(list(ids), [(e["tail"], e["head"]) for _, e, _ in edges_parsed], sim["spanning_tree"])
-    edges = _make_edges([item for item in edges_parsed if item[0] in kept], raw_edges, agents, errors)
-    errors.raise_if_any()
-
-    simulation = SimulationSpec(**{**sim, "gravity": np.array(sim["gravity"])})
     return FormationSpec(
         name=top["name"] or default_name,
         description=top["description"],
         source=source,
-        simulation=simulation,
-        agents=tuple(agents),
-        edges=tuple(edges),
-        dropped_edges=tuple((edges_parsed[k][1]["tail"], edges_parsed[k][1]["head"]) for k in dropped),
+        simulation=SimulationSpec(**{**sim, "gravity": np.array(sim["gravity"])}),
+        agents=tuple(_make_agent(a.index, a.values) for a in agents),
+        edges=tuple(_make_edge(i, edges[k].values, *ends[k]) for i, k in enumerate(kept)),
+        dropped_edges=tuple(dropped),
     )
 
 
-#: (index in the file, parsed fields, field path) of an edge whose own checks passed
-_ParsedEdge = tuple[int, dict[str, Any], str]
+@dataclass
+class _Item:
+    """An agent or edge of the file: its index, field path, own mapping (without the defaults) and the
+    values that parsed (its checks add the rotation they derive: ``R_world_body``, ``R_des``)."""
+
+    index: int
+    path: str
+    raw: Mapping[str, Any]
+    values: Parsed
+
+    @property
+    def defaults_path(self) -> str:
+        """Where the values it inherits are given."""
+        return "defaults.agent" if self.path.startswith("agents") else "defaults.edge"
 
 
-def _parse_top(document: Mapping[Any, Any], errors: _Collector) -> dict[str, Any] | None:
-    """The unknown top-level keys, then name, description and simulation (rates checked); None if invalid."""
+def _usable(read: Callable[[], Any]) -> Any:
+    """``read()``, or None when it reads a value the file gets wrong."""
+    try:
+        return read()
+    except UnusableValueError:
+        return None
+
+
+def _parse_top(document: Mapping[Any, Any], errors: _Collector) -> Parsed:
+    """The unknown top-level keys, then name, description and simulation (rates checked)."""
     known = [f.name for f in TOP_FIELDS]
     for key in document:
         if key not in known:
             errors.add(unknown_key(str(key), key, known))
     plain = ("name", "description", "simulation")
     top_plain = {k: v for k, v in document.items() if k in plain}
-    top_fields = tuple(f for f in TOP_FIELDS if f.name in plain)
-    top: dict[str, Any] | None = errors.run(lambda: parse_mapping(top_plain, top_fields, ""))
-    if top is not None:
-        sim = top["simulation"]
-        errors.run(lambda: _check_rates(sim["physics_rate"], sim["control_rate"]))
+    top, errs = parse_partial(top_plain, tuple(f for f in TOP_FIELDS if f.name in plain), "")
+    errors.extend(errs)
+    errors.run(lambda: _check_rates(top["simulation"]["physics_rate"], top["simulation"]["control_rate"]))
     return top
 
 
@@ -434,79 +463,123 @@ def _parse_defaults(document: Mapping[Any, Any], errors: _Collector) -> dict[str
     return blocks
 
 
-def _item_lists(document: Mapping[Any, Any], errors: _Collector) -> tuple[list[Any], list[Any]]:
-    """The raw ``agents`` (at least 2) and ``edges`` (at least 1) lists; empty where invalid."""
+def _item_lists(document: Mapping[Any, Any], errors: _Collector) -> tuple[list[Any], list[Any], bool]:
+    """The raw ``agents`` and ``edges`` lists (empty where not a list) and whether both are valid:
+    at least 2 agents, at least 1 edge."""
     raw_agents = document.get("agents")
-    if not isinstance(raw_agents, list) or len(raw_agents) < 2:
-        errors.add(FormationSpecError("agents", f"expected a list of at least 2 agents, got {short(raw_agents)}"))
-        raw_agents = []
     raw_edges = document.get("edges")
-    if not isinstance(raw_edges, list) or not raw_edges:
+    agents_ok = isinstance(raw_agents, list) and len(raw_agents) >= 2
+    edges_ok = isinstance(raw_edges, list) and len(raw_edges) >= 1
+    if not agents_ok:
+        errors.add(FormationSpecError("agents", f"expected a list of at least 2 agents, got {short(raw_agents)}"))
+    if not edges_ok:
         errors.add(FormationSpecError("edges", f"expected a non-empty list of edges, got {short(raw_edges)}"))
-        raw_edges = []
-    return raw_agents, raw_edges
+    return (
+        raw_agents if isinstance(raw_agents, list) else [],
+        raw_edges if isinstance(raw_edges, list) else [],
+        agents_ok and edges_ok,
+    )
 
 
-def _parse_agents(
-    raw_agents: list[Any], defaults: Mapping[str, Any], errors: _Collector
-) -> tuple[list[AgentSpec], dict[str, int]]:
-    """The valid agents and {id: index in the file} of every agent whose fields parsed (ids unique)."""
-    agents: list[AgentSpec] = []
-    ids: dict[str, int] = {}
-    for i, raw in enumerate(raw_agents):
-        path = f"agents[{i}]"
+def _parse_items(
+    raw_items: list[Any], name: str, fields: tuple[Field, ...], defaults: Mapping[str, Any], errors: _Collector
+) -> list[_Item]:
+    """The agents or edges that are mappings, each with the values that parsed (the rest reported)."""
+    items: list[_Item] = []
+    for i, raw in enumerate(raw_items):
+        path = f"{name}[{i}]"
         if not isinstance(raw, Mapping):
             errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
             continue
-        with errors.item(path, raw, "defaults.agent"):
-            a = parse_mapping(_deep_merge(defaults, raw), AGENT_FIELDS, path)
-            if a["id"] in ids:
-                raise FormationSpecError(f"{path}.id", f"{a['id']!r} is used by agents[{ids[a['id']]}] too", a["id"])
-            ids[a["id"]] = i
-            agents.append(_make_agent(i, a, path))
-    return agents, ids
+        values, errs = parse_partial(_deep_merge(defaults, raw), fields, path)
+        items.append(_Item(i, path, raw, values))
+        errors.add_item(items[-1], errs)
+    return items
 
 
-def _parse_edges(
-    raw_edges: list[Any], defaults: Mapping[str, Any], ids: Mapping[str, int] | None, errors: _Collector
-) -> list[_ParsedEdge]:
-    """The edges whose fields parsed: ends that are agents (checked when ``ids`` is given: every agent
-    was valid), distinct, and no pair twice."""
-    parsed: list[_ParsedEdge] = []
+def _agent_ids(agents: list[_Item], errors: _Collector) -> tuple[dict[str, _Item | None], bool]:
+    """{id: agent} (None for an id two agents use) and whether every agent has an id of its own."""
+    by_id: dict[str, _Item | None] = {}
+    complete = True
+    for a in agents:
+        agent_id = a.values.get("id")
+        if agent_id is None:
+            complete = False
+        elif agent_id in by_id:
+            first = next(b.index for b in agents if b.values.get("id") == agent_id)
+            err = FormationSpecError(f"{a.path}.id", f"{agent_id!r} is used by agents[{first}] too", agent_id)
+            errors.add_item(a, [err])
+            by_id[agent_id] = None
+            complete = False
+        else:
+            by_id[agent_id] = a
+    return by_id, complete
+
+
+def _check_item(item: _Item, checks: Sequence[Callable[..., None]], errors: _Collector, *agents: Parsed) -> None:
+    """Run every check of an agent (or of an edge, given its tail and head agents' values)."""
+    for check in checks:
+        errors.run(partial(check, item.values, *agents, item.path), item)
+
+
+def _sensing_tree(
+    edges: list[_Item],
+    by_id: Mapping[str, _Item | None],
+    ids_complete: bool,
+    all_edges: bool,
+    top: Parsed,
+    errors: _Collector,
+) -> tuple[list[int], list[tuple[str, str]]]:
+    """Indices of the edges to check and build, and the (tail, head) of those the spanning-tree
+    reduction drops. The tree is known when every agent has an id of its own (``ids_complete``),
+    every edge is a mapping (``all_edges``) and simulation.spanning_tree is usable; until then
+    every edge is checked and none dropped."""
+    pairs = _link_edges(edges, by_id, ids_complete, errors)
+    reduce = _usable(lambda: top["simulation"]["spanning_tree"])
+    if ids_complete and all_edges and reduce is not None:
+        return _reduce_to_tree(list(by_id), pairs, reduce, errors)
+    return list(range(len(edges))), []
+
+
+def _link_edges(
+    edges: list[_Item], by_id: Mapping[str, _Item | None], ids_complete: bool, errors: _Collector
+) -> list[tuple[str, str] | None]:
+    """Per edge, (tail, head) when both are agents of the file, distinct, and no earlier edge joins
+    them; else None. An end that names no agent is an error when every agent's id is known."""
     seen: dict[frozenset[str], int] = {}
-    for k, raw in enumerate(raw_edges):
-        path = f"edges[{k}]"
-        if not isinstance(raw, Mapping):
-            errors.add(FormationSpecError(path, f"expected a mapping, got {short(raw)}", raw))
-            continue
-        with errors.item(path, raw, "defaults.edge"):
-            e = parse_mapping(_deep_merge(defaults, raw), EDGE_FIELDS, path)
-            if ids is not None:
-                for end in ("tail", "head"):
-                    if e[end] not in ids:
-                        raise FormationSpecError(
-                            f"{path}.{end}", f"unknown agent {e[end]!r} (agents: {', '.join(ids)})", e[end]
-                        )
-            if e["tail"] == e["head"]:
-                raise FormationSpecError(path, f"tail and head are the same agent {e['tail']!r}", e["tail"])
-            pair = frozenset((e["tail"], e["head"]))
-            if pair in seen:
-                raise FormationSpecError(path, f"duplicates edges[{seen[pair]}] ({e['tail']}, {e['head']})", raw)
-            seen[pair] = k
-            parsed.append((k, e, path))
-    return parsed
+    pairs: list[tuple[str, str] | None] = []
+    for e in edges:
+        if ids_complete:
+            for end in ("tail", "head"):
+                errors.run(partial(_check_end, e, end, by_id), e)
+        pairs.append(errors.run(partial(_link, e, by_id, seen), e))
+    return pairs
 
 
-def _make_edges(
-    kept: list[_ParsedEdge], raw_edges: list[Any], agents: list[AgentSpec], errors: _Collector
-) -> list[EdgeSpec]:
-    """The edges of the sensing tree, each checked against its two agents (indices among the kept)."""
-    by_id = {a.id: a for a in agents}
-    edges: list[EdgeSpec] = []
-    for k, e, path in kept:
-        with errors.item(path, raw_edges[k], "defaults.edge"):
-            edges.append(_make_edge(len(edges), e, path, by_id[e["tail"]], by_id[e["head"]]))
-    return edges
+def _check_end(e: _Item, end: str, by_id: Mapping[str, _Item | None]) -> None:
+    if e.values[end] not in by_id:
+        raise FormationSpecError(
+            f"{e.path}.{end}", f"unknown agent {e.values[end]!r} (agents: {', '.join(by_id)})", e.values[end]
+        )
+
+
+def _link(e: _Item, by_id: Mapping[str, _Item | None], seen: dict[frozenset[str], int]) -> tuple[str, str] | None:
+    tail, head = e.values["tail"], e.values["head"]
+    if tail == head:
+        raise FormationSpecError(e.path, f"tail and head are the same agent {tail!r}", tail)
+    pair = frozenset((tail, head))
+    if pair in seen:
+        raise FormationSpecError(e.path, f"duplicates edges[{seen[pair]}] ({tail}, {head})", e.raw)
+    seen[pair] = e.index
+    return (tail, head) if by_id.get(tail) is not None and by_id.get(head) is not None else None
+
+
+def _ends(e: _Item, by_id: Mapping[str, _Item | None]) -> tuple[Parsed, Parsed]:
+    """The values of the edge's tail and head agents (empty where the agent is unknown: every check
+    that needs it is skipped)."""
+    found = [by_id.get(e.values.get(end, "")) for end in ("tail", "head")]
+    tail, head = (a.values if a is not None else Parsed() for a in found)
+    return tail, head
 
 
 class _Collector:
@@ -515,11 +588,10 @@ class _Collector:
 
     def __init__(self) -> None:
         self.errors: list[FormationSpecError] = []
-        self.items = 0
         self._seen: set[tuple[str, str]] = set()
 
     def add(self, err: FormationSpecError) -> None:
-        for e in err.errors if isinstance(err, CollectedFormationSpecError) else [err]:
+        for e in each_error(err):
             key = (e.path, e.message)
             if key not in self._seen:
                 self._seen.add(key)
@@ -533,30 +605,32 @@ class _Collector:
         for e in errs:
             self.add(e)
 
-    def run(self, fn: Any) -> Any:
+    def run(self, check: Callable[[], _T], item: _Item | None = None) -> _T | None:
+        """``check()``; None when it finds an error (collected, as one of ``item``'s if given) or needs a
+        value the file gets wrong (skipped: that value's own error is reported)."""
         try:
-            return fn()
+            return check()
+        except UnusableValueError:
+            return None
         except FormationSpecError as exc:
-            self.add(exc)
+            if item is None:
+                self.add(exc)
+            else:
+                self.add_item(item, each_error(exc))
             return None
 
-    @contextlib.contextmanager
-    def item(self, path: str, raw: Mapping[str, Any], defaults_path: str) -> Any:
+    def add_item(self, item: _Item, errs: list[FormationSpecError]) -> None:
         """Collect the errors of one agent or edge; re-path those whose value came from the defaults."""
-        try:
-            yield
-        except FormationSpecError as exc:
-            self.items += 1
-            for e in exc.errors if isinstance(exc, CollectedFormationSpecError) else [exc]:
-                if e.path.startswith(path + ".") and not _given(raw, split_path(e.path[len(path) + 1 :])):
-                    if not e.message == "is required":
-                        e.path = defaults_path + e.path[len(path) :]
-                        e.elements.append([_label(path, raw), path, ""])  # which agent or edge breaks it
-                self.add(e)
+        for e in errs:
+            if e.path.startswith(item.path + ".") and not _given(item.raw, split_path(e.path[len(item.path) + 1 :])):
+                if not e.message == "is required":
+                    e.path = item.defaults_path + e.path[len(item.path) :]
+                    e.elements.append([_label(item.path, item.raw), item.path, ""])  # which agent or edge breaks it
+            self.add(e)
 
     def raise_if_any(self) -> None:
         if self.errors:
-            raise self.errors[0] if len(self.errors) == 1 else CollectedFormationSpecError(self.errors)
+            raise one_error(self.errors)
 
 
 def _label(path: str, raw: Mapping[str, Any]) -> str:
@@ -579,8 +653,13 @@ def _given(raw: Any, key: tuple[Any, ...]) -> bool:
     return True
 
 
-def _tree(nodes: list[str], pairs: list[tuple[str, str]], reduce: bool) -> tuple[set[int], list[int]]:
-    """Indices of the edges kept (all, for a tree) and dropped (spanning-tree reduction)."""
+def _reduce_to_tree(
+    nodes: list[str], pairs: list[tuple[str, str] | None], reduce: bool, errors: _Collector
+) -> tuple[list[int], list[tuple[str, str]]]:
+    """Indices of the edges kept and the (tail, head) of those dropped (spanning-tree reduction);
+    without ``reduce`` an edge that closes a cycle is an error (neither kept nor dropped). An edge
+    that is not linked (``None``: its error is reported) is kept for its own checks; connectivity is
+    checked when every edge is linked."""
     parent = {n: n for n in nodes}
 
     def find(x: str) -> str:
@@ -589,136 +668,191 @@ def _tree(nodes: list[str], pairs: list[tuple[str, str]], reduce: bool) -> tuple
             x = parent[x]
         return x
 
-    kept: set[int] = set()
-    dropped: list[int] = []
-    for k, (a, b) in enumerate(pairs):
+    kept: list[int] = []
+    dropped: list[tuple[str, str]] = []
+    for k, pair in enumerate(pairs):
+        if pair is None:
+            kept.append(k)
+            continue
+        a, b = pair
         ra, rb = find(a), find(b)
         if ra == rb:
-            if not reduce:
-                raise FormationSpecError(
-                    f"edges[{k}]",
-                    f"({a}, {b}) closes a cycle: the sensing graph must be a tree "
-                    "(set simulation.spanning_tree: true to drop such edges)",
-                    (a, b),
+            if reduce:
+                dropped.append(pair)
+            else:
+                errors.add(
+                    FormationSpecError(
+                        f"edges[{k}]",
+                        f"({a}, {b}) closes a cycle: the sensing graph must be a tree "
+                        "(set simulation.spanning_tree: true to drop such edges)",
+                        (a, b),
+                    )
                 )
-            dropped.append(k)
             continue
         parent[ra] = rb
-        kept.add(k)
+        kept.append(k)
+    if None not in pairs:
+        _check_connected(nodes, find, errors)
+    return kept, dropped
+
+
+def _check_connected(nodes: list[str], find: Callable[[str], str], errors: _Collector) -> None:
     components: dict[str, list[str]] = {}
     for n in nodes:
         components.setdefault(find(n), []).append(n)
     if len(components) > 1:
         parts = sorted((sorted(c) for c in components.values()), key=len)
-        raise FormationSpecError(
-            "edges",
-            "the sensing graph is disconnected: components " + "; ".join("{" + ", ".join(c) + "}" for c in parts),
-            parts,
+        errors.add(
+            FormationSpecError(
+                "edges",
+                "the sensing graph is disconnected: components " + "; ".join("{" + ", ".join(c) + "}" for c in parts),
+                parts,
+            )
         )
-    return kept, dropped
 
 
-def _make_agent(index: int, a: Mapping[str, Any], path: str) -> AgentSpec:
+# --- checks of one agent or edge --------------------------------------------------------------
+# Each reads the values it needs from the item's Parsed values (and its agents'); one that reads a
+# value the file gets wrong raises UnusableValueError and is skipped (that value's error is reported).
+
+
+def _check_agent_orientation(a: Parsed, path: str) -> None:
+    a["R_world_body"] = _rotation_from(a["orientation"], f"{path}.orientation")
+
+
+def _check_velocity_funnel(a: Parsed, path: str) -> None:
+    vf = a["controller"]["velocity_funnel"]
+    if vf["rho_0"] == "auto":
+        return
+    for ch, (r0, rinf) in enumerate(zip(vf["rho_0"], vf["rho_inf"])):
+        if rinf >= r0:
+            raise FormationSpecError(
+                f"{path}.controller.velocity_funnel.rho_inf",
+                f"channel {ch}: rho_inf {rinf:g} must be below rho_0 {r0:g}",
+                rinf,
+            )
+
+
+def _check_saturation_margin(a: Parsed, path: str) -> None:
     c = a["controller"]
-    vf = c["velocity_funnel"]
-    rho_0 = None if vf["rho_0"] == "auto" else tuple(vf["rho_0"])
-    if rho_0 is not None:
-        for ch, (r0, rinf) in enumerate(zip(rho_0, vf["rho_inf"])):
-            if rinf >= r0:
-                raise FormationSpecError(
-                    f"{path}.controller.velocity_funnel.rho_inf",
-                    f"channel {ch}: rho_inf {rinf:g} must be below rho_0 {r0:g}",
-                    rinf,
-                )
     if not c["saturation_margin"] < 0.5:
         raise FormationSpecError(
             f"{path}.controller.saturation_margin",
             f"{c['saturation_margin']!r} must be below 0.5",
             c["saturation_margin"],
         )
-    d = a["dynamics"]
-    limits = {}
-    for key in ("max_force", "max_torque"):
-        if c[key] is None:
-            limits[key] = d[key]
-        elif c[key] > d[key]:
-            raise FormationSpecError(
-                f"{path}.controller.{key}",
-                f"{c[key]:g} exceeds the actuators' dynamics.{key} {d[key]:g}: the simulator would refuse it",
-                c[key],
-            )
-        else:
-            limits[key] = c[key]
-    gains = ControllerGains(
-        **{
-            **c,
-            "velocity_funnel": VelocityFunnel(**{**vf, "rho_0": rho_0}),
-            "max_force": limits["max_force"],
-            "max_torque": limits["max_torque"],
-        }
-    )
-    J = np.array(d["inertia"], dtype=np.float64)
+
+
+def _check_actuator_limit(key: str, a: Parsed, path: str) -> None:
+    """The controller's ``max_force`` or ``max_torque``, where given, within the actuators'."""
+    c, d = a["controller"], a["dynamics"]
+    if c[key] is not None and c[key] > d[key]:
+        raise FormationSpecError(
+            f"{path}.controller.{key}",
+            f"{c[key]:g} exceeds the actuators' dynamics.{key} {d[key]:g}: the simulator would refuse it",
+            c[key],
+        )
+
+
+def _check_inertia(a: Parsed, path: str) -> None:
+    J = np.array(a["dynamics"]["inertia"], dtype=np.float64)
     if not np.allclose(J, J.T, atol=1e-12):
-        raise FormationSpecError(f"{path}.dynamics.inertia", f"{J.tolist()} is not symmetric", d["inertia"])
+        raise FormationSpecError(f"{path}.dynamics.inertia", f"{J.tolist()} is not symmetric", a["dynamics"]["inertia"])
     eig = np.linalg.eigvalsh(J)
     if eig.min() <= 0:
         raise FormationSpecError(
             f"{path}.dynamics.inertia",
             f"{J.tolist()} is not positive definite (eigenvalues {eig.round(6).tolist()})",
-            d["inertia"],
+            a["dynamics"]["inertia"],
         )
-    signals = {k: SignalModel(d[k]["model"], {p: v for p, v in d[k].items() if p != "model"}) for k in _SIGNALS}
-    dyn = Dynamics(**{**d, "inertia": J, **signals})
-    return AgentSpec(
-        index=index,
-        **{
-            **record_values(AGENT_FIELDS, a),
-            "position": np.array(a["position"]),
-            "R_world_body": _rotation_from(a["orientation"], f"{path}.orientation"),
-            "controller": gains,
-            "dynamics": dyn,
-        },
-    )
 
 
-def _make_edge(index: int, e: Mapping[str, Any], path: str, tail: AgentSpec, head: AgentSpec) -> EdgeSpec:
-    d_col = e["d_col"] if e["d_col"] is not None else tail.radius + head.radius
-    d_con = e["d_con"] if e["d_con"] is not None else min(tail.sensing_radius, head.sensing_radius)
-    d_des = e["distance"]
+_AGENT_CHECKS: tuple[Callable[[Parsed, str], None], ...] = (
+    _check_agent_orientation,
+    _check_velocity_funnel,
+    _check_saturation_margin,
+    partial(_check_actuator_limit, "max_force"),
+    partial(_check_actuator_limit, "max_torque"),
+    _check_inertia,
+)
+
+
+def _d_col(e: Parsed, tail: Parsed, head: Parsed) -> float:
+    """The collision distance: as given, or r_tail + r_head (m)."""
+    return float(e["d_col"] if e["d_col"] is not None else tail["radius"] + head["radius"])
+
+
+def _d_con(e: Parsed, tail: Parsed, head: Parsed) -> float:
+    """The connectivity distance: as given, or min(s_tail, s_head) (m)."""
+    return float(e["d_con"] if e["d_con"] is not None else min(tail["sensing_radius"], head["sensing_radius"]))
+
+
+def _check_edge_orientation(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    e["R_des"] = _rotation_from(e["orientation"], f"{path}.orientation")
+
+
+def _check_distance(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    d_col, d_con, d_des = _d_col(e, tail, head), _d_con(e, tail, head), e["distance"]
     if not d_col < d_des < d_con:
         raise FormationSpecError(f"{path}.distance", f"{d_des} is not inside (d_col={d_col}, d_con={d_con})", d_des)
-    s_min = min(tail.sensing_radius, head.sensing_radius)
+
+
+def _check_d_con(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    d_con = _d_con(e, tail, head)
+    s_min = min(tail["sensing_radius"], head["sensing_radius"])
     if d_con > s_min + 1e-12:
         raise FormationSpecError(
             f"{path}.d_con",
             f"{d_con:g} exceeds the sensing radius {s_min:g} of its agents: the edge would be lost inside its funnel",
             d_con,
         )
-    d0 = float(np.linalg.norm(head.position - tail.position))
+
+
+def _check_initial_distance(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    d_col, d_con = _d_col(e, tail, head), _d_con(e, tail, head)
+    d0 = float(np.linalg.norm(np.subtract(head["position"], tail["position"])))
     if not d_col < d0 < d_con:
         raise FormationSpecError(
             path,
-            f"initial distance {d0:.4g} between {tail.id} and {head.id} is not inside "
+            f"initial distance {d0:.4g} between {tail['id']} and {head['id']} is not inside "
             f"(d_col={d_col:g}, d_con={d_con:g})",
             d0,
         )
-    R_des = _rotation_from(e["orientation"], f"{path}.orientation")
-    psi0 = 0.5 * float(np.trace(np.eye(3) - R_des.T @ head.R_world_body.T @ tail.R_world_body))
+
+
+def _check_rho_psi_0(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
     of = e["orientation_funnel"]
     if of["rho_0"] >= 2.0:
         raise FormationSpecError(f"{path}.orientation_funnel.rho_0", f"{of['rho_0']:g} must be below 2", of["rho_0"])
+
+
+def _check_psi_0(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    R_des = e["R_des"]  # set by _check_edge_orientation, which runs first
+    psi0 = 0.5 * float(np.trace(np.eye(3) - R_des.T @ head["R_world_body"].T @ tail["R_world_body"]))
+    of = e["orientation_funnel"]
     if psi0 >= of["rho_0"]:
         raise FormationSpecError(
             f"{path}.orientation_funnel.rho_0",
             f"{of['rho_0']:g} must exceed the initial orientation error psi(0)={psi0:.4f}",
             of["rho_0"],
         )
+
+
+def _check_rho_psi_inf(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    of = e["orientation_funnel"]
     if of["rho_inf"] >= of["rho_0"]:
         raise FormationSpecError(
             f"{path}.orientation_funnel.rho_inf",
             f"{of['rho_inf']:g} must be below rho_0={of['rho_0']:g}",
             of["rho_inf"],
         )
+
+
+def _check_rho_e_inf(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    d_col, d_con, d_des = _d_col(e, tail, head), _d_con(e, tail, head), e["distance"]
+    s_min = min(tail["sensing_radius"], head["sensing_radius"])
+    if not (d_col < d_des < d_con and d_con <= s_min + 1e-12):  # reported: C_col and C_con bound nothing then
+        return
     c_max = max(d_des**2 - d_col**2, d_con**2 - d_des**2)
     df = e["distance_funnel"]
     if df["rho_inf"] >= c_max:
@@ -727,4 +861,58 @@ def _make_edge(index: int, e: Mapping[str, Any], path: str, tail: AgentSpec, hea
             f"{df['rho_inf']:g} must be below max(C_col, C_con)={c_max:g}",
             df["rho_inf"],
         )
-    return EdgeSpec(index=index, **{**record_values(EDGE_FIELDS, e), "R_des": R_des, "d_col": d_col, "d_con": d_con})
+
+
+_EDGE_CHECKS: tuple[Callable[[Parsed, Parsed, Parsed, str], None], ...] = (
+    _check_edge_orientation,
+    _check_distance,
+    _check_d_con,
+    _check_initial_distance,
+    _check_rho_psi_0,
+    _check_psi_0,
+    _check_rho_psi_inf,
+    _check_rho_e_inf,
+)
+
+
+# --- built objects (from values every check passed) -------------------------------------------
+
+
+def _make_agent(index: int, a: Mapping[str, Any]) -> AgentSpec:
+    c = a["controller"]
+    vf = c["velocity_funnel"]
+    rho_0 = None if vf["rho_0"] == "auto" else tuple(vf["rho_0"])
+    d = a["dynamics"]
+    limits = {key: d[key] if c[key] is None else c[key] for key in ("max_force", "max_torque")}
+    gains = ControllerGains(
+        **{
+            **c,
+            "velocity_funnel": VelocityFunnel(**{**vf, "rho_0": rho_0}),
+            "max_force": limits["max_force"],
+            "max_torque": limits["max_torque"],
+        }
+    )
+    signals = {k: SignalModel(d[k]["model"], {p: v for p, v in d[k].items() if p != "model"}) for k in _SIGNALS}
+    dyn = Dynamics(**{**d, "inertia": np.array(d["inertia"], dtype=np.float64), **signals})
+    return AgentSpec(
+        index=index,
+        **{
+            **record_values(AGENT_FIELDS, a),
+            "position": np.array(a["position"]),
+            "R_world_body": a["R_world_body"],
+            "controller": gains,
+            "dynamics": dyn,
+        },
+    )
+
+
+def _make_edge(index: int, e: Parsed, tail: Parsed, head: Parsed) -> EdgeSpec:
+    return EdgeSpec(
+        index=index,
+        **{
+            **record_values(EDGE_FIELDS, e),
+            "R_des": e["R_des"],
+            "d_col": _d_col(e, tail, head),
+            "d_con": _d_con(e, tail, head),
+        },
+    )

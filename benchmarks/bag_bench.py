@@ -26,8 +26,6 @@ import textwrap
 import time
 from pathlib import Path
 
-import numpy as np
-
 from formation_bag import messages as m
 from formation_bag.analysis import analyze_run, message_ages
 from formation_bag.dataset import load_run
@@ -76,7 +74,7 @@ BLASTER = textwrap.dedent(
 
 def bench_writer(work: Path, n: int = 200_000) -> list[tuple[str, str]]:
     enc = m.Encoder()
-    data = enc.relative_pose(0, "1", [1.0, 2.0, 3.0], np.eye(3).tolist())
+    data = enc.relative_pose(0, "1", [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0])
     rows = []
     for storage in ("mcap", "sqlite3"):
         bag = work / f"writer_{storage}"

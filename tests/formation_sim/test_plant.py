@@ -129,7 +129,7 @@ def test_measurements_respect_the_sensing_radius(paper_path: Path) -> None:
     R = np.array([a.R_world_body for a in spec.agents])
 
     def measure() -> dict:  # by agent and neighbour, the ends in range
-        return Measurements(0.0, 0, *model.measure(p, R), np.zeros((len(p), 6)), model.ends).relative_poses
+        return Measurements(0.0, 0, 0, *model.measure(p, R), np.zeros((len(p), 6)), model.ends).relative_poses
 
     meas = measure()
     assert set(meas["3"]) == {"1", "4", "5"}

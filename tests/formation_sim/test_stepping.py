@@ -12,16 +12,16 @@ from formation_sim.node.stepping import (
     LAST_CALL,
     MISMATCH,
     NS,
-    WITNESS_TOLERANCE,
     Admission,
-    AnswerWitness,
     CommandHold,
     LagBudget,
     LockstepWait,
     ParticipantMissingError,
     WrenchBook,
+    WrongAnswerError,
     admit,
 )
+from formation_sim.node.witness import AnswerWitness, Expectation
 
 IDS = ("1", "2", "3")
 PERIOD_NS = 100_000  # 10 kHz
@@ -160,42 +160,57 @@ def test_lag_budget() -> None:
     assert not b.exceeded(1.0) and b.exceeded(1.0001)
 
 
-def _witness(u: np.ndarray, ns: int = 0) -> AnswerWitness:
+def _witness(u: np.ndarray, ns: int = 0, tolerance: float | None = None) -> AnswerWitness:
+    """A witness expecting ``u`` (N,6) at step ``ns``: bit for bit, or within ``tolerance`` per component."""
     w = AnswerWitness(IDS)
-    w.expect(ns, u)
+    tol = None if tolerance is None else (tolerance,) * 6
+    w.expect(ns, [Expectation(tuple(row), tol) for row in u.tolist()])
     return w
 
 
-def test_an_answer_beyond_round_off_is_not_applied_and_the_step_waits() -> None:
-    """Lockstep: an answer within the tolerance is applied; one beyond it (a forged or stale wrench) is
-    a mismatch with its size, the step stays unanswered, and the agent's later, agreeing answer is applied."""
+def test_an_answer_not_bit_for_bit_is_not_applied_and_the_step_waits() -> None:
+    """Lockstep, an agent judged bit for bit: the witness's own answer is applied; one a unit in the last
+    place off is a mismatch with its size (allowed 0), the step stays unanswered, and the agent's later,
+    equal answer is applied."""
     rng = np.random.default_rng(25)
     u = rng.uniform(-100.0, 100.0, (3, 6))
     book, witness = WrenchBook(3), _witness(u, ns=PERIOD_NS)
-    close = tuple(u[0] * (1 + 1e-12))  # round-off: the quaternion round trip gives ~1e-13
-    assert admit(0, PERIOD_NS, close, None, book, witness) == Admission(APPLY, close)
-    forged = (50.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    a = admit(1, PERIOD_NS, forged, None, book, witness)
-    assert a.action == MISMATCH and a.difference == pytest.approx(np.max(np.abs(np.array(forged) - u[1])))
-    assert witness.mismatched == {1: forged}
+    assert admit(0, PERIOD_NS, tuple(u[0]), None, book, witness) == Admission(APPLY, tuple(u[0]))
+    ulp = tuple(np.nextafter(u[1], np.inf))
+    a = admit(1, PERIOD_NS, ulp, None, book, witness)
+    assert a.action == MISMATCH and a.tolerance == 0.0
+    assert a.difference == np.max(np.abs(np.array(ulp) - u[1])) > 0
+    assert witness.mismatched == {1: (ulp, 1)}
     w = LockstepWait(IDS, step_timeout=2.0, resend=0.25)
     w.begin(PERIOD_NS, now=0.0)
-    book.accept(0, PERIOD_NS, close)
+    book.accept(0, PERIOD_NS, tuple(u[0]))
     assert w.poll(book, now=0.3, mismatched=witness.mismatched) == [1, 2]  # resent to agent 2 (no apply)
-    good = tuple(u[1])
-    assert admit(1, PERIOD_NS, good, None, book, witness) == Admission(APPLY, good)
-    off = tuple(u[2] + np.array([0, 0, 0, 0, 0, 2e-9 * (1 + abs(u[2, 5]))]))  # twice the tolerance
-    assert admit(2, PERIOD_NS, off, None, book, witness).action == MISMATCH
-    assert witness.largest_agreed == pytest.approx(np.max(np.abs(u[0])) * 1e-12)
+    assert admit(1, PERIOD_NS, tuple(u[1]), None, book, witness) == Admission(APPLY, tuple(u[1]))
+
+
+def test_an_answer_within_its_tolerance_is_applied_and_one_beyond_is_not() -> None:
+    """An agent judged by the round-off bound: within the tolerance applies (the largest difference and its
+    ratio to the tolerance are reported); beyond it, by any component, is a mismatch naming that tolerance."""
+    u = np.ones((3, 6))
+    book, witness = WrenchBook(3), _witness(u, tolerance=1e-9)
+    close = tuple(u[0] + 4e-10)
+    assert admit(0, 0, close, None, book, witness) == Admission(APPLY, close)
+    off = tuple(u[1] + np.array([0, 0, 0, 0, 0, 2e-9]))
+    a = admit(1, 0, off, None, book, witness)
+    assert (a.action, a.tolerance) == (MISMATCH, 1e-9) and a.difference == pytest.approx(2e-9)
+    report = witness.report()
+    assert report["1"]["largest_agreed_difference"] == pytest.approx(4e-10)
+    assert report["1"]["largest_ratio_to_tolerance"] == pytest.approx(0.4)
+    assert report["2"] == {"largest_agreed_difference": 0.0, "largest_ratio_to_tolerance": 0.0}
 
 
 def test_a_step_answered_keeps_its_answer_and_refused_values_wait_for_the_agent() -> None:
-    """Lockstep: a second, agreeing answer is a duplicate (never replaces the first); a second, other one
-    is a mismatch; a refused value does not answer the step with zero where the witness watches the agent."""
+    """Lockstep: a second, equal answer is a duplicate (never replaces the first); a second, other one
+    is a mismatch; a refused value does not answer the step with zero (the witness waits for the agent)."""
     u = np.arange(18.0).reshape(3, 6)
     book, witness = WrenchBook(3), _witness(u)
     book.accept(0, 0, tuple(u[0]))
-    assert admit(0, 0, tuple(u[0] + 1e-13), None, book, witness) == Admission(DUPLICATE)
+    assert admit(0, 0, tuple(u[0]), None, book, witness) == Admission(DUPLICATE)
     assert admit(0, 0, tuple(u[0] + 1.0), None, book, witness).action == MISMATCH
     assert admit(1, 0, (1e9,) * 6, "over_limit", book, witness) == Admission(IGNORE)
     assert admit(1, 0, tuple(u[1]), "past_step", book, witness) == Admission(IGNORE)
@@ -204,47 +219,64 @@ def test_a_step_answered_keeps_its_answer_and_refused_values_wait_for_the_agent(
     assert admit(0, 0, tuple(u[0] + 1.0), None, book, None) == Admission(APPLY, tuple(u[0] + 1.0))
 
 
-def test_the_witness_stops_for_an_agent_whose_gains_changed() -> None:
-    """After a live gain change the witness stops for that agent (from when, why: the report); its
-    answer held back for the current step is then applied, and later answers are not compared."""
+def test_an_answer_with_an_agents_new_gains_agrees_until_it_comes() -> None:
+    """During a gain change both answers agree: the old one (the agent has not applied the change yet) and
+    the new one, which the admission marks; a third is a mismatch."""
     u = np.zeros((3, 6))
-    book, witness = WrenchBook(3), _witness(u, ns=3 * PERIOD_NS)
-    answer = (1.0, 2.0, 3.0, 0.0, 0.0, 0.0)
-    why = "live parameter(s) gamma of /agent_3/formation_agent changed"
-    assert admit(2, 3 * PERIOD_NS, answer, None, book, witness).action == MISMATCH
-    assert witness.stop(2, 3e-4, why) == answer
-    assert witness.stop(2, 9.0, "again") is None and not witness.watches(2)
-    witness.expect(4 * PERIOD_NS, u)
-    assert admit(2, 4 * PERIOD_NS, answer, None, book, witness) == Admission(APPLY, answer)
-    assert admit(1, 4 * PERIOD_NS, answer, None, book, witness).action == MISMATCH
-    report = witness.report()
-    assert report["stopped"] == {"3": {"from_t": 3e-4, "why": why}}
-    assert report["tolerance"] == WITNESS_TOLERANCE
+    book, witness = WrenchBook(3), _witness(u, ns=PERIOD_NS)
+    new = (1.0, 2.0, 3.0, 0.0, 0.0, 0.0)
+    witness.alternative[2] = Expectation(new)
+    assert admit(2, PERIOD_NS, new, None, book, witness) == Admission(APPLY, new, new_gains=True)
+    assert admit(1, PERIOD_NS, new, None, book, witness).action == MISMATCH
+    assert admit(0, PERIOD_NS, (0.0,) * 6, None, book, witness) == Admission(APPLY, (0.0,) * 6)
+
+
+def test_the_same_refused_answer_again_is_a_repeat() -> None:
+    """An agent that answers the re-sent step with the answer refused before is listed as repeating it;
+    another answer starts the count again."""
+    u = np.zeros((3, 6))
+    book, witness = WrenchBook(3), _witness(u)
+    wrong = (1.0,) * 6
+    admit(1, 0, wrong, None, book, witness)
+    assert witness.repeated() == []
+    admit(1, 0, wrong, None, book, witness)
+    assert witness.repeated() == [1]
+    admit(1, 0, (2.0,) * 6, None, book, witness)
+    assert witness.repeated() == []
 
 
 def test_an_agent_that_never_agrees_is_named_as_such() -> None:
-    """The last call names a silent agent and, apart, one whose answers all differed from the witness."""
+    """The last call names a silent agent (exit 3) and, with it, one whose answers all differed; an agent
+    whose answers all differed, alone, is a wrong answer (its own error: exit 5)."""
     w, book = wait(), WrenchBook(3)
     w.begin(0, now=0.0)
     book.accept(1, 0, (0.0,) * 6)
-    w.poll(book, now=2.0, mismatched={2: (1.0,) * 6})
+    w.poll(book, now=2.0, mismatched={2: ((1.0,) * 6, 1)})
     with pytest.raises(ParticipantMissingError) as err:
-        w.poll(book, now=2.0 + LAST_CALL, mismatched={2: (1.0,) * 6})
+        w.poll(book, now=2.0 + LAST_CALL, mismatched={2: ((1.0,) * 6, 1)})
     assert err.value.names == ["1", "3"]
-    assert "no answer from agent 1;" in str(err.value)
-    assert "no answer agreeing with the witness (answer_mismatch) from agent 3 for the step at t=0.000000 s" in str(
-        err.value
+    assert "no answer from agent 1; only answers the witness refused (answer_mismatch) from agent 3" in str(err.value)
+    w.begin(PERIOD_NS, now=10.0)
+    book.accept(0, PERIOD_NS, (0.0,) * 6)
+    book.accept(1, PERIOD_NS, (0.0,) * 6)
+    w.poll(book, now=12.0, mismatched={2: ((1.0,) * 6, 1)})
+    with pytest.raises(WrongAnswerError) as wrong:
+        w.poll(book, now=12.0 + LAST_CALL, mismatched={2: ((1.0,) * 6, 1)})
+    assert wrong.value.names == ["3"]
+    assert "only answers the witness refused (answer_mismatch) from agent 3 for the step at t=0.000100 s" in str(
+        wrong.value
     )
 
 
 def test_a_non_finite_answer_never_agrees() -> None:
     """A NaN anywhere in an answer is a mismatch of infinite size, whatever the other components."""
     u = np.ones((3, 6))
-    witness = _witness(u)
-    for k in range(6):
-        answer = [1.0] * 6
-        answer[k] = float("nan")
-        assert witness.judge(0, 0, tuple(answer)) == float("inf")
+    for tolerance in (None, 1e-9):
+        witness = _witness(u, tolerance=tolerance)
+        for k in range(6):
+            answer = [1.0] * 6
+            answer[k] = float("nan")
+            assert witness.judge(0, 0, tuple(answer))[:2] == ("differs", float("inf"))
 
 
 def test_the_first_step_waits_as_long_as_discovery() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 from formation_agent.controller import AgentController
 from formation_msgs_py.spec import agent_view, load_formation, simulator_view
 from formation_sim.core.measurement import Ends
-from formation_sim.core.simulation import Measurements, Simulation
+from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam
 
 PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
@@ -49,7 +50,7 @@ def test_a_missing_pose_is_a_measurement_fault_and_a_zero_wrench() -> None:
     k = next(k for k, (i, j) in enumerate(zip(meas.ends.observer, meas.ends.target)) if (i, j) == ("3", "4"))
     in_range = meas.in_range.copy()
     in_range[k] = False
-    partial = Measurements(meas.t, meas.step, meas.p_rel, meas.R_rel, in_range, meas.velocities, meas.ends)
+    partial = replace(meas, in_range=in_range)
     faults = Faults()
     u, _, errors = AgentTeam(spec).evaluate(partial, faults)  # type: ignore[arg-type]
     three = spec.agent_ids.index("3")
@@ -64,21 +65,32 @@ def test_measurements_in_another_end_order_are_refused() -> None:
     spec = load_formation(PAPER)
     meas = Simulation(simulator_view(spec)).sense()
     ends = Ends(meas.ends.agent_ids, meas.ends.observer[::-1], meas.ends.target[::-1])
-    shuffled = Measurements(meas.t, meas.step, meas.p_rel, meas.R_rel, meas.in_range, meas.velocities, ends)
+    shuffled = replace(meas, ends=ends)
     with pytest.raises(ValueError, match="order"):
         AgentTeam(spec).evaluate(shuffled, None)
 
 
-def test_measurements_from_poses_round_trip() -> None:
-    """Measurements.from_poses of a step's relative_poses gives back its arrays (ends not received: out of range)."""
-    spec = load_formation(PAPER)
-    meas = Simulation(simulator_view(spec)).sense()
-    poses = meas.relative_poses
-    del poses["1"]["2"]
-    back = Measurements.from_poses(meas.t, meas.step, poses, meas.velocities, meas.ends)
-    expected = meas.in_range.copy()
-    expected[list(zip(meas.ends.observer, meas.ends.target)).index(("1", "2"))] = False
-    np.testing.assert_array_equal(back.in_range, expected)
-    np.testing.assert_array_equal(back.p_rel[expected], meas.p_rel[expected])
-    np.testing.assert_array_equal(back.R_rel[expected], meas.R_rel[expected])
-    np.testing.assert_array_equal(back.velocities, meas.velocities)
+def test_team_answers_at_the_stamps_time_on_what_an_agent_decodes() -> None:
+    """At 3 kHz (a period of no whole number of ns) the team answers each agent as its own controller does
+    from the step's messages: the rotations decoded from their quaternions, the time from the stamp, bit for bit."""
+    from formation_msgs_py.wire import control_time, relative_pose_from_values, step_stamp_ns
+
+    spec = load_formation(PAPER, overrides={"control_rate": 3000.0, "physics_rate": 3000.0})
+    sim = Simulation(simulator_view(spec))
+    team = AgentTeam(spec)
+    own = {a: AgentController(agent_view(spec, a)) for a in spec.agent_ids}
+    for k in range(4):
+        meas = sim.sense()
+        assert meas.ns == step_stamp_ns(k, 3000.0) == [0, 333_333, 666_667, 1_000_000][k]
+        assert meas.t == control_time(meas.ns)
+        assert (meas.t != k / 3000.0) == (k in (1, 2))  # the stamp's time, not k/rate
+        u, _, _ = team.evaluate(meas, None)
+        for i, a in enumerate(spec.agent_ids):
+            poses = {}
+            for end, (obs, tgt) in enumerate(zip(meas.ends.observer, meas.ends.target)):
+                if obs == a:
+                    poses[tgt] = relative_pose_from_values((*meas.p_rel[end], *meas.q_rel[end]))
+                    np.testing.assert_array_equal(poses[tgt][1], meas.R_rel[end])  # the agent's decoding
+            answer = own[a].compute(control_time(meas.ns), poses, meas.velocities[i])
+            np.testing.assert_array_equal(u[i], answer.wrench)
+        sim.advance(u)

@@ -1,10 +1,10 @@
 """Lockstep under stalls and forged answers: a run equals the headless one, or it is not PASS and says why.
 
 Every answer is compared with the simulator's witness (its shadow of the agent's controller): a
-forged wrench is never applied; after a live gain change the witness stops for that agent. A
+forged wrench is never applied; after a live gain change the witness follows the agent's new gains. A
 simulator or an agent stopped (SIGSTOP) for longer than the step timeout, at a seeded random step,
-on a machine made busier by two busy loops, leaves the run equal to the headless one (≤ 1e-9) and
-PASS, or ends it not PASS naming the cause.
+on a machine made busier by two busy loops, leaves the run equal to the headless one (bit for bit)
+and PASS, or ends it not PASS naming the cause.
 """
 
 from __future__ import annotations
@@ -63,8 +63,7 @@ def test_a_forged_answer_is_never_applied(ros_env: dict[str, str], tmp_path: Pat
     u = np.load(out / "trajectory.npz")["u"]
     i3 = load_formation(PAPER).agent_ids.index("3")
     assert not np.any(np.all(u[:, i3] == FORGED, axis=-1)), "a forged wrench was applied"
-    ref = assert_equals_headless(out / "trajectory.npz", duration)
-    assert np.max(np.abs(u - ref["u"])) <= 1e-6  # round-off only (as test_lockstep)
+    assert_equals_headless(out / "trajectory.npz", duration)
 
 
 def _stop_at_random_step(sim: subprocess.Popen, victim: int, pause: float, rng: random.Random) -> int:
@@ -93,7 +92,7 @@ def test_a_stall_at_any_step_leaves_the_run_headless_or_not_pass(
     busy_loops: list[int], procs, tmp_path: Path, who: str, seed: int
 ) -> None:
     """The simulator stopped 2.5 s, or one agent 2 s, at a random step (step timeout 1 s), two busy loops
-    beside: PASS and equal to the headless run (|Δe|, |Δψ| ≤ 1e-9), or not PASS with the cause named."""
+    beside: PASS and equal to the headless run (bit for bit), or not PASS with the cause named."""
     rng = random.Random(f"{who}-{seed}")
     agents = {a.id: procs.agent(PAPER, a.id) for a in load_formation(PAPER).agents}
     out = tmp_path / "out"
@@ -110,16 +109,16 @@ def test_a_stall_at_any_step_leaves_the_run_headless_or_not_pass(
     note = f"{who} stopped after step {step}: exit {code}, {summary['verdict']}, faults {summary['faults']}\n{log}"
     if code == 0:
         assert summary["verdict"] == "PASS", note
-        ref = assert_equals_headless(out / "trajectory.npz", DURATION)
-        assert np.max(np.abs(np.load(out / "trajectory.npz")["u"] - ref["u"])) <= 1e-6, note
+        assert_equals_headless(out / "trajectory.npz", DURATION)
     else:
         assert summary["verdict"] != "PASS", note
         assert code == 3 and re.search(r"formation-sim: ERROR: lockstep: no answer .*from agent \w+", log), note
 
 
-def test_the_witness_stops_for_an_agent_whose_gain_changed_live(procs, ros_env: dict[str, str], tmp_path: Path) -> None:
-    """gamma of agent 3 set mid-run (ros2 param set): the run goes on to its end, summary.json witness.stopped
-    names agent 3, the sim time from which and the parameter; the other agents stay witnessed."""
+def test_the_witness_follows_an_agent_whose_gain_changed_live(procs, ros_env: dict[str, str], tmp_path: Path) -> None:
+    """gamma of agent 3 set mid-run (ros2 param set): the witness follows it, the run goes on to its end
+    with no answer refused for long, and summary.json witness says agent 3 used γ = 20 from a sim time
+    inside the run (a live change), the others their file's gains throughout."""
     for a in load_formation(PAPER).agents:
         procs.agent(PAPER, a.id)
     with ros_context(ros_env) as context:
@@ -139,7 +138,9 @@ def test_the_witness_stops_for_an_agent_whose_gain_changed_live(procs, ros_env: 
     log = read_log(sim)
     summary = json.loads((out / "summary.json").read_text())
     assert code in (0, 1) and summary["verdict"] in ("PASS", "FAIL"), log  # the funnels decide: gains changed
-    stopped = summary["witness"]["stopped"]
-    assert list(stopped) == ["3"], summary["witness"]
-    assert 0.0 < stopped["3"]["from_t"] < DURATION and "gamma" in stopped["3"]["why"], stopped
-    assert "agent 3: witness stopped from t=" in log, log
+    agents = summary["witness"]["agents"]
+    first, then = agents["3"]["gains"]
+    assert (first["gamma"], first["source"], first["from_t"]) == (15.0, "formation file", 0.0), agents["3"]
+    assert then["gamma"] == 20.0 and then["source"] == "live change" and 0.0 < then["from_t"] < DURATION, then
+    assert all(len(agents[a]["gains"]) == 1 for a in agents if a != "3"), agents
+    assert "agent 3: δ=0.1, γ=20 from t=" in log, log

@@ -52,6 +52,7 @@ from formation_agent.measurement_checks import DROPPED_KINDS, MAX_LEAD_NS, PAST_
 from formation_msgs_py.faults import FaultLog, fault_lines, write_json
 from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.spec import AgentView
+from formation_msgs_py.wire import control_time
 
 #: Bounded memory of stamps with poses (and of refusals); more only happens when the agent lags.
 _POSE_MEMORY = 8
@@ -235,7 +236,7 @@ class StepSynchroniser:
         if not (complete or final):
             return
         self.pending = None
-        t = ns / _NS
+        t = control_time(ns)
         refused = self.refused.pop(ns, None) if self.refused else None
         # two topics agree on this step: the velocity (not refused) and at least one pose
         confirms = refused is None and any(p is not None for p, _ in poses.values())
@@ -279,6 +280,9 @@ class StepSynchroniser:
                     del steps[old]
 
 
+#: read-only parameters an agent reports: its code form and numeric platform (formation_msgs_py.compiled)
+CODE_FORM_PARAMETER, PLATFORM_PARAMETER = "code_form", "numeric_platform"
+
 #: Gains that a running agent applies from its next step: {parameter name: description}.
 LIVE_GAINS = {
     "delta": "gain δ_i of the desired velocity (> 0); live: applies from the next step",
@@ -311,6 +315,7 @@ from rclpy.experimental import EventsExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from formation_msgs_py import topics  # noqa: E402
+from formation_msgs_py.compiled import CODE_FORM, numeric_platform  # noqa: E402
 from formation_msgs_py.errors import FormationSpecError  # noqa: E402
 from formation_msgs_py.publisher_watch import (  # noqa: E402
     POLICIES,
@@ -333,6 +338,13 @@ DIAG_DOC = "wall seconds between /diagnostics messages (>= 0.1; a message costs 
 FAULTS_DOC = (
     "file to write this agent's fault counts to when it stops (per kind: count, first and last sim time; "
     "formation-launch merges them into summary.json faults); empty: none"
+)
+CODE_FORM_DOC = (
+    "how this agent runs its controller: compiled (numba) or interpreted (NUMBA_DISABLE_JIT=1); reported, not settable"
+)
+PLATFORM_DOC = (
+    "fingerprint of what decides the controller's last bits here (host, CPU, interpreter, numpy and numba, "
+    "their environment); a simulator on the same one checks this agent's answers bit for bit; reported, not settable"
 )
 QOS_DOC = "QoS of the measurements: reliable or best-effort, as the simulator's --measurement-qos"
 POLICY_DOC = (
@@ -365,6 +377,9 @@ class AgentNode(Node):
         policy = declare(self, "intruder_policy", "report", POLICY_DOC, read_only=True)
         self.faults_file = declare(self, "faults_file", "", FAULTS_DOC, read_only=True)
         gains = {n: declare(self, n, float(getattr(view.controller, n)), doc) for n, doc in LIVE_GAINS.items()}
+        # what a lockstep simulator's witness needs to compute this agent's answers as it does
+        declare(self, CODE_FORM_PARAMETER, CODE_FORM, CODE_FORM_DOC, read_only=True, fixed=True)
+        declare(self, PLATFORM_PARAMETER, numeric_platform(), PLATFORM_DOC, read_only=True, fixed=True)
         self.sync = StepSynchroniser(
             AgentController(view),
             self._publish_wrench,

@@ -19,6 +19,7 @@ from formation_msgs_py import topics, wire
 from formation_msgs_py.bag.writer import typestore
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.wire import NS_PER_S, stamp_ns
+from formation_msgs_py.wire import control_time as seconds  # noqa: F401 - a stamp's time, as an agent's
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 #: the relative poses' type in bags recorded before they became PoseStamped (still read)
@@ -97,11 +98,6 @@ def formation_topics(agent_ids: Sequence[str], edges: Sequence[tuple[str, str]],
 
 
 # -- decoding -------------------------------------------------------------------------------------
-
-
-def seconds(stamp_ns_value: int) -> float:
-    """Float seconds of an integer-ns stamp, as the agent node computes its controller time (ns / 1e9)."""
-    return stamp_ns_value / NS_PER_S
 
 
 def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
@@ -233,10 +229,11 @@ class Encoder:
         ns: int,
         observer: str,
         p: Sequence[float] | np.ndarray,
-        R: Sequence[Sequence[float]] | np.ndarray,
+        q: Sequence[float] | np.ndarray,
     ) -> bytes:
-        """PoseStamped in frame ``agent_<observer>``: position p (m) and orientation R of the neighbour."""
-        x, y, z, w = quaternion_from_matrix(R)
+        """PoseStamped in frame ``agent_<observer>``: position p (m) and orientation, the quaternion q
+        (x, y, z, w), of the neighbour."""
+        x, y, z, w = (float(c) for c in q)
         msg = self.PoseStamped(
             header=self.header(ns, topics.agent_frame(observer)),
             pose=self.Pose(

@@ -1,11 +1,11 @@
 """Lockstep bags without ROS: the headless closed loop, with every message written to a bag.
 
 For tests and benchmarks of the analysis and the re-run while no ROS run is at hand. Each
-control step k (t_k = k / control_rate) writes, in this order, what the ROS 2 lockstep run
-publishes: ``/clock``, ``/formation/ground_truth``, every relative pose, every velocity
-(all stamped t_k), then every agent's wrench stamped t_k. Each agent's controller computes
-from the *decoded* messages (quaternion -> matrix as the agent node does), so the recorded
-wrenches are what an agent node would publish; the agents are stepped by
+control step k writes, in this order, what the ROS 2 lockstep run publishes: ``/clock``,
+``/formation/ground_truth``, every relative pose, every velocity (all stamped with step k's stamp),
+then every agent's wrench with the same stamp. Each agent's controller computes from the *decoded*
+messages (as the agent node decodes them) at the stamp's time, so the recorded wrenches are what an
+agent node would publish; the agents are stepped by
 :class:`formation_sim.core.team.AgentTeam`, with the fault policy of every other run. Log times are
 synthetic: ``wall_step`` seconds per step from ``start_ns``, ``message_spacing`` apart within a step.
 With ``display_every=N`` every N-th step also carries what a run's bag holds besides: an (empty)
@@ -22,13 +22,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from formation_bag import messages as m
 from formation_msgs_py import topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_msgs_py.bag.writer import SegmentedBagWriter, make_qos
 from formation_msgs_py.spec import FormationSpec, simulator_view
+from formation_sim.core.measurement import measurement_ends
 from formation_sim.core.recorder import RunRecorder
-from formation_sim.core.simulation import Measurements, Simulation
+from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam
 
 
@@ -75,6 +78,8 @@ def write_run_bag(
     gt_topic = m.absolute(topics.GROUND_TRUTH)
     edges = [(e.tail, e.head) for e in spec.edges]
     links = [(e.tail, e.head) for e in spec.edges] + [(e.head, e.tail) for e in spec.edges]
+    ends = measurement_ends(simulator_view(spec))
+    end_of = {pair: k for k, pair in enumerate(zip(ends.observer, ends.target))}
     count = 0
     started = time.perf_counter()
     with SegmentedBagWriter(bag, storage=storage, segment_seconds=segment_seconds, custom_data=custom) as w:
@@ -90,7 +95,7 @@ def write_run_bag(
         space_ns = max(1, round(message_spacing * m.NS_PER_S))
         for k in range(n_steps + 1):
             meas = sim.sense()
-            stamp = round(meas.t * m.NS_PER_S)
+            stamp = meas.ns
             log = start_ns + k * step_ns
 
             def put(topic: str, data: bytes) -> None:
@@ -102,21 +107,22 @@ def write_run_bag(
             s = sim.state
             put(topics.CLOCK, enc.clock(stamp))
             put(gt_topic, enc.poses(stamp, s.p.tolist(), s.R.tolist()))
-            received: dict[str, dict[str, Any]] = {a: {} for a in ids}
+            p_rel, R_rel = meas.p_rel.copy(), meas.R_rel.copy()
             for i, j in links:
-                pose = meas.relative_poses[i].get(j)
-                if pose is None:
+                end = end_of[(i, j)]
+                if not meas.in_range[end]:
                     continue
-                data = enc.relative_pose(stamp, i, pose[0], pose[1])
+                data = enc.relative_pose(stamp, i, meas.p_rel[end], meas.q_rel[end])
                 put(m.absolute(topics.relative_pose(i, j)), data)
-                received[i][j] = m.decode_relative_pose(m.deserialize(data, m.POSE_STAMPED))
+                p_rel[end], R_rel[end] = m.decode_relative_pose(m.deserialize(data, m.POSE_STAMPED))
             vels = []
             for idx, a in enumerate(ids):
                 data = enc.twist(stamp, a, meas.velocities[idx].tolist())
                 put(m.absolute(topics.velocity(a)), data)
                 vels.append(m.decode_twist(m.deserialize(data, m.TWIST_STAMPED)))
-            t = m.seconds(stamp)
-            u, margin_v, errors = team.evaluate(Measurements.from_poses(t, k, received, vels, meas.ends), recorder)
+            received = meas.received(stamp, p_rel, R_rel, np.array(vels, dtype=np.float64))
+            t = meas.t
+            u, margin_v, errors = team.evaluate(received, recorder)
             for a, wrench in zip(ids, u.tolist()):
                 put(m.absolute(topics.wrench(a)), enc.wrench(stamp, a, wrench))
             if display_every is not None and k % display_every == 0:

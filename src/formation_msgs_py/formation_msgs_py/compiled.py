@@ -53,6 +53,68 @@ F = TypeVar("F", bound=Callable)
 INTERPRETED = os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0")
 
 
+#: the code forms a kernel runs in: machine code from numba, or its own Python source
+FORM_COMPILED, FORM_INTERPRETED = "compiled", "interpreted"
+#: this process's form
+CODE_FORM = FORM_INTERPRETED if INTERPRETED else FORM_COMPILED
+
+#: environment variables that change the machine code numba emits or the SIMD paths numpy takes
+_NUMERIC_ENVIRONMENT = (
+    "NPY_DISABLE_CPU_FEATURES",
+    "NPY_ENABLE_CPU_FEATURES",
+    "NUMBA_CPU_NAME",
+    "NUMBA_CPU_FEATURES",
+    "NUMBA_OPT",
+    "NUMBA_FASTMATH",
+)
+
+
+def in_code_form(fn: F, form: str) -> F | None:
+    """Kernel ``fn`` as code of ``form`` (:data:`FORM_COMPILED` or :data:`FORM_INTERPRETED`): the
+    kernel itself in this process's form, its Python source for the interpreted form of a compiled
+    process; None where this process cannot run that form (compiled code in an interpreted process)."""
+    if form == CODE_FORM:
+        return fn
+    if form == FORM_INTERPRETED:
+        return fn.py_func  # type: ignore[attr-defined]  # a numba dispatcher keeps its Python
+    return None
+
+
+def numeric_platform() -> str:
+    """A fingerprint of what decides the bits a kernel computes in this process besides its inputs:
+    the host and its CPU, the interpreter and its environment (the installed numpy and numba), libc,
+    and the variables that steer numba's code generation and numpy's SIMD dispatch. Two processes
+    with equal fingerprints and the same :data:`CODE_FORM` compute the same bits from the same
+    inputs; with different ones they may differ in the last places."""
+    import importlib.metadata
+    import json
+    import platform
+
+    cpu = ""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            cpu = "".join(line for line in f if line.startswith(("model name", "flags")))
+    except OSError:
+        cpu = platform.processor()
+    versions = {}
+    for package in ("numpy", "numba", "llvmlite"):
+        try:
+            versions[package] = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            versions[package] = ""
+    facts = {
+        "host": platform.node(),
+        "machine": platform.machine(),
+        "cpu": hashlib.sha256(cpu.encode()).hexdigest(),
+        "python": sys.version,
+        "prefix": sys.prefix,
+        "libc": platform.libc_ver(),
+        "versions": versions,
+        "environment": {name: os.environ.get(name, "") for name in _NUMERIC_ENVIRONMENT},
+    }
+    return hashlib.sha256(json.dumps(facts, sort_keys=True).encode()).hexdigest()[:16]
+
+
 #: formulas declared before numba was imported, registered at the first :func:`kernel`
 _PENDING: list[Callable] = []
 

@@ -7,6 +7,7 @@
 | (no verdict) | invalid input (formation file, option): nothing was started              | 2    |
 | ``INCOMPLETE`` | a process died or an agent stopped answering                             | 3    |
 | ``INCOMPLETE`` | any other reason: I/O error, disk full, lag budget, data missing, internal, untrusted input | 4    |
+| ``INCOMPLETE`` | wrong answer: an agent answered a lockstep step only with wrenches the witness refused | 5    |
 | ``INCOMPLETE`` | interrupted (SIGINT/SIGTERM)                                             | 130  |
 
 A crash never exits 1: 1 means a funnel was violated and nothing else. A violation seen before a
@@ -44,6 +45,7 @@ class ExitCode(enum.IntEnum):
     INVALID = 2
     PROCESS_DIED = 3
     INCOMPLETE = 4
+    WRONG_ANSWER = 5
     INTERRUPTED = 130
 
 
@@ -52,6 +54,8 @@ EXIT_STATUS_HELP = (
     "2 invalid input (nothing started), 3 a process died or an agent stopped answering, "
     "4 incomplete for another reason (I/O error, disk full, lag budget, data missing, internal error, "
     "untrusted input), "
+    "5 wrong answer (lockstep: an agent answered a step, also when it was re-sent, with a wrench the simulator's "
+    "witness refuses), "
     "130 interrupted"
 )
 

@@ -2,8 +2,9 @@
 
 Conventions: ``vee`` gives the 3-vector of a skew matrix (S(w) x = w × x); rotation vectors are
 axis * angle in radians; quaternions are (x, y, z, w), scalar last, the order of geometry_msgs and
-of scipy's default; :func:`quaternion_from_matrix` and :func:`matrix_from_quaternion` are the only
-quaternion conversions of the project (pure Python: they run per message). numpy only (scipy's
+of scipy's default; :func:`quaternion_of_rows` and :func:`rows_of_quaternion` are the only
+quaternion conversions of the project (formulas: plain Python per message in the nodes, compiled
+into the run core's measurement kernel). numpy only (scipy's
 ``Rotation`` for rpy, axis-angle and the logarithm, imported when used): loading a formation file
 or decoding a message never imports the compiled kernels of :mod:`formation_msgs_py.so3`.
 """
@@ -16,6 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from formation_msgs_py.compiled import formula
 from formation_msgs_py.errors import RotationError
 
 FloatArray = NDArray[np.float64]
@@ -63,10 +65,17 @@ def orthonormality_error(R: ArrayLike) -> float:
     return float(np.max(err))
 
 
-def quaternion_from_matrix(R: np.ndarray | Sequence[Sequence[float]]) -> tuple[float, float, float, float]:
-    """(x, y, z, w), w ≥ 0, of a rotation matrix (an array or nested rows; Shepperd's method, pure Python)."""
-    rows: Sequence[Sequence[float]] = R.tolist() if isinstance(R, np.ndarray) else R
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rows
+@formula
+def quaternion_of_rows(rows):
+    """(x, y, z, w), w ≥ 0, of a rotation given as three row tuples (Shepperd's method).
+
+    The one conversion of a rotation to the quaternion a message carries: plain Python where a node
+    encodes a message, compiled into the measurement kernel of the run core, the same operations in
+    the same order (IEEE arithmetic and a correctly rounded square root: the same bits either way).
+    """
+    r00, r01, r02 = rows[0][0], rows[0][1], rows[0][2]
+    r10, r11, r12 = rows[1][0], rows[1][1], rows[1][2]
+    r20, r21, r22 = rows[2][0], rows[2][1], rows[2][2]
     tr = r00 + r11 + r22
     if tr > 0:
         s = 2.0 * math.sqrt(tr + 1.0)
@@ -85,8 +94,31 @@ def quaternion_from_matrix(R: np.ndarray | Sequence[Sequence[float]]) -> tuple[f
     return x, y, z, w
 
 
+@formula
+def rows_of_quaternion(x, y, z, w):
+    """The rotation of a non-zero quaternion (x, y, z, w), normalised first, as three row tuples.
+
+    The one conversion of a received quaternion to the matrix the controller reads: plain Python in
+    an agent's decoder, compiled into the measurement kernel of the run core (see
+    :func:`quaternion_of_rows`).
+    """
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return (
+        (1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)),
+        (2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)),
+        (2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)),
+    )
+
+
+def quaternion_from_matrix(R: np.ndarray | Sequence[Sequence[float]]) -> tuple[float, float, float, float]:
+    """(x, y, z, w), w ≥ 0, of a rotation matrix (an array or nested rows): :func:`quaternion_of_rows`."""
+    rows: Sequence[Sequence[float]] = R.tolist() if isinstance(R, np.ndarray) else R
+    return quaternion_of_rows(rows)
+
+
 def matrix_from_quaternion(x: float, y: float, z: float, w: float) -> list[list[float]]:
-    """Rotation matrix (nested lists) of a quaternion; normalises it.
+    """Rotation matrix (nested lists) of a quaternion; normalises it (:func:`rows_of_quaternion`).
 
     Raises RotationError for a zero or non-finite quaternion (no rotation to give). Messages are
     checked before they get here (formation_agent.measurement_checks: the norm must be 1 to 1e-6).
@@ -94,12 +126,7 @@ def matrix_from_quaternion(x: float, y: float, z: float, w: float) -> list[list[
     n = math.sqrt(x * x + y * y + z * z + w * w)
     if not (n > 1e-12 and math.isfinite(n)):
         raise RotationError(f"quaternion ({x!r}, {y!r}, {z!r}, {w!r}) has no rotation (norm {n!r})")
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
+    return [list(row) for row in rows_of_quaternion(x, y, z, w)]
 
 
 def matrix_from_rpy(rpy: ArrayLike) -> FloatArray:

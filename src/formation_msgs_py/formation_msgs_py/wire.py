@@ -18,6 +18,26 @@ from formation_msgs_py.rotations import matrix_from_quaternion, quaternion_from_
 NS_PER_S = 1_000_000_000
 
 
+def step_stamp_ns(k: int, control_rate: float) -> int:
+    """The stamp of control step ``k`` at ``control_rate`` [Hz]: round(k·10⁹/rate) integer nanoseconds.
+
+    Every message of step k carries it, and it is the step's time for every controller (a lockstep
+    or realtime agent, the simulator's shadow of it, the headless run core): :func:`control_time`.
+    At a rate whose period is not a whole number of nanoseconds (3 kHz) the stamps are the period
+    rounded, step by step, never drifting from k/rate by more than half a nanosecond.
+    """
+    return round(k * NS_PER_S / control_rate)
+
+
+def control_time(ns: int) -> float:
+    """The controller's time [s] of a step stamped ``ns`` (integer nanoseconds): ns / 10⁹, correctly rounded.
+
+    An agent knows the time only from the stamps it receives; every computation that must give its
+    answer (the simulator's witness, the headless run) takes the time from the stamp through this.
+    """
+    return ns / NS_PER_S
+
+
 def stamp_ns(stamp: Any) -> int:
     """A stamp as integer nanoseconds (exact: use it to match steps)."""
     return stamp.sec * NS_PER_S + stamp.nanosec

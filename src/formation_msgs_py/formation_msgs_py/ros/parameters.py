@@ -26,11 +26,13 @@ def declare(
     low: float | None = None,
     high: float | None = None,
     any_type: bool = False,
+    fixed: bool = False,
 ) -> Any:
-    """Declare ``name`` (typed like ``default``, or any type) and return its value (overrides applied)."""
+    """Declare ``name`` (typed like ``default``, or any type) and return its value (overrides applied,
+    except for a ``fixed`` one: a fact the node reports, which no parameters file or command line sets)."""
     desc = ParameterDescriptor(name=name, description=description, read_only=read_only, dynamic_typing=any_type)
     if not any_type:
         desc.type = _TYPES[type(default)]
     if low is not None and high is not None:
         desc.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
-    return node.declare_parameter(name, default, desc).value
+    return node.declare_parameter(name, default, desc, ignore_override=fixed).value

@@ -1,10 +1,12 @@
 """The run core: the closed loop of a whole formation stepped many control steps at a time, compiled.
 
 Per control step k (t_k = k / control_rate) :func:`run_sampled` does what the ROS 2 lockstep run
-does, step for step: the measurements of step k (relative poses with their noise, noisy
-twists), every agent's controller (:func:`formation_sim.core.team.team_step`, with the fault policy),
-the step's ground truth, wrenches and velocity-funnel margins into the recording buffers, every
-funnel checked on ground truth (:func:`check_step`, the :class:`Watch`), then ``substeps``
+does, step for step: the measurements of step k (relative poses with their noise, their rotations
+through the messages' quaternions, noisy twists), every agent's controller at the time an agent
+reads off the step's stamp (:func:`formation_msgs_py.wire.control_time`;
+:func:`formation_sim.core.team.team_step`, with the fault policy), the step's ground truth,
+wrenches and velocity-funnel margins into the recording buffers, every funnel checked on ground
+truth (:func:`check_step`, the :class:`Watch`), then ``substeps``
 physics steps with the wrenches held (zero-order hold); :func:`run_continuous` evaluates the
 controller on every integrator stage instead (the paper's law, sub-stepped to within RK4's
 stability limit: :func:`continuous_substeps`); two kernels, so that a sampled run does not compile
@@ -53,6 +55,7 @@ from formation_msgs_py.judge import (
 )
 from formation_msgs_py.so3 import flat_rows, matrix_rows, vec3
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
+from formation_msgs_py.wire import control_time, step_stamp_ns
 from formation_sim.core.measurement import Sensing, relative_poses
 from formation_sim.core.plant import (
     PlantParams,
@@ -90,7 +93,8 @@ class ClosedLoop(NamedTuple):
     out: np.ndarray  # (N, OUT_COLUMNS) the step's wrenches, margins, levels
     edge_out: np.ndarray  # (n_ends, 6)
     p_rel: np.ndarray  # (n_ends, 3) scratch: the step's measurements
-    R_rel: np.ndarray  # (n_ends, 3, 3)
+    q_rel: np.ndarray  # (n_ends, 4) the messages' quaternions
+    R_rel: np.ndarray  # (n_ends, 3, 3) decoded from them
     in_range: np.ndarray  # (n_ends,) bool
     v_measured: np.ndarray  # (N, 6) scratch: the step's noisy twists
     u: np.ndarray  # (N, 6) scratch: the step's commanded wrenches (columns U of ``out``)
@@ -206,18 +210,18 @@ def check_step(watch, buf, n, t, p, R, out):
 
 
 @formula
-def sense_and_control(loop, t, p, R, v):
-    """The measurements at t (consuming one noise draw) and every agent's answer, into ``loop.out``
-    (and its wrenches into ``loop.u``)."""
+def sense_and_control(loop, t, t_control, p, R, v):
+    """The measurements at plant time t (consuming one noise draw) and every agent's answer at its
+    time ``t_control`` [s], into ``loop.out`` (and its wrenches into ``loop.u``)."""
     if loop.noise.shape[1] == 0:
         draws = loop.noise[0]
     else:
         draws = loop.noise[loop.cursor[0]]
         loop.cursor[0] += 1
-    relative_poses(p, R, loop.sensing, draws, loop.p_rel, loop.R_rel, loop.in_range)
+    relative_poses(p, R, loop.sensing, draws, loop.p_rel, loop.q_rel, loop.R_rel, loop.in_range)
     measured_velocity_into(t, p, R, v, loop.plant.noise, loop.v_measured)
     team_step(
-        t, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured,
+        t_control, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured,
         loop.first_end, loop.agents, loop.ends, loop.start, loop.out, loop.edge_out,
     )  # fmt: skip
     for i in range(loop.u.shape[0]):
@@ -228,14 +232,14 @@ def sense_and_control(loop, t, p, R, v):
 @formula
 def continuous_step(loop, t, p, R, v, h, work):
     """One RKMK4 step (as :func:`formation_sim.core.plant.rkmk4_step`) with the controller at every stage."""
-    sense_and_control(loop, t, p, R, v)
+    sense_and_control(loop, t, t, p, R, v)
     saturate_into(loop.u, loop.plant, work.u)
     body_rates(t, p, R, v, work.u, loop.plant, work.p_dot[0], work.v_dot[0])
     body_chart_rates(v, work)
     for k in range(3):
         c = h if k == 2 else 0.5 * h
         rkmk4_stage(c, p, R, v, k, work)
-        sense_and_control(loop, t + c, work.p, work.R, work.v)
+        sense_and_control(loop, t + c, t + c, work.p, work.R, work.v)
         saturate_into(loop.u, loop.plant, work.u)
         body_rates(t + c, work.p, work.R, work.v, work.u, loop.plant, work.p_dot[k + 1], work.v_dot[k + 1])
         chart_rates(k + 1, work)
@@ -274,10 +278,10 @@ def record_step(buf, n, t, p, R, v, out, in_range):
 
 
 @formula
-def control_step(loop, watch, buf, n, t, p, R, v, first_outside):
-    """Step n of a chunk at t [s]: measurements, controllers, the sample recorded and every funnel
-    checked; returns the chunk's first step outside a funnel so far (−1: none)."""
-    sense_and_control(loop, t, p, R, v)
+def control_step(loop, watch, buf, n, t_plant, t, p, R, v, first_outside):
+    """Step n of a chunk at its time t [s] (the plant's ``t_plant``): measurements, controllers, the
+    sample recorded and every funnel checked; returns the chunk's first step outside a funnel so far (−1: none)."""
+    sense_and_control(loop, t_plant, t, p, R, v)
     record_step(buf, n, t, p, R, v, loop.out, loop.in_range)
     if check_step(watch, buf, n, t, p, R, loop.out) and first_outside < 0:
         return n
@@ -285,9 +289,10 @@ def control_step(loop, watch, buf, n, t, p, R, v, first_outside):
 
 
 @kernel
-def run_sampled(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, stop, buf):
+def run_sampled(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, t_control, substeps, h, stop, buf):
     """Control steps k0 … k_stop − 1, each followed by ``substeps`` RKMK4 steps with its wrenches held
-    (none after step k_last); (p, R, v) in place.
+    (none after step k_last); (p, R, v) in place. ``t_control`` holds every step's time, its stamp's
+    (:func:`chunk_control_times`: the controllers', the record's), the plant's being k / control_rate.
 
     Returns (steps done, event, the chunk's first step outside a funnel or −1): ``EVENT_NON_FINITE``
     when the state is no longer finite; with ``stop`` the chunk ends at its first violation.
@@ -295,7 +300,7 @@ def run_sampled(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, su
     first_outside = -1
     for n in range(k_stop - k0):
         t = (k0 + n) / control_rate
-        first_outside = control_step(loop, watch, buf, n, t, p, R, v, first_outside)
+        first_outside = control_step(loop, watch, buf, n, t, t_control[n], p, R, v, first_outside)
         if k0 + n == k_last or (stop and first_outside >= 0):
             return n + 1, EVENT_NONE, first_outside
         for s in range(substeps):
@@ -306,12 +311,13 @@ def run_sampled(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, su
 
 
 @kernel
-def run_continuous(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, substeps, h, stop, buf):
-    """:func:`run_sampled` with the controller evaluated at every stage of every physics step."""
+def run_continuous(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, t_control, substeps, h, stop, buf):
+    """:func:`run_sampled` with the controller evaluated at every stage of every physics step, at the
+    plant's time (the paper's law: no messages, no stamps; ``t_control`` is not read)."""
     first_outside = -1
     for n in range(k_stop - k0):
         t = (k0 + n) / control_rate
-        first_outside = control_step(loop, watch, buf, n, t, p, R, v, first_outside)
+        first_outside = control_step(loop, watch, buf, n, t, t, p, R, v, first_outside)
         if k0 + n == k_last or (stop and first_outside >= 0):
             return n + 1, EVENT_NONE, first_outside
         for s in range(substeps):
@@ -319,6 +325,12 @@ def run_continuous(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate,
         if not all_finite_state(p, R, v):
             return n + 1, EVENT_NON_FINITE, first_outside
     return k_stop - k0, EVENT_NONE, first_outside
+
+
+def chunk_control_times(k0: int, k_stop: int, control_rate: float) -> np.ndarray:
+    """The controllers' time [s] of steps k0 … k_stop − 1: each step's stamp as an agent reads it
+    (:func:`formation_msgs_py.wire.control_time` of :func:`formation_msgs_py.wire.step_stamp_ns`)."""
+    return np.array([control_time(step_stamp_ns(k, control_rate)) for k in range(k0, k_stop)])
 
 
 def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
@@ -334,6 +346,7 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
         new_funnel_start(n),
         *new_outputs(n, n_ends),
         np.zeros((n_ends, 3)),
+        np.zeros((n_ends, 4)),
         np.zeros((n_ends, 3, 3)),
         np.zeros(n_ends, dtype=np.bool_),
         np.zeros((n, 6)),
@@ -376,7 +389,8 @@ def first_step(spec: FormationSpec) -> np.ndarray:
     s = sim.state
     rate = float(spec.simulation.control_rate)
     run_sampled(
-        loop, new_watch(spec, Judge(spec)), s.p, s.R, s.v, new_workspace(n), 0, 1, 0, rate, 1, 1.0 / rate, False, buf
+        loop, new_watch(spec, Judge(spec)), s.p, s.R, s.v, new_workspace(n), 0, 1, 0, rate,
+        chunk_control_times(0, 1, rate), 1, 1.0 / rate, False, buf,
     )  # fmt: skip
     return loop.start
 
@@ -463,8 +477,10 @@ def run_closed_loop(
     last_report = started
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
+        k_stop = min(k + chunk, n_steps + 1)
+        rate = float(sim_spec.control_rate)
         done, event, j = run_chunk(
-            loop, watch, p, R, v, work, k, min(k + chunk, n_steps + 1), n_steps, float(sim_spec.control_rate),
+            loop, watch, p, R, v, work, k, k_stop, n_steps, rate, chunk_control_times(k, k_stop, rate),
             substeps, h, stop_on_violation, buf,
         )  # fmt: skip
         violation = None

@@ -7,7 +7,11 @@ i's sensing radius::
     R_i_j      = R_iᵀ R_j
 
 optionally with seeded Gaussian noise (position_std [m] per axis; rotation_std [rad], a
-rotation vector applied on the right) of the receiving agent.
+rotation vector applied on the right) of the receiving agent. The rotation travels as the
+quaternion of the message (:func:`formation_msgs_py.rotations.quaternion_of_rows`), and what a
+controller reads is the matrix an agent decodes from it
+(:func:`formation_msgs_py.rotations.rows_of_quaternion`): the model gives both, so that every run
+(headless, lockstep, the simulator's witness) computes on the values an agent receives.
 
 Measurements are indexed by *edge end* (agent i's view of one of its edges, grouped by agent in
 the order of ``agent_view(spec, i).edges``), the order the controller kernels read. The noise is
@@ -22,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from formation_msgs_py.compiled import formula, kernel
+from formation_msgs_py.rotations import quaternion_of_rows, rows_of_quaternion
 from formation_msgs_py.so3 import add3, exp_rows, matmul3, matrix_rows, matTvec3, scale3, set3x3, transpose3, vec3
 from formation_msgs_py.spec import SimulatorView
 
@@ -77,9 +82,11 @@ def measurement_ends(view: SimulatorView) -> Ends:
 
 
 @formula
-def measure_end(p, R, sens, noise, k, p_rel, R_rel):
-    """Edge end k's relative pose into ``p_rel`` (3,), ``R_rel`` (3,3), with the observer's noise if
-    ``noise`` holds any; True if its target is within the observer's sensing radius."""
+def measure_end(p, R, sens, noise, k, p_rel, q_rel, R_rel):
+    """Edge end k's relative pose, with the observer's noise if ``noise`` holds any: the position
+    into ``p_rel`` (3,), the quaternion (x, y, z, w) of the message into ``q_rel`` (4,) and the
+    matrix decoded from it into ``R_rel`` (3,3); True if its target is within the observer's
+    sensing radius."""
     i, j = sens.observer[k], sens.target[k]
     d_world = (p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2])
     R_world_i = matrix_rows(R[i])
@@ -89,20 +96,24 @@ def measure_end(p, R, sens, noise, k, p_rel, R_rel):
         lk, s = sens.link[k], sens.rotation_std[k]
         p_i_j_in_i = add3(p_i_j_in_i, scale3(sens.position_std[k], vec3(noise[0, lk])))
         R_i_j = matmul3(R_i_j, exp_rows(scale3(s, vec3(noise[1, lk]))))
+    q = quaternion_of_rows(R_i_j)
     for x in range(3):
         p_rel[x] = p_i_j_in_i[x]
-    set3x3(R_rel, R_i_j)
+    for x in range(4):
+        q_rel[x] = q[x]
+    set3x3(R_rel, rows_of_quaternion(q[0], q[1], q[2], q[3]))
     return d_world[0] * d_world[0] + d_world[1] * d_world[1] + d_world[2] * d_world[2] <= sens.radius2[k]
 
 
 @kernel
-def relative_poses(p, R, sens, noise, p_rel, R_rel, in_range):
-    """Fill p_rel (n_ends,3), R_rel (n_ends,3,3), in_range (n_ends,) from world poses p (N,3), R (N,3,3).
+def relative_poses(p, R, sens, noise, p_rel, q_rel, R_rel, in_range):
+    """Fill p_rel (n_ends,3), q_rel (n_ends,4), R_rel (n_ends,3,3), in_range (n_ends,) from world
+    poses p (N,3), R (N,3,3) (:func:`measure_end`).
 
     ``noise`` is (2, n_links, 3) standard normal draws (position, rotation) or empty (no noise).
     """
     for k in range(sens.observer.shape[0]):
-        in_range[k] = measure_end(p, R, sens, noise, k, p_rel[k], R_rel[k])
+        in_range[k] = measure_end(p, R, sens, noise, k, p_rel[k], q_rel[k], R_rel[k])
 
 
 class MeasurementModel:
@@ -116,6 +127,7 @@ class MeasurementModel:
         self.rng = rng
         n = len(self.sensing.observer)
         self.p_rel = np.zeros((n, 3))
+        self.q_rel = np.zeros((n, 4))
         self.R_rel = np.zeros((n, 3, 3))
         self.in_range = np.zeros(n, dtype=np.bool_)
 
@@ -125,9 +137,10 @@ class MeasurementModel:
             return np.zeros((count, 0, 0, 3))
         return self.rng.standard_normal((count, 2, self.n_links, 3))
 
-    def measure(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(p_rel (n_ends,3) [m, observer's frame], R_rel (n_ends,3,3), in_range (n_ends,)) by edge end
-        (:attr:`ends`), from world poses p (N,3), R (N,3,3); new arrays at every call. Every end is
-        computed; an observer receives only the ends in range."""
-        relative_poses(p, R, self.sensing, self.draw_noise(1)[0], self.p_rel, self.R_rel, self.in_range)
-        return self.p_rel.copy(), self.R_rel.copy(), self.in_range.copy()
+    def measure(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(p_rel (n_ends,3) [m, observer's frame], q_rel (n_ends,4) the messages' quaternions (x, y, z, w),
+        R_rel (n_ends,3,3) decoded from them, in_range (n_ends,)) by edge end (:attr:`ends`), from world
+        poses p (N,3), R (N,3,3); new arrays at every call. Every end is computed; an observer receives
+        only the ends in range."""
+        relative_poses(p, R, self.sensing, self.draw_noise(1)[0], self.p_rel, self.q_rel, self.R_rel, self.in_range)
+        return self.p_rel.copy(), self.q_rel.copy(), self.R_rel.copy(), self.in_range.copy()

@@ -92,15 +92,20 @@ class RunRecorder:
         b.margin_v[k] = np.inf if margin_v is None else margin_v
         b.n = k + 1
 
-    def set_inputs(self, u: np.ndarray) -> None:
-        """Wrenches (N,6) applied from the sample added last (which was added with ``u=None``).
+    def set_inputs(self, u: np.ndarray, margin_v: np.ndarray | None = None) -> None:
+        """Wrenches (N,6) applied from the sample added last (which was added with ``u=None``), and
+        the agents' velocity margins (N,6) of that step if they were not known then.
 
-        Lets a simulator check the funnels of step k while the agents compute, then record u_k.
+        Lets a simulator queue step k while the agents compute, then record what they answered.
         """
         b = self._batch
         if b.n > 0:
             b.u[b.n - 1] = u
+            if margin_v is not None:
+                b.margin_v[b.n - 1] = margin_v
             return
+        if margin_v is not None:
+            raise RuntimeError("RunRecorder.set_inputs: the sample was checked before its velocity margins came")
         if self.judge.samples == 0:
             raise RuntimeError("RunRecorder.set_inputs: no sample added yet")
         # a result was read since that sample was added, so it is checked already: complete it in place

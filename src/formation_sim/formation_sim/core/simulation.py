@@ -9,13 +9,12 @@ with the wrenches held (zero-order hold) and moves to t_{k+1}. The run core
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from formation_msgs_py.spec import SimulatorView
+from formation_msgs_py.wire import control_time, step_stamp_ns
 from formation_sim.core.measurement import Ends, MeasurementModel, RelativePoses, relative_poses
 from formation_sim.core.plant import Plant, PlantState
 
@@ -23,12 +22,20 @@ from formation_sim.core.plant import Plant, PlantState
 @dataclass(frozen=True)
 class Measurements:
     """Everything the agents receive at one step, by edge end (:class:`Ends`, the controllers'
-    order): relative poses p_rel (n_ends,3) [m, observer's frame] and R_rel (n_ends,3,3), which
-    ends are in range (only those are received), and the noisy body twists (N,6)."""
+    order): relative poses p_rel (n_ends,3) [m, observer's frame], the messages' quaternions q_rel
+    (n_ends,4) (x, y, z, w) and the matrices R_rel (n_ends,3,3) an agent decodes from them, which
+    ends are in range (only those are received), and the noisy body twists (N,6).
+
+    ``ns`` is the step's stamp (:func:`formation_msgs_py.wire.step_stamp_ns`) and ``t`` its time
+    [s] (:func:`formation_msgs_py.wire.control_time`): the time every agent, record and analysis gives
+    the step (the plant integrates from k / control_rate, within half a nanosecond of it).
+    """
 
     t: float
     step: int
+    ns: int
     p_rel: np.ndarray
+    q_rel: np.ndarray
     R_rel: np.ndarray
     in_range: np.ndarray
     velocities: np.ndarray
@@ -43,19 +50,10 @@ class Measurements:
                 out[i][j] = (self.p_rel[k], self.R_rel[k])
         return out
 
-    @classmethod
-    def from_poses(
-        cls, t: float, step: int, poses: Mapping[str, Mapping[str, Any]], velocities: Any, ends: Ends
-    ) -> Measurements:
-        """The measurements of ``poses`` ({agent_id: {neighbour_id: (p, R)}}, the ends received)."""
-        n = len(ends.observer)
-        p_rel, R_rel, in_range = np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros(n, dtype=np.bool_)
-        for k, (i, j) in enumerate(zip(ends.observer, ends.target)):
-            pose = poses.get(i, {}).get(j)
-            if pose is not None:
-                p_rel[k], R_rel[k] = pose
-                in_range[k] = True
-        return cls(t, step, p_rel, R_rel, in_range, np.asarray(velocities, dtype=np.float64), ends)
+    def received(self, ns: int, p_rel: np.ndarray, R_rel: np.ndarray, velocities: np.ndarray) -> Measurements:
+        """These measurements as received: stamped ``ns``, with the relative poses and twists decoded
+        from the messages (the quaternions stay the ones sent)."""
+        return replace(self, ns=ns, t=control_time(ns), p_rel=p_rel, R_rel=R_rel, velocities=velocities)
 
 
 class Simulation:
@@ -106,22 +104,29 @@ class Simulation:
         self.plant.measured_velocity(0.0, s)
         m = self.sensors
         relative_poses(s.p, s.R, m.sensing, np.zeros((0, 0, 3)) if not m.noisy else np.zeros((2, m.n_links, 3)),
-                       m.p_rel.copy(), m.R_rel.copy(), m.in_range.copy())  # fmt: skip
+                       m.p_rel.copy(), m.q_rel.copy(), m.R_rel.copy(), m.in_range.copy())  # fmt: skip
 
     @property
     def t(self) -> float:
-        """Simulation time of the current step (s); exact multiple of the control period."""
+        """The current step's time [s]: its stamp's (:func:`formation_msgs_py.wire.control_time`)."""
+        return control_time(step_stamp_ns(self.step_index, self.control_rate))
+
+    @property
+    def plant_time(self) -> float:
+        """The plant's time of the current step [s]: k / control_rate (disturbances, noise, integration)."""
         return self.step_index / self.control_rate
 
     def sense(self) -> Measurements:
         s = self.state
-        p_rel, R_rel, in_range = self.sensors.measure(s.p, s.R)
-        v = self.plant.measured_velocity(self.t, s)
-        return Measurements(self.t, self.step_index, p_rel, R_rel, in_range, v, self.sensors.ends)
+        p_rel, q_rel, R_rel, in_range = self.sensors.measure(s.p, s.R)
+        v = self.plant.measured_velocity(self.plant_time, s)
+        ns = step_stamp_ns(self.step_index, self.control_rate)
+        ends = self.sensors.ends
+        return Measurements(control_time(ns), self.step_index, ns, p_rel, q_rel, R_rel, in_range, v, ends)
 
     def advance(self, wrench: np.ndarray) -> None:
         """Integrate one control period with ``wrench`` (N,6) held (zero-order hold)."""
-        t0 = self.t
+        t0 = self.plant_time
         for i in range(self.substeps):
             self.state = self.plant.step(t0 + i * self.h, self.state, wrench, self.h)
         self.step_index += 1

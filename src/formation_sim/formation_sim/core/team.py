@@ -13,18 +13,22 @@ funnel) is a ``controller`` fault (:func:`note_errors`), counted per agent and s
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from formation_agent.controller import (
     AGENT_COLUMNS,
+    DELTA,
     END_COLUMNS,
     ERROR,
+    GAMMA,
     LEVEL,
     MARGIN_V,
     REASON,
     REASON_MESSAGES,
     REASON_MISSING,
+    T0,
     U,
     agent_step,
     fault_wrench,
@@ -32,7 +36,8 @@ from formation_agent.controller import (
     new_funnel_start,
     new_outputs,
 )
-from formation_msgs_py.compiled import kernel
+from formation_agent.roundoff import answer_bounds, tolerance
+from formation_msgs_py.compiled import CODE_FORM, in_code_form, kernel
 from formation_msgs_py.spec import FormationSpec, agent_view
 from formation_sim.core.measurement import Ends
 from formation_sim.core.recorder import RunRecorder
@@ -99,7 +104,15 @@ def note_errors(recorder: RunRecorder, t: float, agent_ids: Sequence[str], error
 
 
 class AgentTeam:
-    """Every agent's controller of ``spec``, in formation-file order."""
+    """Every agent's controller of ``spec``, in formation-file order, stepped as each agent's own
+    process steps it: :func:`formation_agent.controller.agent_step` in the agent's code form
+    (compiled or interpreted: :meth:`set_form`), with the gains the agent uses (:meth:`set_gains`),
+    at the agent's time (the step's stamp) on the values the agent decodes.
+
+    With the same inputs, form and numeric platform as the agent, its answer is the agent's to the
+    bit; for an agent on another platform :meth:`bound` gives how far a correct answer may be off
+    (:mod:`formation_agent.roundoff`).
+    """
 
     def __init__(self, spec: FormationSpec) -> None:
         self.ids = spec.agent_ids
@@ -108,30 +121,76 @@ class AgentTeam:
         self.end_neighbours = [ie.neighbour for v in views for ie in v.edges]
         self._pairs = [(v.agent_id, ie.neighbour) for v in views for ie in v.edges]
         self._checked: Ends | None = None
-        self.start = new_funnel_start(len(self.ids))
-        n = len(self.end_neighbours)
-        self.out, self.edge_out = new_outputs(len(self.ids), n)
+        n_agents, n = len(self.ids), len(self.end_neighbours)
+        self.start = new_funnel_start(n_agents)
+        self.out, self.edge_out = new_outputs(n_agents, n)
+        self.forms = [CODE_FORM] * n_agents
+        self._step = [agent_step] * n_agents
+        #: whether each agent's velocity funnel started at the step evaluated last
+        self.started_now = [False] * n_agents
+        #: the round-off state of every agent (formation_agent.roundoff)
+        self.rho_v0_bound = np.full((n_agents, 6), np.nan)
+        self._work = np.zeros((4, 6))
+        self._bound_out, self._bound_edge = new_outputs(n_agents, n)
         # load (or compile) the kernels now, on scratch outputs: not at a realtime run's first step
-        p, R, v = np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros((len(self.ids), 6))
+        p, R, v = np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros((n_agents, 6))
         everyone = np.ones(n, dtype=np.bool_)  # every agent steps (a missing pose would skip agent_step)
-        scratch = (new_funnel_start(len(self.ids)), *new_outputs(len(self.ids), n))
+        scratch = (new_funnel_start(n_agents), *new_outputs(n_agents, n))
         team_step(0.0, p, R, everyone, v, self.first_end, self.agents, self.ends, *scratch)
+        lo, hi = int(self.first_end[0]), int(self.first_end[1])
+        agent_step(0.0, 0, lo, hi, p, R, v[0], self.agents, self.ends, *scratch)
+        answer_bounds(0.0, 0, lo, hi, p, R, v[0], self.agents, self.ends, scratch[0], scratch[1],
+                      np.full((n_agents, 6), np.nan), self._work, *new_outputs(n_agents, n))  # fmt: skip
 
-    def evaluate(
-        self, meas: Measurements, recorder: RunRecorder | None
-    ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
-        """(u (N,6), margin_v (N,6), errors) at ``meas.t``; ``errors`` lists (agent index, reason) of
-        the agents at ERROR for their controller (:meth:`note_errors` records them). With a recorder,
-        the agents missing a pose are recorded now (``measurement`` faults)."""
+    def set_form(self, i: int, form: str) -> bool:
+        """Step agent i in code ``form`` from now on; False (nothing changes) where this process
+        cannot run it (compiled code in an interpreted process)."""
+        step = in_code_form(agent_step, form)
+        if step is None:
+            return False
+        self.forms[i], self._step[i] = form, step
+        return True
+
+    def gains_of(self, i: int) -> tuple[float, float]:
+        """Agent i's gains (δ_i, γ_i) as the team steps it."""
+        return float(self.agents[i, DELTA]), float(self.agents[i, GAMMA])
+
+    def set_gains(self, i: int, delta: float, gamma: float) -> None:
+        """Step agent i with gains δ_i, γ_i from the next evaluation on (its funnel start is kept, as
+        an agent keeps it)."""
+        self.agents[i, DELTA], self.agents[i, GAMMA] = delta, gamma
+
+    def _check_order(self, meas: Measurements) -> None:
         if meas.ends is not self._checked:  # the measurements' end order must be the kernels'
             if list(zip(meas.ends.observer, meas.ends.target)) != self._pairs:
                 raise ValueError("measurements by edge end in another order than the team's controllers")
             self._checked = meas.ends
-        out, in_range = self.out, meas.in_range
-        team_step(
-            meas.t, meas.p_rel, meas.R_rel, in_range, meas.velocities,
-            self.first_end, self.agents, self.ends, self.start, out, self.edge_out,
+
+    def step(self, i: int, meas: Measurements, agents: np.ndarray | None = None) -> None:
+        """Agent i's step on ``meas`` (at its its time ``meas.t``, the stamp's) into row i of :attr:`out`
+        and its ends of :attr:`edge_out`: the fault wrench when one of its poses is missing.
+        ``agents`` replaces the gains of every agent (a trial of other gains)."""
+        lo, hi = int(self.first_end[i]), int(self.first_end[i + 1])
+        if not meas.in_range[lo:hi].all():
+            fault_wrench(i, lo, hi, REASON_MISSING, self.out, self.edge_out)
+            return
+        self._step[i](
+            meas.t, i, lo, hi, meas.p_rel, meas.R_rel, meas.velocities[i],
+            self.agents if agents is None else agents, self.ends, self.start, self.out, self.edge_out,
         )  # fmt: skip
+
+    def evaluate(
+        self, meas: Measurements, recorder: RunRecorder | None
+    ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
+        """(u (N,6), margin_v (N,6), errors) at ``meas.t``; ``errors`` lists (agent index,
+        reason) of the agents at ERROR for their controller (:meth:`note_errors` records them). With a
+        recorder, the agents missing a pose are recorded now (``measurement`` faults)."""
+        self._check_order(meas)
+        out, in_range = self.out, meas.in_range
+        for i in range(len(self.ids)):
+            self.started_now[i] = bool(np.isnan(self.start[i, T0]))
+            self.step(i, meas)
+            self.started_now[i] = self.started_now[i] and not np.isnan(self.start[i, T0])
         errors: list[tuple[int, str]] = []
         if not in_range.all() or out[:, LEVEL].max() == ERROR:
             missing, errors = step_faults(self.first_end, self.end_neighbours, in_range, out[:, LEVEL], out[:, REASON])
@@ -139,6 +198,75 @@ class AgentTeam:
                 note_missing(recorder, meas.t, self.ids, missing)
         return out[:, U : U + 6].copy(), out[:, MARGIN_V : MARGIN_V + 6].copy(), errors
 
+    def errors(self, meas: Measurements) -> list[tuple[int, str]]:
+        """(agent index, reason) of every agent at ERROR for its controller at ``meas``, the step
+        evaluated last (the agents missing a pose are :meth:`evaluate`'s ``measurement`` faults)."""
+        out = self.out
+        return step_faults(self.first_end, self.end_neighbours, meas.in_range, out[:, LEVEL], out[:, REASON])[1]
+
+    def bound(self, i: int, meas: Measurements, trial: Trial | None = None) -> np.ndarray:
+        """How far a correct answer of agent i to ``meas`` may be from the team's, per wrench component
+        [N, N·m] (after :meth:`evaluate`; of a :meth:`trial`'s answer if given):
+        :func:`formation_agent.roundoff.tolerance` of the step's round-off bound; zeros for the fault
+        wrench (exact on every platform)."""
+        lo, hi = int(self.first_end[i]), int(self.first_end[i + 1])
+        if not meas.in_range[lo:hi].all():
+            return np.zeros(6)
+        agents, out, start = self.agents, self.out, self.start
+        if trial is not None:
+            agents, out, start = self.agents.copy(), self.out.copy(), self.start.copy()
+            agents[i, DELTA], agents[i, GAMMA] = trial.delta, trial.gamma
+            out[i], start[i] = trial.out, trial.start
+        answer_bounds(
+            meas.t, i, lo, hi, meas.p_rel, meas.R_rel, meas.velocities[i], agents, self.ends,
+            start, out, self.rho_v0_bound, self._work, self._bound_out, self._bound_edge,
+        )  # fmt: skip
+        return np.asarray(tolerance(self._bound_out[i, U : U + 6]))
+
+    def trial(self, i: int, meas: Measurements, delta: float, gamma: float) -> Trial:
+        """Agent i's answer to ``meas`` with gains δ, γ instead of its own (after :meth:`evaluate`),
+        leaving the team as it was; :meth:`adopt` makes it the agent's."""
+        agents = self.agents.copy()
+        agents[i, DELTA], agents[i, GAMMA] = delta, gamma
+        keep = (self.out[i].copy(), self.edge_out.copy(), self.start[i].copy())
+        if self.started_now[i]:
+            self.start[i] = np.nan  # the funnel starts at this step: from the trial's own e_v(0)
+        self.step(i, meas, agents)
+        trial = Trial(i, delta, gamma, self.out[i].copy(), self.edge_out.copy(), self.start[i].copy())
+        self.out[i], self.edge_out[:], self.start[i] = keep
+        return trial
+
+    def adopt(self, trial: Trial) -> None:
+        """Agent ``trial.i`` uses the trial's gains: from its step on, its outputs and funnel start are the trial's."""
+        i = trial.i
+        lo, hi = int(self.first_end[i]), int(self.first_end[i + 1])
+        self.set_gains(i, trial.delta, trial.gamma)
+        self.out[i] = trial.out
+        self.edge_out[lo:hi] = trial.edge_out[lo:hi]
+        self.start[i] = trial.start
+
     def note_errors(self, t: float, errors: Sequence[tuple[int, str]], recorder: RunRecorder) -> None:
         """Record :meth:`evaluate`'s ``errors`` (``controller`` faults)."""
         note_errors(recorder, t, self.ids, errors)
+
+
+@dataclass(frozen=True)
+class Trial:
+    """Agent i's outputs at one step with gains δ, γ (:meth:`AgentTeam.trial`)."""
+
+    i: int
+    delta: float
+    gamma: float
+    out: np.ndarray
+    edge_out: np.ndarray
+    start: np.ndarray
+
+    @property
+    def u(self) -> np.ndarray:
+        """The wrench (6,) [N, N·m], body frame."""
+        return self.out[U : U + 6]
+
+    @property
+    def margin_v(self) -> np.ndarray:
+        """The velocity-funnel margins (6,)."""
+        return self.out[MARGIN_V : MARGIN_V + 6]

@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from formation_msgs_py.wire import step_stamp_ns
+
 NON_FINITE, OVER_LIMIT, UNKNOWN_STEP, FUTURE_STEP, PAST_STEP, MALFORMED = (
     "non_finite",
     "over_limit",
@@ -66,7 +68,7 @@ class WrenchCheck:
     def step_of(self, ns: int) -> int | None:
         """The step k whose stamp is ``ns``, or None if ``ns`` is no step's stamp."""
         k = round(ns * self.control_rate / _NS)
-        return k if round(k * _NS / self.control_rate) == ns else None
+        return k if step_stamp_ns(k, self.control_rate) == ns else None
 
     def check(self, i: int, ns: int, u: Sequence[float], current_ns: int) -> WrenchRefusal | None:
         """Why agent i's wrench ``u`` stamped ``ns`` is refused (None: accepted).

@@ -11,9 +11,11 @@ ROS-free policy of :mod:`formation_sim.node.stepping`; this module is the thin n
   answered within ``--resend`` wall seconds are published again to the missing agents; an agent
   silent for ``simulation.step_timeout`` wall seconds gets a last resend and, still silent
   ``stepping.LAST_CALL`` s later, is named: INCOMPLETE, exit 3. Every answer must agree with the
-  witness (``stepping.AnswerWitness``: the shadow controllers' wrench on the published
-  measurements); one that differs is counted (``answer_mismatch``), not applied, and the step is
-  re-sent. A live change of an agent's gains (``/parameter_events``) stops the witness for it.
+  witness (:mod:`formation_sim.node.witness`: the agent's controller run here on the bytes it was
+  sent, decoded as it decodes them, at its time, in its code form, with its gains, which the node
+  reads from every agent's parameters before the first step and follows on ``/parameter_events``);
+  one that differs is counted (``answer_mismatch``), not applied, and the step is re-sent; the same
+  refused answer to the resend names the agent: INCOMPLETE, exit 5.
 - **realtime**: ticks at the control rate on the wall clock; each tick integrates the previous
   period with the latest wrench of each agent held (zero-order hold), then publishes the new
   measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by
@@ -39,6 +41,7 @@ INCOMPLETE (exit 4). ``--wait-recorder``: wait before the first step until a rec
 from __future__ import annotations
 
 import functools
+import math
 import struct
 import sys
 import time
@@ -50,16 +53,17 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, TwistStamped, WrenchStamped
-from rcl_interfaces.msg import ParameterEvent
+from rcl_interfaces.msg import ParameterEvent, ParameterType
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
+from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import qos_profile_parameter_events
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
-from formation_agent.agent_node import LIVE_GAINS
+from formation_agent.agent_node import CODE_FORM_PARAMETER, LIVE_GAINS, PLATFORM_PARAMETER
 from formation_agent.kernel_cache import warm_up
 from formation_msgs_py import topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, ros_type_name
@@ -72,12 +76,12 @@ from formation_msgs_py.ros import conversions, qos, stopping
 from formation_msgs_py.ros.graph_watch import GraphWatch
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
+from formation_msgs_py.wire import step_stamp_ns
 from formation_sim.core import wrench_checks
 from formation_sim.core.measurement import measurement_ends
 from formation_sim.core.preflight import Prepared
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Measurements, Simulation
-from formation_sim.core.team import AgentTeam
 from formation_sim.node.display import DEFAULT_MARKER_RATE, DisplayPublisher, declare_simulator_parameters
 from formation_sim.node.run_bag import VIEW_FILE, RunBag
 from formation_sim.node.sim_options import sim_preflight
@@ -87,15 +91,16 @@ from formation_sim.node.stepping import (
     MISMATCH,
     NS,
     ZERO_WRENCH,
-    AnswerWitness,
     CommandHold,
     LagBudget,
     LockstepWait,
     ParticipantMissingError,
     WrenchBook,
+    WrongAnswerError,
     admit,
 )
 from formation_sim.node.timing import Timing
+from formation_sim.node.witness import FROM_LIVE_CHANGE, AgentReport, Witness
 from formation_sim.views.live_view import SUBPROTOCOL, LiveView, LiveViewError
 from formation_sim.views.outputs import format_summary, write_outputs
 
@@ -173,9 +178,16 @@ class SimNode(Node):
         for k, (obs, tgt) in enumerate(zip(ends.observer, ends.target)):
             self.agent_ends[self.ids.index(obs)].append((k, *self.links[(obs, tgt)]))
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
+        #: the bytes of the current step's relative pose of every edge end, and velocity of every agent
+        self.sent_poses: list[bytes] = [b""] * len(ends.observer)
+        self.sent_velocities: list[bytes] = [b""] * n
         self.wrenches = WrenchBook(n)
-        # lockstep: every answer is compared with the shadow controllers' wrench (the witness)
-        self.witness = AnswerWitness(self.ids) if spec.simulation.mode == "lockstep" else None
+        # the shadow of every agent; in lockstep also the witness every answer must agree with
+        self.shadow = Witness(spec, judging=spec.simulation.mode == "lockstep")
+        self.witness = self.shadow.answers if self.shadow.judging else None
+        #: agents whose gains are being read (AsyncParameterClient futures)
+        self.reading: dict[int, Any] = {}
+        self.parameter_clients = [AsyncParameterClient(self, topics.agent_node(a)) for a in self.ids]
         self.wrench_check = wrench_checks.WrenchCheck(
             [a.dynamics.max_force for a in spec.agents],
             [a.dynamics.max_torque for a in spec.agents],
@@ -193,11 +205,11 @@ class SimNode(Node):
             )
             for i, a in enumerate(self.ids)
         ]
-        if self.witness is not None:  # the agents' live gains: the witness cannot follow them
-            self.agent_nodes = {topics.agent_node(a): i for i, a in enumerate(self.ids)}
-            self.parameter_events_sub = self.create_subscription(
-                ParameterEvent, "/parameter_events", self._on_parameter_event, qos_profile_parameter_events
-            )
+        # the agents' live gains: the shadow follows them
+        self.agent_nodes = {topics.agent_node(a): i for i, a in enumerate(self.ids)}
+        self.parameter_events_sub = self.create_subscription(
+            ParameterEvent, "/parameter_events", self._on_parameter_event, qos_profile_parameter_events
+        )
         # every topic of the formation: intruders are reported (and counted in summary.json) here
         self.wrench_topics = ["/" + topics.wrench(a) for a in self.ids]
         self.watch = GraphWatch(
@@ -262,9 +274,11 @@ class SimNode(Node):
                 return  # no stamp, no values
         admission = admit(i, ns, u, kind, self.wrenches, self.witness)
         if admission.action == APPLY:
+            if admission.new_gains:
+                self.shadow.adopted.add(i)
             self._answer(i, ns, admission.u)
         elif admission.action == MISMATCH:
-            self._mismatch(i, ns, admission.u, admission.difference)
+            self._mismatch(i, ns, admission)
         elif admission.action == DUPLICATE:
             self.timing.duplicates += 1
 
@@ -274,51 +288,103 @@ class SimNode(Node):
             if sent is not None:
                 self.timing.latencies.append(time.monotonic() - sent)
 
-    def _mismatch(self, i: int, ns: int, u: tuple[float, ...], difference: float) -> None:
-        """Agent i's answer ``u`` to step ``ns`` differs from the witness by ``difference``: counted, not applied."""
-        w = self.witness.expected[i]  # type: ignore[union-attr]  # only called with a witness
+    def _mismatch(self, i: int, ns: int, admission: Any) -> None:
+        """Agent i's answer to step ``ns`` differs from the witness beyond its tolerance: counted, not
+        applied; its gains are read again (a change the events have not brought yet)."""
+        u, difference, tol = admission.u, admission.difference, admission.tolerance
+        w = self.witness.expected[i].u  # type: ignore[union-attr]  # only called with a witness
         zero = " (a zero wrench: the agent lacked a measurement?)" if not any(u) else ""
-        detail = f"step t={ns / NS:.6f} s: max |u - witness| {difference:.3g}{zero}"
+        allowed = "0 (bit for bit)" if tol == 0 else f"{tol:.3g} (round-off bound)"
+        detail = f"step t={ns / NS:.6f} s: max |u - witness| {difference:.3g}, allowed {allowed}{zero}"
         if self.faults.add(ns / NS, self.ids[i], ANSWER_MISMATCH, detail):
             print(
                 f"formation-sim: agent {self.ids[i]}: answer not applied ({ANSWER_MISMATCH}): {detail}; "
                 f"answer {_fmt6(u)}, witness {_fmt6(w)}",
                 flush=True,
             )
+        self.read_gains(i)
+
+    def read_gains(self, i: int) -> None:
+        """Ask agent i for its gains (its parameter services), unless a request is out already."""
+        if i in self.reading:
+            return
+        client = self.parameter_clients[i]
+        if client.services_are_ready():
+            self.reading[i] = client.get_parameters(list(LIVE_GAINS))
+            self.reading[i].add_done_callback(functools.partial(self._gains_read, i))
+
+    def _gains_read(self, i: int, future: Any) -> None:
+        self.reading.pop(i, None)
+        values = _parameter_values(future, list(LIVE_GAINS))
+        self._gains_changed(i, values, "parameters (read again after a refused answer)")
 
     def _on_parameter_event(self, event: ParameterEvent) -> None:
-        """An agent's live gain changed (its ``delta``/``gamma``): the witness stops for that agent."""
+        """An agent's gains changed (its ``delta``/``gamma``, live): the shadow follows."""
         i = self.agent_nodes.get(event.node)
-        witness = self.witness
-        if i is None or witness is None or not witness.watches(i):
+        if i is None:
             return
-        names = sorted({p.name for p in event.changed_parameters if p.name in LIVE_GAINS})
-        if not names:
-            return
+        values = {
+            p.name: _parameter_value(p.value)
+            for p in [*event.new_parameters, *event.changed_parameters]
+            if p.name in LIVE_GAINS
+        }
+        if values:
+            self._gains_changed(i, values, FROM_LIVE_CHANGE)
+
+    def _gains_changed(self, i: int, values: dict[str, Any], source: str) -> None:
+        """Agent i reported δ and/or γ (``values``): the shadow follows, and an answer it refused
+        that agrees with the new gains is applied now."""
+        delta, gamma = (v if isinstance(v, float) else None for v in (values.get("delta"), values.get("gamma")))
         t = max(self.current_ns, 0) / NS
-        why = f"live parameter(s) {', '.join(names)} of {event.node} changed"
-        held = witness.stop(i, t, why)
-        print(f"formation-sim: agent {self.ids[i]}: witness stopped from t={t:.6f} s: {why}", flush=True)
+        before = self.shadow.gains_of(i)
+        held = self.shadow.gains_changed(i, delta, gamma, t, source)
+        after = self.shadow.gains_of(i)
+        if after != before:
+            print(f"formation-sim: agent {self.ids[i]}: δ={after[0]:g}, γ={after[1]:g} from t={t:.6f} s ({source})")
         if held is not None:
-            self._answer(i, witness.ns, held)
+            self._answer(i, self.witness.ns, held)  # type: ignore[union-attr]  # judging: there is one
 
     # publishing ------------------------------------------------------------------------------
     def publish_step(self, meas: Measurements, ns: int, only: list[int] | None = None) -> None:
-        """Relative poses (pairs in range) and velocities of one step, stamped ``ns``; the bag gets
-        them once all are out (RunBag.held: the last agent's leave ~50 µs sooner)."""
-        p_rel, R_rel, in_range = meas.p_rel.tolist(), meas.R_rel.tolist(), meas.in_range.tolist()
-        vel = meas.velocities.tolist()
-        values = conversions.relative_pose_values
+        """Relative poses (pairs in range) and velocities of one step, stamped ``ns`` (``only``: the
+        step's bytes again to those agents); the bag gets them once all are out (RunBag.held: the last
+        agent's leave ~50 µs sooner)."""
+        if only is None:
+            self._encode(meas, ns)
+        in_range = meas.in_range.tolist()
+        poses, velocities = self.sent_poses, self.sent_velocities
         with nullcontext() if self.bag is None else self.bag.held():
             for i, ends in enumerate(self.agent_ends):
                 if only is not None and i not in only:
                     continue
-                for k, pub, codec in ends:
+                for k, pub, _ in ends:
                     if in_range[k]:
-                        pub.publish(codec.encode(ns, values(p_rel[k], R_rel[k])))
+                        pub.publish(poses[k])
                 # its velocity after its poses: an agent computes when its velocity is in, and the
                 # first agents compute while the simulator publishes for the others
-                self.vel_pubs[i].publish(self.vel_codecs[i].encode(ns, vel[i]))
+                self.vel_pubs[i].publish(velocities[i])
+
+    def _encode(self, meas: Measurements, ns: int) -> None:
+        """The CDR bytes of every message of a step: position and quaternion as the measurement model gives them."""
+        p_rel, q_rel, vel = meas.p_rel.tolist(), meas.q_rel.tolist(), meas.velocities.tolist()
+        for ends in self.agent_ends:
+            for k, _, codec in ends:
+                self.sent_poses[k] = codec.encode(ns, (*p_rel[k], *q_rel[k]))
+        for i, codec in enumerate(self.vel_codecs):
+            self.sent_velocities[i] = codec.encode(ns, vel[i])
+
+    def decoded(self, meas: Measurements) -> Measurements:
+        """What the agents decode from the step's bytes, with their own decoders (formation_msgs_py.wire):
+        the stamp, the relative poses of the ends in range and the twists."""
+        p_rel, R_rel = meas.p_rel.copy(), meas.R_rel.copy()
+        in_range = meas.in_range.tolist()
+        from_values = conversions.relative_pose_from_values
+        for ends in self.agent_ends:
+            for k, _, codec in ends:
+                if in_range[k]:
+                    p_rel[k], R_rel[k] = from_values(codec.decode(self.sent_poses[k])[1])
+        twists = [codec.decode(data) for codec, data in zip(self.vel_codecs, self.sent_velocities)]
+        return meas.received(twists[0][0], p_rel, R_rel, np.array([v for _, v in twists]))
 
     def publish_clock(self, ns: int) -> None:
         self.clock_pub.publish(conversions.clock_bytes(ns))
@@ -361,7 +427,7 @@ class Runner:
         self.args = args
         s = spec.simulation
         self.sim = Simulation(simulator_view(spec))
-        self.shadow = AgentTeam(spec)
+        self.shadow = node.shadow
         warm_up(agent_view(spec, spec.agent_ids[0]))  # the agents' kernel in numba's cache for the next run
         self.n_steps = round(s.duration * s.control_rate)
         self.period = 1.0 / s.control_rate
@@ -405,7 +471,7 @@ class Runner:
                 break
 
     def stamp_ns(self, k: int) -> int:
-        return round(k * NS / self.spec.simulation.control_rate)
+        return step_stamp_ns(k, self.spec.simulation.control_rate)
 
     def wait_for_agents(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -429,9 +495,36 @@ class Runner:
             if time.monotonic() > deadline:
                 raise ParticipantMissingError(["recorder"], f"discovery: no bag recorder matched within {timeout:g} s")
             self.spin(0.05)
+        self.read_agents(deadline)
         settle = time.monotonic() + self.args.settle
         while time.monotonic() < settle:  # let the agents' side of discovery finish too
             self.spin(settle - time.monotonic())
+
+    def read_agents(self, deadline: float) -> None:
+        """Every agent's report of itself (code form, numeric platform, δ, γ: its parameters) into the
+        shadow, before the first step; raises ParticipantMissingError naming the agents whose parameter
+        services did not answer by ``deadline`` (monotonic s)."""
+        node, names = self.node, [CODE_FORM_PARAMETER, PLATFORM_PARAMETER, *LIVE_GAINS]
+        asked: dict[int, Any] = {}
+        while len(asked) < len(node.ids) or not all(f.done() for f in asked.values()):
+            for i, client in enumerate(node.parameter_clients):
+                if i not in asked and client.services_are_ready():
+                    asked[i] = client.get_parameters(names)
+            if time.monotonic() > deadline:
+                missing = [a for i, a in enumerate(node.ids) if i not in asked or not asked[i].done()]
+                raise ParticipantMissingError(
+                    missing, f"discovery: the parameter services of agent(s) {', '.join(missing)} did not answer"
+                )
+            self.spin(0.05)
+        for i, future in asked.items():
+            values = _parameter_values(future, names)
+            report = AgentReport(
+                code_form=_text(values.get(CODE_FORM_PARAMETER)),
+                platform=_text(values.get(PLATFORM_PARAMETER)),
+                delta=_number(values.get("delta")),
+                gamma=_number(values.get("gamma")),
+            )
+            self.shadow.agent_reported(i, report)
 
     def progress(self, t: float, force: bool = False) -> None:
         now = time.monotonic()
@@ -480,26 +573,29 @@ class Runner:
             self.step = k
             final = k == self.n_steps
             meas = sim.sense()
-            ns = self.stamp_ns(k)
+            ns = meas.ns
             node.current_ns = ns
             sent = mono()
             node.pub_wall = {ns: sent}
             wait.begin(ns, sent)
             node.publish_step(meas, ns)
-            # while the agents compute: /clock, ground truth, display, shadow controllers and the
-            # funnel check of step k (an agent's stamp checks allow /clock to come a little later)
+            # while the agents compute: /clock, ground truth, display, the witness (the shadow
+            # controllers on what the agents decode) and the funnel check of step k (an agent's stamp
+            # checks allow /clock to come a little later)
             self._publish_aux(k, meas.t, ns)
-            witness_u, margin_v, errors = self.shadow.evaluate(meas, rec)
-            node.witness.expect(ns, witness_u)  # type: ignore[union-attr]  # lockstep: there is one
+            margin_v, _ = self.shadow.step(node.decoded(meas), rec)
             s = sim.state
-            rec.add(meas.t, s.p, s.R, s.v, None, margin_v)
-            self.shadow.note_errors(meas.t, errors, rec)
+            rec.add(meas.t, s.p, s.R, s.v, None)
+            witness = self.shadow.answers
             while True:
                 if wait.done(node.wrenches):
                     break
                 now = mono()
                 # answers waiting in our own queue count: held up, we may not have run their callbacks yet
-                late = wait.poll(node.wrenches, now, node.witness.mismatched, self.drain)  # type: ignore[union-attr]
+                late = wait.poll(node.wrenches, now, witness.mismatched, self.drain)
+                wrong = [i for i in witness.repeated() if i not in node.reading]
+                if wrong:
+                    raise WrongAnswerError([node.ids[i] for i in wrong], self._wrong_answers(wrong, ns))
                 if late:
                     node.publish_step(meas, ns, only=late)
                     timing.resends += 1
@@ -509,13 +605,29 @@ class Runner:
             for i in range(len(node.ids)):
                 timing.answered[i] += 1
             timing.expected += 1
+            errors = self.shadow.answered(margin_v, meas.t)
+            self.shadow.team.note_errors(meas.t, errors, rec)
             u = np.array(node.wrenches.value)
-            rec.set_inputs(u)
+            rec.set_inputs(u, margin_v)
             if final:
                 break
             self.advance(u)
             if k & 63 == 0:
                 self.progress(sim.t)
+
+    def _wrong_answers(self, agents: list[int], ns: int) -> str:
+        """Why agents that answered step ``ns`` re-sent with the same refused wrench are named."""
+        node = self.node
+        parts = []
+        for i in agents:
+            answer = node.shadow.answers.mismatched[i][0]
+            off = node.shadow.answers.expected[i].difference(answer) or (math.inf, 0.0)
+            allowed = "bit for bit" if off[1] == 0 else f"within {off[1]:.3g} (round-off bound)"
+            parts.append(f"agent {node.ids[i]} (max |u - witness| {off[0]:.3g}, allowed {allowed})")
+        return (
+            f"lockstep: wrong answer: {', '.join(parts)} answered the step at t={ns / NS:.6f} s, re-sent, "
+            f"again with the wrench the witness refused ({ANSWER_MISMATCH}); its answers were not applied"
+        )
 
     # realtime --------------------------------------------------------------------------------
     def run_realtime(self) -> None:
@@ -565,7 +677,7 @@ class Runner:
             if done is not None:
                 self._close_step(done, u, faults, late_tick)
             self._publish_aux(k, meas.t, ns)
-            _, margin_v, errors = self.shadow.evaluate(meas, rec)
+            margin_v, errors = self.shadow.step(node.decoded(meas), rec)
             prev = (meas, sim.state, margin_v, errors)
             self.progress(meas.t)
         if prev is not None:  # the last sample, with the wrenches held at the end
@@ -598,7 +710,7 @@ class Runner:
         timing.expected += 1
         rec.add(meas.t, state.p, state.R, state.v, None, margin_v)
         rec.set_inputs(u)
-        self.shadow.note_errors(meas.t, errors, rec)
+        self.shadow.team.note_errors(meas.t, errors, rec)
 
     def summary(self, wall: float, incomplete: Incomplete | None, extra: dict[str, Any]) -> dict[str, Any]:
         s = self.spec.simulation
@@ -611,14 +723,44 @@ class Runner:
         }
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
         info["security"] = self.node.watch.watch.report()
-        if self.node.witness is not None:
-            info["witness"] = self.node.witness.report()
+        info["witness"] = self.shadow.report()
         info.update(extra)
         return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)
 
 
 def _fmt6(u: Any) -> str:
     return "[" + ", ".join(f"{x:.6g}" for x in u) + "]"
+
+
+def _parameter_value(value: Any) -> Any:
+    """The Python value of an rcl_interfaces/ParameterValue (None: not set, or a type not used here)."""
+    kind = value.type
+    if kind == ParameterType.PARAMETER_DOUBLE:
+        return float(value.double_value)
+    if kind == ParameterType.PARAMETER_INTEGER:
+        return float(value.integer_value)
+    if kind == ParameterType.PARAMETER_STRING:
+        return value.string_value
+    return None
+
+
+def _parameter_values(future: Any, names: list[str]) -> dict[str, Any]:
+    """{name: value} of a done GetParameters future (empty if the call failed)."""
+    try:
+        response = future.result()
+    except Exception:
+        return {}
+    if response is None:
+        return {}
+    return {name: _parameter_value(v) for name, v in zip(names, response.values)}
+
+
+def _text(value: Any) -> str | None:
+    return value if isinstance(value, str) and value else None
+
+
+def _number(value: Any) -> float | None:
+    return value if isinstance(value, float) else None
 
 
 def bag_custom_data(spec: FormationSpec, args: RunOptions) -> dict[str, str]:
@@ -675,11 +817,14 @@ class SimProcess:
 
         A missing agent: exit 3 naming it; a run that cannot go on: its reason; an insecure transport:
         invalid input; SIGINT/SIGTERM (also a publish or wait it cut short): interrupted."""
-        if isinstance(exc, (ParticipantMissingError, RunStoppedError, InsecureTransportError)):
+        if isinstance(exc, (ParticipantMissingError, WrongAnswerError, RunStoppedError, InsecureTransportError)):
             print(f"formation-sim: ERROR: {exc}", file=sys.stderr, flush=True)
         if isinstance(exc, ParticipantMissingError):
             self.extra["missing"] = exc.names
             return Incomplete(ExitCode.PROCESS_DIED, str(exc))
+        if isinstance(exc, WrongAnswerError):
+            self.extra["wrong_answers"] = exc.names
+            return Incomplete(ExitCode.WRONG_ANSWER, str(exc))
         if isinstance(exc, RunStoppedError):
             return exc.incomplete
         if isinstance(exc, InsecureTransportError):

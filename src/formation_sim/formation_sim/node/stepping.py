@@ -12,23 +12,25 @@
 - :class:`WrenchBook`: the latest wrench of each agent, kept by stamp (what the node's
   subscriptions accept).
 - :class:`AnswerWitness`: lockstep: the wrench each agent must answer the current step with (the
-  shadow controllers' on the published measurements); an answer that differs beyond
-  :data:`WITNESS_TOLERANCE` is not applied (fault ``answer_mismatch``) and the step stays unanswered.
+  shadow controllers' on what the agent received: :class:`formation_sim.core.team.AgentTeam`), bit
+  for bit where the shadow runs the agent's own code on the agent's platform, else within the
+  round-off bound of the step (:mod:`formation_agent.roundoff`); an answer beyond it is not applied
+  (fault ``answer_mismatch``) and the step stays unanswered; the same answer again to the step
+  re-sent names the agent (:class:`WrongAnswerError`).
 
 Times: ``ns`` are simulation stamps in integer nanoseconds, ``now`` wall seconds (monotonic).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from formation_msgs_py.faults import ANSWER_MISMATCH
 from formation_sim.core.wrench_checks import DROPPED_KINDS
+from formation_sim.node.witness import AGREES_NEW_GAINS, DIFFERS, AnswerWitness
 
 NS = 1_000_000_000
 #: wall s between a lockstep step's last resend, at its timeout, and naming the agents still silent.
@@ -39,17 +41,17 @@ NS = 1_000_000_000
 LAST_CALL = 3.0
 
 
-#: an answer agrees with the witness when every component satisfies |u - w| <= tol * (1 + |w|)
-#: [N, N·m]. The agent computes on relative rotations that went through a quaternion and back, the
-#: witness on the rotation matrices, so they differ by round-off: ~1e-13 N on the paper run, which
-#: the controller amplifies by at most 1 / saturation_margin near a funnel bound. 1e-9 leaves four
-#: orders of magnitude above that and is the tolerance at which a lockstep run is compared with the
-#: headless one; a wrong answer (another state, other measurements, other gains) is off by far more.
-WITNESS_TOLERANCE = 1e-9
-
-
 class ParticipantMissingError(RuntimeError):
     """An agent was not matched, or did not answer a lockstep step within the step timeout."""
+
+    def __init__(self, names: list[str], message: str) -> None:
+        super().__init__(message)
+        self.names = names
+
+
+class WrongAnswerError(RuntimeError):
+    """Lockstep: an agent answered a step only with wrenches the witness refuses (the same one again
+    to the step re-sent, or none agreeing before the step timeout)."""
 
     def __init__(self, names: list[str], message: str) -> None:
         super().__init__(message)
@@ -141,17 +143,17 @@ class LockstepWait:
             return []
         if now >= self.deadline:
             if self.last_call:
-                names = [self.ids[i] for i in late]
-                silent = ", ".join(f"agent {self.ids[i]}" for i in late if i not in mismatched)
-                wrong = ", ".join(f"agent {self.ids[i]}" for i in late if i in mismatched)
-                what = [f"no answer from {silent}"] if silent else []
-                if wrong:
-                    what.append(f"no answer agreeing with the witness ({ANSWER_MISMATCH}) from {wrong}")
-                raise ParticipantMissingError(
-                    names,
-                    f"lockstep: {'; '.join(what)} for the step at t={self.ns / NS:.6f} s within "
-                    f"step_timeout={self.step_timeout:g} s and {LAST_CALL:g} s after a last resend",
+                silent = [self.ids[i] for i in late if i not in mismatched]
+                wrong = [self.ids[i] for i in late if i in mismatched]
+                within = (
+                    f"for the step at t={self.ns / NS:.6f} s within step_timeout={self.step_timeout:g} s "
+                    f"and {LAST_CALL:g} s after a last resend"
                 )
+                refused = f"only answers the witness refused ({ANSWER_MISMATCH}) from {_agents(wrong)}"
+                if silent:
+                    what = f"no answer from {_agents(silent)}" + (f"; {refused}" if wrong else "")
+                    raise ParticipantMissingError(silent + wrong, f"lockstep: {what} {within}")
+                raise WrongAnswerError(wrong, f"lockstep: {refused} {within}")
             self.last_call = True
             self.deadline = now + LAST_CALL
         elif now < self.next_resend:
@@ -166,69 +168,8 @@ class LockstepWait:
         return min(self.deadline, self.next_resend)
 
 
-@dataclass
-class AnswerWitness:
-    """Lockstep: what every agent of ``ids`` must answer the current step with (docs/ros2.md, "Modes").
-
-    The simulator's shadow controllers run the agents' code on exactly the measurements it
-    published (:class:`formation_sim.core.team.AgentTeam`); their wrench is the witness of each
-    answer. :meth:`judge` tells whether an answer may be applied. After a live gain change of an
-    agent (its ``delta``/``gamma`` parameters) the witness no longer knows that agent's controller:
-    :meth:`stop` ends the comparison for it from that step on, and :meth:`report` says from when.
-    """
-
-    ids: tuple[str, ...]
-    tolerance: float = WITNESS_TOLERANCE
-    ns: int = -1
-    expected: list[list[float]] = field(default_factory=list)
-    #: agent index -> (sim time [s] from which its answers are not compared, why)
-    stopped: dict[int, tuple[float, str]] = field(default_factory=dict)
-    #: agent index -> its last answer to the current step that differed (applied if the witness stops)
-    mismatched: dict[int, tuple[float, ...]] = field(default_factory=dict)
-    #: the largest difference [N or N·m] of an answer that agreed: the round-off actually seen
-    largest_agreed: float = 0.0
-
-    def expect(self, ns: int, u: np.ndarray) -> None:
-        """The witness of step ``ns``: the shadow controllers' wrenches ``u`` (N, 6), body frames."""
-        self.ns = ns
-        self.expected = u.tolist()
-        self.mismatched = {}
-
-    def watches(self, i: int) -> bool:
-        """Whether agent i's answers are compared with the witness."""
-        return i not in self.stopped
-
-    def judge(self, i: int, ns: int, u: Sequence[float]) -> float | None:
-        """None if agent i's answer ``u`` to step ``ns`` may be applied (it agrees with the witness,
-        the witness stopped for the agent, or ``ns`` is not the current step: the stamp checks
-        decide those); else the largest component difference [N or N·m]: not applied."""
-        if ns != self.ns or i in self.stopped:
-            return None
-        w = self.expected[i]
-        tol = self.tolerance
-        d = [abs(a - b) for a, b in zip(u, w)]
-        total = sum(d)  # NaN if any component is: never agrees
-        # all within tol absolutely: agrees (the usual case, one comparison); else component by component
-        if total <= tol or all(x <= tol * (1.0 + abs(b)) for x, b in zip(d, w)):
-            self.largest_agreed = max(self.largest_agreed, *d)
-            return None
-        self.mismatched[i] = tuple(u)
-        return max(d) if total == total else math.inf
-
-    def stop(self, i: int, t: float, why: str) -> tuple[float, ...] | None:
-        """Compare agent i's answers no more from sim time ``t`` [s] on (``why``: the change); returns
-        its last answer to the current step that differed, now to be applied (None: none)."""
-        if i not in self.stopped:
-            self.stopped[i] = (t, why)
-        return self.mismatched.pop(i, None)
-
-    def report(self) -> dict[str, Any]:
-        """For summary.json ``witness``: tolerance, the largest difference that agreed, who stopped from when."""
-        return {
-            "tolerance": self.tolerance,
-            "largest_agreed_difference": self.largest_agreed,
-            "stopped": {self.ids[i]: {"from_t": t, "why": why} for i, (t, why) in sorted(self.stopped.items())},
-        }
+def _agents(ids: Sequence[str]) -> str:
+    return ", ".join(f"agent {a}" for a in ids)
 
 
 #: what :func:`admit` decides about an answer
@@ -238,11 +179,14 @@ APPLY, DUPLICATE, IGNORE, MISMATCH = "apply", "duplicate", "ignore", "mismatch"
 @dataclass(frozen=True)
 class Admission:
     """:func:`admit`'s decision: ``action`` (APPLY ``u``; DUPLICATE, IGNORE: nothing changes;
-    MISMATCH: counted, not applied, ``difference`` [N or N·m] from the witness)."""
+    MISMATCH: counted, not applied, ``difference`` [N or N·m] from the witness, beyond ``tolerance``).
+    ``new_gains``: the answer agreed with the agent's new gains (AnswerWitness.alternative)."""
 
     action: str
     u: tuple[float, ...] = ()
     difference: float = 0.0
+    tolerance: float = 0.0
+    new_gains: bool = False
 
 
 def admit(
@@ -258,22 +202,20 @@ def admit(
     in lockstep, the witness.
 
     A refused stamp answers no step; a refused value answers an unanswered step with zero, except
-    where the witness watches the agent (it never answers so: the agent's answer is waited for).
-    In lockstep a step once answered keeps its answer, and an answer the witness disagrees with is
-    never applied.
+    in lockstep (the witness waits for the agent's answer). In lockstep a step once answered keeps
+    its answer, and an answer the witness disagrees with is never applied.
     """
     if refusal_kind is not None:
-        if refusal_kind in DROPPED_KINDS or ns == wrenches.stamp[i]:
-            return Admission(IGNORE)
-        if witness is not None and witness.watches(i):
+        if refusal_kind in DROPPED_KINDS or ns == wrenches.stamp[i] or witness is not None:
             return Admission(IGNORE)
         return Admission(APPLY, (0.0,) * 6)
     if witness is not None:
-        difference = witness.judge(i, ns, u)
-        if difference is not None:
-            return Admission(MISMATCH, tuple(u), difference)
+        verdict, difference, tol = witness.judge(i, ns, u)
+        if verdict == DIFFERS:
+            return Admission(MISMATCH, tuple(u), difference, tol)
         if ns == wrenches.stamp[i]:
             return Admission(DUPLICATE)
+        return Admission(APPLY, tuple(u), new_gains=verdict == AGREES_NEW_GAINS)
     return Admission(APPLY, tuple(u))
 
 

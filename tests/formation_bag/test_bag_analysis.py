@@ -17,9 +17,10 @@ from bag_helpers import PAPER, VIOLATING, paper_spec
 
 from formation_bag import analysis, rerun
 from formation_bag.analysis import analyze_run, message_ages
-from formation_bag.dataset import apply_overrides, load_run
+from formation_bag.dataset import RUN_SETTING_KEYS, apply_overrides, load_run
 from formation_bag.reader import Bag
 from formation_bag.rerun import rerun_all
+from formation_msgs_py.bag import KEY_FORMATION_YAML
 from formation_msgs_py.bag.writer import SegmentedBagWriter
 from formation_msgs_py.errors import BagFormatError, OverrideError
 from formation_sim.cli.headless import run_headless
@@ -230,11 +231,18 @@ def test_bag_without_formation_needs_one(tmp_path: Path, short_bags) -> None:
     assert ages["wrench"]["1"]["response_wall"]["median"] > 0
 
 
-def _copy_without(src: Path, dst: Path, drop: Callable[[str, int], bool]) -> None:
-    """A copy of bag ``src`` without the messages ``drop(topic, stamp_ns)`` selects."""
+def _copy_without(
+    src: Path, dst: Path, drop: Callable[[str, int], bool], custom_data: dict[str, str] | None = None
+) -> None:
+    """A copy of bag ``src`` without the messages ``drop(topic, stamp_ns)`` selects (with ``custom_data``
+    instead of its own if given)."""
     from formation_msgs_py.wire import stamp_of
 
-    with Bag(src) as bag, SegmentedBagWriter(dst, custom_data=dict(bag.custom_data)) as out:
+    custom = custom_data
+    with (
+        Bag(src) as bag,
+        SegmentedBagWriter(dst, custom_data=dict(bag.custom_data) if custom is None else custom) as out,
+    ):
         for t in bag.topics.values():
             out.add_topic(t.name, t.msgtype)
         for msg in bag.messages():
@@ -274,6 +282,93 @@ def test_bag_with_messages_removed_is_incomplete_not_fail(short_bags, tmp_path: 
     assert runs["1"].measurements_missing == 10 and runs["1"].first_difference(1e-12) is None
     assert runs["4"].compared == len(runs["4"].stamps) - 1
     assert rerun.main([str(bag)]) == 4  # equal where compared, data missing
+
+
+def _restated(src: Path, dst: Path, formation_duration: float, **stated: str) -> None:
+    """A copy of bag ``src`` whose formation file says ``formation_duration`` s and whose custom_data
+    says of the run only ``stated`` (none: as formation-record --formation FILE writes it without --meta)."""
+    with Bag(src) as bag:
+        custom = {k: v for k, v in bag.custom_data.items() if k not in RUN_SETTING_KEYS}
+    text = PAPER.read_text()
+    assert "\n  duration: 5.0\n" in text
+    custom[KEY_FORMATION_YAML] = text.replace("\n  duration: 5.0\n", f"\n  duration: {formation_duration!r}\n")
+    _copy_without(src, dst, lambda _topic, _stamp: False, {**custom, **stated})
+
+
+UNSAID = "the bag does not say what was run (no custom_data.duration: formation-record --meta duration=S)"
+
+
+@pytest.mark.parametrize(
+    ("file_duration", "stated", "code", "expected", "source", "requested", "note"),
+    [
+        # a 0.15 s run recorded without --meta from a file that says 0.05 s: checked to its end
+        (0.05, {}, 0, 151, "recording", None,
+         f"duration: {UNSAID}; its ground truth runs to 0.15 s, past the formation file's 0.05 s: analysed to 0.15 s"),
+        # a bag that says less than it holds: its data wins, and it says so
+        (5.0, {"duration": "0.05"}, 0, 151, "recording", None,
+         "duration: the ground truth runs to 0.15 s, past the 0.05 s the bag says was run: analysed to 0.15 s"),
+        # the bag says what was run (a command-line override of the file's duration)
+        (0.05, {"duration": "0.15"}, 0, 151, "bag", 0.15,
+         "duration: 0.15 s as the bag says; the formation file says 0.05 s"),
+        # a bag that ends before the file's duration and does not say the run was shorter: never a PASS
+        (5.0, {}, 4, 5001, "formation file", 5.0,
+         f"duration: {UNSAID}; its ground truth ends at 0.15 s of the formation file's 5 s: the rest is missing data"),
+    ],
+)  # fmt: skip
+def test_expected_samples_come_from_what_the_bag_says_was_run(
+    short_bags, tmp_path: Path, capsys, file_duration: float, stated: dict[str, str], code: int, expected: int,
+    source: str, requested: float | None, note: str,
+) -> None:  # fmt: skip
+    """The duration is the bag's (custom_data), else the recorded ground truth's where it runs past the
+    formation file's, else the file's; a disagreement with the file is reported, a short bag is INCOMPLETE."""
+    src, result = short_bags["mcap"]
+    bag = tmp_path / "bag"
+    _restated(src, bag, file_duration, **stated)
+    out = tmp_path / "out"
+    assert analysis.main([str(bag), "--out", str(out), "--no-plots"]) == code
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    b = summary["bag"]
+    assert (b["ground_truth_samples"], b["ground_truth_expected"]) == (151, expected)
+    assert b["settings"]["duration"] == pytest.approx((expected - 1) / 1000, abs=1e-12)  # a sample per ms
+    assert b["settings"]["from"]["duration"] == source and summary["requested_duration"] == requested
+    assert note in b["settings"]["notes"]
+    assert f"  note: {note}\n" in printed
+    assert f"bag: 151 ground-truth samples of {expected} expected over " in printed
+    if code == 0:  # every sample of the run checked: its margins, to the 1e-9 the analysis reproduces a run's
+        assert summary["verdict"] == "PASS"
+        assert summary["worst_margin"] == pytest.approx(result.summary["worst_margin"], abs=1e-9)
+        assert b["missing"] == []
+    else:
+        assert summary["verdict"] == "INCOMPLETE" and summary["funnels_held"] is None
+        assert b["missing"][0] == "ground truth: 4850 steps missing (0.1510-5.0000 s)"
+    if not stated:  # nor does it say the control rate: the velocity stamps' (the file says 10 kHz)
+        assert b["settings"]["control_rate"] == pytest.approx(1000.0, rel=1e-9)  # 1 ms stamps, integer ns
+        assert (
+            "control rate: 1000 Hz from the recorded stamps; the formation file says 10000 Hz" in b["settings"]["notes"]
+        )
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("duration", "30 s", "custom_data.duration '30 s' is not a number"),
+        ("control_rate", "-100", "custom_data.control_rate '-100' must be > 0"),
+        ("mode", "fast", "custom_data.mode 'fast' is not one of lockstep, realtime"),
+    ],
+)
+def test_a_bag_that_says_an_invalid_setting_is_refused(
+    short_bags, tmp_path: Path, capsys, key: str, value: str, message: str
+) -> None:
+    """A bag whose custom_data states an invalid mode, rate or duration is bad input (exit 2), named."""
+    src, _ = short_bags["mcap"]
+    bag = tmp_path / "bag"
+    with Bag(src) as b:
+        custom = {**b.custom_data, key: value}
+    _copy_without(src, bag, lambda _topic, _stamp: False, custom)
+    assert analysis.main([str(bag), "--out", str(tmp_path / "out"), "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err, err
 
 
 _PEAK_RSS = """

@@ -19,7 +19,9 @@ from formation_bag.analysis import analyze_run
 from formation_bag.dataset import load_run
 from formation_bag.interop import check_bag
 from formation_bag.reader import Bag
+from formation_bag.record_node import parse_meta
 from formation_msgs_py.bag.writer import SegmentedBagWriter
+from formation_msgs_py.errors import BagFormatError
 
 
 def _recorder(ros_procs, bag: Path, *extra: str, env: dict[str, str] | None = None):
@@ -189,6 +191,24 @@ def test_decimation_option() -> None:
         with pytest.raises(BagTopicError, match=re.escape(bad)):
             parse_decimation([bad])
     assert parse_meta(["mode=lockstep", "note=a=b"]) == {"mode": "lockstep", "note": "a=b"}
+
+
+def test_meta_run_settings_are_checked(tmp_path: Path, capsys) -> None:
+    """--meta mode/control_rate/duration are what the analysis takes over the file's: an invalid one is
+    refused before anything starts (exit 2), naming it, and no bag is created."""
+    from formation_bag.record_node import main
+
+    assert parse_meta(["mode=realtime", "control_rate=100", "duration=30"])["duration"] == "30"
+    for item, message in (
+        ("duration=30s", "--meta duration '30s' is not a number"),
+        ("control_rate=0", "--meta control_rate '0' must be > 0"),
+        ("mode=Realtime", "--meta mode 'Realtime' is not one of lockstep, realtime"),
+    ):
+        with pytest.raises(BagFormatError, match=re.escape(message)):
+            parse_meta([item])
+        assert main(["--out", str(tmp_path / "bag"), "--meta", item]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "bag").exists()
 
 
 def test_recorder_started_after_the_run_says_what_it_missed(ros_procs, tmp_path: Path) -> None:

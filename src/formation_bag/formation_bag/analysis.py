@@ -36,7 +36,7 @@ import sys
 import time
 from array import array
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -68,13 +68,22 @@ def _rate_from_stamps(stamps: Sequence[int]) -> float | None:
 
 @dataclass(frozen=True)
 class RunSettings:
-    """What the analysis needs to know of the run beyond its messages (bag custom_data, else the file)."""
+    """What the analysis needs to know of the run beyond its messages: what the bag says was run
+    (custom_data), else what its messages show, else the formation file's."""
 
     mode: str
     control_rate: float  # Hz
     gt_rate: float  # Hz of the recorded ground truth
-    duration: float  # s requested
+    duration: float  # s: the span [0, duration] every sample of which is expected in the bag
     gt_rate_measured: float | None  # from the stamps (None: fewer than two samples)
+    #: s: what the run was asked for, as the bag says or else the formation file; None when the
+    #: ground truth runs past it and the bag does not say (then ``duration`` is the recorded span)
+    requested_duration: float | None = None
+    #: where mode, control_rate and duration come from: ``bag`` (custom_data), ``recording``
+    #: (the messages' stamps) or ``formation file``
+    sources: dict[str, str] = field(default_factory=dict)
+    #: where the bag and the formation file disagree, one sentence each
+    notes: tuple[str, ...] = ()
 
     @property
     def realtime(self) -> bool:
@@ -82,20 +91,65 @@ class RunSettings:
 
 
 def run_settings(run: RunData) -> RunSettings:
-    """Mode, control rate, ground-truth rate and requested duration of a recorded run."""
-    spec, custom = run.spec, run.custom_data
-    gt_rate = _rate_from_stamps(run.ground_truth.stamps)
-    try:
-        control_rate = float(custom["control_rate"])
-    except (KeyError, ValueError):
-        first = run.velocity[spec.agent_ids[0]].stamps
-        control_rate = _rate_from_stamps(first) or gt_rate or spec.simulation.control_rate
-    try:
-        duration = float(custom["duration"])
-    except (KeyError, ValueError):
-        duration = spec.simulation.duration  # a recorder started without --meta: the file's duration
-    mode = custom.get("mode") or spec.simulation.mode
-    return RunSettings(mode, control_rate, gt_rate or control_rate, duration, gt_rate)
+    """Mode, control rate, ground-truth rate and duration of a recorded run.
+
+    Each setting is the bag's where it says what was run (custom_data ``mode``, ``control_rate``,
+    ``duration``: the simulator's own bag, ``formation-record --meta``), else the recording's
+    (the control rate from the velocity stamps; the duration from the last ground-truth stamp when
+    it runs past the formation file's), else the formation file's. The duration never ends before
+    the recorded ground truth: a run that went on longer than the bag or the file says is checked
+    (and its samples expected) to its end, and a bag that ends before it is missing data, never a
+    shorter PASS. Disagreements with the formation file are listed in ``notes``.
+    """
+    spec, stated, file = run.spec, run.stated, run.spec.simulation
+    gt = run.ground_truth
+    sources: dict[str, str] = {}
+    notes: list[str] = []
+    gt_rate = _rate_from_stamps(gt.stamps)
+    if stated.control_rate is not None:
+        control_rate, sources["control_rate"] = stated.control_rate, "bag"
+    else:
+        measured = _rate_from_stamps(run.velocity[spec.agent_ids[0]].stamps) or gt_rate
+        control_rate, sources["control_rate"] = (
+            (measured, "recording") if measured else (file.control_rate, "formation file")
+        )
+    if abs(control_rate - file.control_rate) > 1e-3 * file.control_rate:  # measured from integer-ns stamps
+        said = "the bag says" if sources["control_rate"] == "bag" else "from the recorded stamps"
+        notes.append(f"control rate: {control_rate:g} Hz {said}; the formation file says {file.control_rate:g} Hz")
+    mode, sources["mode"] = (stated.mode, "bag") if stated.mode is not None else (file.mode, "formation file")
+    if mode != file.mode:
+        notes.append(f"mode: {mode} as the bag says; the formation file says {file.mode}")
+    if stated.duration is not None:
+        asked, sources["duration"] = stated.duration, "bag"
+    else:
+        asked, sources["duration"] = file.duration, "formation file"
+    duration: float = asked
+    requested: float | None = asked
+    rate = gt_rate or control_rate
+    tol = 0.5 / rate  # half a sample: the stamps are those of steps k / rate
+    end = m.seconds(gt.stamps[-1]) if len(gt) else None
+    unsaid = "the bag does not say what was run (no custom_data.duration: formation-record --meta duration=S)"
+    if end is not None and end > asked + tol:
+        duration, sources["duration"] = end, "recording"
+        if stated.duration is not None:
+            notes.append(
+                f"duration: the ground truth runs to {end:g} s, past the {asked:g} s the bag says was run: "
+                f"analysed to {end:g} s"
+            )
+        else:
+            notes.append(
+                f"duration: {unsaid}; its ground truth runs to {end:g} s, past the formation file's {asked:g} s: "
+                f"analysed to {end:g} s"
+            )
+        requested = None  # the bag does not say, or says something its data contradicts
+    elif stated.duration is not None and abs(asked - file.duration) > tol:
+        notes.append(f"duration: {asked:g} s as the bag says; the formation file says {file.duration:g} s")
+    elif stated.duration is None and end is not None and end < asked - tol:
+        notes.append(
+            f"duration: {unsaid}; its ground truth ends at {end:g} s of the formation file's {asked:g} s: "
+            "the rest is missing data"
+        )
+    return RunSettings(mode, control_rate, rate, duration, gt_rate, requested, sources, tuple(notes))
 
 
 def log_times_are_wall(run: RunData) -> bool:
@@ -280,7 +334,7 @@ def analyze_run(
     bag_info["analysis_time"] = time.perf_counter() - started
     summary = recorder.summary(
         wall_time=run_wall_time(run),
-        requested_duration=settings.duration,
+        requested_duration=settings.requested_duration,
         incomplete=incomplete,
         extra={"source": "bag", "bag": bag_info},
     )
@@ -301,6 +355,18 @@ def bag_report(
         "truncated": bool(missing),
         "ground_truth_samples": len(gt),
         "ground_truth_expected": round(settings.duration * settings.gt_rate) + 1,
+        "settings": {
+            "mode": settings.mode,
+            "control_rate": settings.control_rate,
+            "duration": settings.duration,
+            "from": settings.sources,
+            "formation_file": {
+                "mode": run.spec.simulation.mode,
+                "control_rate": run.spec.simulation.control_rate,
+                "duration": run.spec.simulation.duration,
+            },
+            "notes": list(settings.notes),
+        },
         "ground_truth_gaps": len(gaps),
         "ground_truth_missing": [[m.seconds(lo), m.seconds(hi)] for lo, hi in gaps],
         "missing": missing,
@@ -546,10 +612,13 @@ def main(argv: list[str] | None = None) -> int:
     print(format_summary(summary))
     b = summary["bag"]
     print(
-        f"bag: {b['ground_truth_samples']} ground-truth samples of {b['ground_truth_expected']} expected, "
+        f"bag: {b['ground_truth_samples']} ground-truth samples of {b['ground_truth_expected']} expected over "
+        f"{b['settings']['duration']:g} s (duration from the {b['settings']['from']['duration']}), "
         f"{b['ground_truth_gaps']} gaps{', TRUNCATED' if b['truncated'] else ''}; "
         f"analysed in {time.perf_counter() - started:.2f} s"
     )
+    for item in b["settings"]["notes"]:
+        print(f"  note: {item}")
     for item in b["missing"]:
         print(f"  missing: {item}")
     print(f"outputs in {out}/ (exit status {summary['exit_status']})")

@@ -4,11 +4,14 @@ Used by the analysis and the controller re-run (no ROS). Stamps are integer nano
 step matching); log times are the recorder's receive times (ns).
 
 The formation file comes from ``--formation FILE`` or, when the recorder was given one, from
-the bag itself (``custom_data.formation_yaml`` in metadata.yaml and in every segment).
+the bag itself (``custom_data.formation_yaml`` in metadata.yaml and in every segment). What was
+run (mode, control rate, duration) may differ from the file's (command-line overrides): the bag
+says it where its writer knew it (:func:`stated_settings`).
 """
 
 from __future__ import annotations
 
+import argparse
 import bisect
 from array import array
 from collections.abc import Callable, Mapping, Sequence
@@ -22,6 +25,8 @@ from formation_bag.reader import Bag
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_msgs_py.errors import BagFormatError, BagTopicError, FormationSpecError, OverrideError
 from formation_msgs_py.loader import parse_document, read_document
+from formation_msgs_py.options import positive
+from formation_msgs_py.schema import SIMULATION_FIELDS
 from formation_msgs_py.spec import FormationSpec, formation_from_dict
 
 
@@ -102,6 +107,40 @@ class _Values(Sequence[Any]):
         return self._s.value(k)
 
 
+#: custom_data keys that say what was run: the simulator's own bag has them, formation-record
+#: ``--meta KEY=VALUE`` adds them; the analysis takes them over the formation file's settings
+RUN_SETTING_KEYS = ("mode", "control_rate", "duration")
+MODES: tuple[str, ...] = next(f.choices for f in SIMULATION_FIELDS if f.name == "mode")
+
+
+@dataclass(frozen=True)
+class StatedSettings:
+    """What a bag says was run (None: it does not say): mode, control rate [Hz], duration [s]."""
+
+    mode: str | None = None
+    control_rate: float | None = None
+    duration: float | None = None
+
+
+def stated_settings(custom: Mapping[str, str], where: str) -> StatedSettings:
+    """The run settings of ``custom`` (custom_data, or formation-record's ``--meta``).
+
+    Raises :class:`BagFormatError` naming ``where`` + the key and the value when one is not a
+    mode of the formation file or a finite number > 0.
+    """
+    mode = custom.get("mode")
+    if mode is not None and mode not in MODES:
+        raise BagFormatError(f"{where}mode {mode!r} is not one of {', '.join(MODES)}")
+    numbers: dict[str, float | None] = {}
+    for key in ("control_rate", "duration"):
+        text = custom.get(key)
+        try:
+            numbers[key] = None if text is None else positive(text)
+        except argparse.ArgumentTypeError as exc:
+            raise BagFormatError(f"{where}{key} {exc}") from None
+    return StatedSettings(mode, numbers["control_rate"], numbers["duration"])
+
+
 @dataclass
 class RunData:
     path: Path
@@ -118,6 +157,7 @@ class RunData:
     first_log: int
     last_log: int
     topic_counts: dict[str, int]
+    stated: StatedSettings  # what the bag says was run (custom_data)
 
 
 def formation_document(bag: Bag, formation: str | Path | None) -> tuple[dict[str, Any], str]:
@@ -215,6 +255,7 @@ def load_run(
     bag); a progress line on stderr every few seconds when it takes that long."""
     path = Path(path)
     with Bag(path) as bag:
+        stated = stated_settings(bag.custom_data, f"bag {path}: custom_data.")
         doc, name = formation_document(bag, formation)
         spec = spec_from_document(doc, name)
         infos = bag.topics
@@ -274,4 +315,6 @@ def load_run(
         raise BagTopicError(
             f"bag {path} has no {m.absolute('formation/ground_truth', namespace)} messages: cannot check the funnels"
         )
-    return RunData(path, spec, doc, custom, gt, vel, wr, rel, clock, lost, recovered, first or 0, last or 0, counts)
+    return RunData(
+        path, spec, doc, custom, gt, vel, wr, rel, clock, lost, recovered, first or 0, last or 0, counts, stated
+    )

@@ -47,6 +47,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from formation_bag import messages as m
+from formation_bag.dataset import stated_settings
 from formation_bag.parsers import record_parser
 from formation_msgs_py import topics, wire
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, STAMPED_TYPES, ros_type_name
@@ -99,12 +100,15 @@ def parse_decimation(items: Sequence[str]) -> list[tuple[str, int]]:
 
 
 def parse_meta(items: Sequence[str]) -> dict[str, str]:
+    """``KEY=VALUE`` -> {KEY: VALUE}; the run settings among them (``mode``, ``control_rate``,
+    ``duration``: what formation-analyze takes over the formation file's) must be valid."""
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise BagTopicError(f"--meta {item!r}: expected KEY=VALUE")
         out[key] = value
+    stated_settings(out, "--meta ")
     return out
 
 

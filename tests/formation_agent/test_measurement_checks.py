@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from formation_agent import measurement_checks
-from formation_agent.agent_node import StepSynchroniser
 from formation_agent.controller import ERROR, AgentController
+from formation_agent.synchroniser import StepSynchroniser
 from formation_msgs_py import rotations, wire
 from formation_msgs_py.errors import RotationError
 from formation_msgs_py.spec import agent_view, load_formation, simulator_view

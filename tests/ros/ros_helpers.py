@@ -30,13 +30,14 @@ def assert_equals_headless(
     formation: Path = PAPER,
     record_rate: float = 10000.0,
     overrides: dict | None = None,
+    gains: dict | None = None,
 ) -> dict:
     """A lockstep run of ``formation`` (default the paper preset) recorded at ``record_rate`` [Hz]
     (``trajectory.npz``) equals run_headless sampled alike, bit for bit: the agents (compiled, on
     this machine) compute on the values the run core computes on (rotations through the messages'
     quaternions, the time of the stamps), and the simulator applies their answers only when they
-    equal its witness's. ``overrides`` change the file's settings as the run's options did. Returns
-    the headless arrays."""
+    equal its witness's. ``overrides`` change the file's settings as the run's options did, ``gains``
+    the agents' ({id: {"delta"|"gamma": value}}, as a parameters file did). Returns the headless arrays."""
     import numpy as np
 
     from formation_msgs_py.spec import load_formation
@@ -44,11 +45,34 @@ def assert_equals_headless(
 
     ros = np.load(trajectory)
     settings = {"duration": duration, "record_rate": record_rate, **(overrides or {})}
-    spec = load_formation(formation, overrides=settings)
+    spec = load_formation(formation, overrides=settings).with_agent_gains(gains or {})
     ref = run_headless(spec, controller_mode="sampled").recorder.arrays()
     for key in ("t", "p", "R", "v", "u", "e", "psi"):
         np.testing.assert_array_equal(ros[key], ref[key], err_msg=key)
     return ref
+
+
+def run(cmd: Sequence[str], env: dict[str, str], timeout: float = 300.0) -> tuple[int, str]:
+    """(exit status, stdout and stderr) of ``cmd`` started in its own process group; on a timeout the
+    whole group it started is stopped (SIGINT, then SIGKILL) and the test fails naming the command."""
+    proc = subprocess.Popen(
+        list(cmd), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+    )
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        for sig in (signal.SIGINT, signal.SIGKILL):
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                out, _ = proc.communicate(timeout=10)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        raise AssertionError(f"{cmd[0]} did not end within {timeout:g} s") from None
+    return proc.returncode, out
 
 
 @contextmanager

@@ -26,7 +26,7 @@ when it cannot be a measurement:
   published at 10 Hz; on a loaded two-core machine a realtime agent heard measurements 0.21 s of
   sim time before the /clock of their step). With neither a confirmed step nor a /clock stamps are
   not judged. Stamps earlier than the agent's confirmed step are the synchroniser's
-  to judge (``past_stamp``, :class:`formation_agent.agent_node.StepSynchroniser`).
+  to judge (``past_stamp``, :class:`formation_agent.synchroniser.StepSynchroniser`).
 
 :class:`InputCheck` returns the reason of a refusal (or None) and counts refusals per kind.
 The node answers a refused value with a zero wrench and ERROR for that step; a refused stamp is

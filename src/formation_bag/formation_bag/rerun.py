@@ -2,7 +2,7 @@
 
 ``formation-rerun BAG [--agent ID …] [--override FILE] [--out DIR]``
 
-As the agent node does (formation_agent.agent_node.StepSynchroniser): for each recorded velocity
+As the agent node does (formation_agent.synchroniser.StepSynchroniser): for each recorded velocity
 message of agent i (stamp t, in stamp order, duplicates answered once), the controller gets ṽ_i
 and, per tree neighbour j, the relative pose with the *same* stamp, at time t = stamp_ns / 1e9.
 A missing pose, or a measurement older than ``measurement_timeout`` behind both the latest recorded

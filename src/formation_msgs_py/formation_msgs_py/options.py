@@ -186,6 +186,10 @@ OPTIONS: tuple[Option, ...] = (
            overrides="step_timeout", forward=True),
     Option("--command-timeout", "override simulation.command_timeout [sim s] (realtime)", ROS, positive,
            overrides="command_timeout", forward=True),
+    Option("--params-file", "a ROS 2 parameters file (YAML) for the agents: formation-launch hands it to every agent "
+           "(--ros-args --params-file FILE, as one file serves a whole ROS system); the gains it sets (delta, gamma of "
+           "/agent_<id>/formation_agent, wildcards as ROS reads them) are checked before anything starts and used by "
+           "formation-headless and formation-check as the agents use them", frozenset({HEADLESS, LAUNCH, CHECK}), Path),
     Option("--spanning-tree", "reduce a cyclic sensing graph to a spanning tree (prints the dropped edges)",
            frozenset({CHECK})),
     Option("--discovery-timeout", "wall s to wait for the agents (default 30 + 1/agent)", ROS, positive,
@@ -268,6 +272,7 @@ class RunOptions:
     seed: int | None = None
     step_timeout: float | None = None
     command_timeout: float | None = None
+    params_file: Path | None = None
     spanning_tree: bool = False
     discovery_timeout: float | None = None
     hang_timeout: float | None = None

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
@@ -228,6 +228,14 @@ class FormationSpec:
     @property
     def agent_ids(self) -> tuple[str, ...]:
         return tuple(a.id for a in self.agents)
+
+    def with_agent_gains(self, gains: Mapping[str, Mapping[str, float]]) -> FormationSpec:
+        """A copy whose agents use other live gains: ``{agent id: {"delta"|"gamma": value}}`` (values
+        checked by the caller, as an agent checks its parameters)."""
+        agents = tuple(
+            replace(a, controller=replace(a.controller, **gains[a.id])) if gains.get(a.id) else a for a in self.agents
+        )
+        return replace(self, agents=agents)
 
     def with_simulation(self, **changes: Any) -> FormationSpec:
         """A copy with simulation settings replaced (re-checked: rates stay multiples)."""

@@ -45,7 +45,8 @@ class Prepared:
 
 
 def load_spec(options: RunOptions) -> FormationSpec:
-    """The formation file with the command's ``simulation.*`` overrides (raises FormationSpecError).
+    """The formation file with the command's ``simulation.*`` overrides and the agents' gains of its
+    ``--params-file`` (raises FormationSpecError).
 
     A new control rate without a physics rate keeps the file's physics rate when it is an
     integer multiple of it, else runs physics at the control rate.
@@ -60,11 +61,18 @@ def load_spec(options: RunOptions) -> FormationSpec:
         ratio = spec.simulation.physics_rate / over["control_rate"]
         if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
             over["physics_rate"] = over["control_rate"]
-    return load_formation(options.file, overrides=over or None)
+    spec = load_formation(options.file, overrides=over or None)
+    if options.params_file is not None:
+        from formation_agent.parameters_file import agent_gains
+
+        spec = spec.with_agent_gains(agent_gains(options.params_file, spec.agent_ids))
+    return spec
 
 
 #: The longest simulated duration a run accepts [s]: a week (longer is a slip: 1e12 for 1e2).
 MAX_DURATION_S = 7 * 86400.0
+#: The fastest control rate [Hz]: every step's stamp (whole nanoseconds) differs from the one before.
+MAX_CONTROL_RATE = 1e9
 #: The most physics steps a run accepts (~14 h of a headless run at 50 µs a step).
 MAX_PHYSICS_STEPS = 1_000_000_000
 #: Bytes a trajectory row holds per agent (p, R, v, u) and per edge (e, ψ, ρ_e, ρ_ψ) in memory.
@@ -87,12 +95,19 @@ def physical_memory() -> int | None:
 
 
 def duration_problem(spec: FormationSpec, options: RunOptions) -> str | None:
-    """Why the run's duration and rates make no run (none: they do): shorter than one control
-    period (no step), longer than :data:`MAX_DURATION_S`, more than :data:`MAX_PHYSICS_STEPS`, or
-    a trajectory larger than this machine's memory. Names the option or file key that set it."""
+    """Why the run's duration and rates make no run (none: they do): a control period under a
+    nanosecond (:data:`MAX_CONTROL_RATE`), shorter than one control period (no step), longer than
+    :data:`MAX_DURATION_S`, more than :data:`MAX_PHYSICS_STEPS`, or a trajectory larger than this
+    machine's memory. Names the option or file key that set it."""
     s = spec.simulation
     duration = f"{_named(options, 'duration', 'duration')} {s.duration:g} s"
     period = 1.0 / s.control_rate
+    if s.control_rate > MAX_CONTROL_RATE:
+        rate = _named(options, "control_rate", "control_rate")
+        return (
+            f"control rate {s.control_rate:g} Hz ({rate}) has a period under a nanosecond: the steps' stamps, "
+            f"whole nanoseconds, would not all differ (at most {MAX_CONTROL_RATE:g} Hz)"
+        )
     if s.duration < period * (1 - 1e-9):
         rate = _named(options, "control_rate", "control_rate")
         return (

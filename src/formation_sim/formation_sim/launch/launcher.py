@@ -277,10 +277,13 @@ class Launcher:
         # the agents' controller: compiled or interpreted (formation_agent.kernel_cache), unless the environment says
         compiled = compiled_pays(spec.simulation.control_rate, args.mode, len(spec.agents))
         jit = self.sup.env.get("NUMBA_DISABLE_JIT") or ("0" if compiled else "1")
+        # the user's parameters file first: the launcher's own -p below (the agent's id, the file) win over it
+        params_file = ["--params-file", str(args.params_file.resolve())] if args.params_file is not None else []
         for a in spec.agents:
             cmd = [
                 str(_bin("formation-agent")),
                 "--ros-args",
+                *params_file,
                 "-p",
                 f"formation_file:={formation}",
                 "-p",

@@ -63,8 +63,8 @@ from rclpy.qos import qos_profile_parameter_events
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
-from formation_agent.agent_node import CODE_FORM_PARAMETER, LIVE_GAINS, PLATFORM_PARAMETER
 from formation_agent.kernel_cache import warm_up
+from formation_agent.synchroniser import CODE_FORM_PARAMETER, LIVE_GAINS, PLATFORM_PARAMETER
 from formation_msgs_py import topics
 from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, ros_type_name
 from formation_msgs_py.errors import BagError

@@ -95,3 +95,62 @@ def test_an_interrupted_campaign_resumes_without_rerunning(tmp_path, paper_path,
     done_before = {(json.loads(x)["sample"], json.loads(x)["control_rate"]) for x in lines[:2]}
     assert len(ran) == 2 and not done_before & set(ran)
     assert results(out) == full
+
+
+def test_wilson_interval_contains_a_0_and_a_100_percent_rate_exactly() -> None:
+    """Every k of n, n up to 300, lies in its interval; all passes end at 1.0 exactly, none start at 0.0."""
+    for n in range(1, 301):
+        for k in range(n + 1):
+            lo, hi = campaign.wilson(k, n)
+            assert 0.0 <= lo <= k / n <= hi <= 1.0, (k, n, lo, hi)
+        assert campaign.wilson(n, n)[1] == 1.0 and campaign.wilson(0, n)[0] == 0.0
+    assert campaign.wilson(0, 0) == (0.0, 1.0)
+
+
+def _fake_run(task: campaign.Task) -> dict:
+    """A row of runs.csv without running: every run at 10 kHz passes, every run below fails."""
+    passed = task.control_rate >= 10000
+    return {
+        "sample": task.sample,
+        "control_rate": task.control_rate,
+        "seed": "0",
+        "verdict": "PASS" if passed else "FAIL",
+        "violation_t": None if passed else 0.01,
+        "violation_kind": None if passed else "edge",
+        "violation_where": None if passed else "1-2",
+        "violation_channel": None if passed else "e",
+        "worst_margin_e": 0.5 if passed else -0.1,
+        "worst_margin_psi": 0.6,
+        "worst_margin_v": 0.7,
+        "peak_force": 1.0,
+        "peak_torque": 1.0,
+        "wall_time": 0.0,
+    }
+
+
+def test_all_pass_and_all_fail_rates_give_a_summary_and_figures_also_on_resume(
+    tmp_path, paper_path, monkeypatch, capsys
+) -> None:
+    """4/4 passes at 10 kHz and 0/4 at 2 kHz: exit 0, intervals [lo, 1] and [0, hi], both figures; again on resume."""
+    path = write_campaign(tmp_path, paper_path, {**SMALL, "samples": 4})
+    monkeypatch.setattr(campaign, "run_task", _fake_run)
+    out = tmp_path / "out"
+    for _ in range(2):  # the second call resumes: nothing left to run, the results written again
+        assert campaign.main([str(path), "--out", str(out), "--workers", "1", "--quiet"]) == 0
+        per = json.loads((out / "summary.json").read_text())["per_control_rate"]
+        assert per["10000"]["pass_rate"] == 1.0 and per["10000"]["pass_rate_ci95"][1] == 1.0
+        assert per["2000"]["pass_rate"] == 0.0 and per["2000"]["pass_rate_ci95"][0] == 0.0
+        assert (out / "pass_rate.png").stat().st_size > 5000 and (out / "worst_margin.png").stat().st_size > 5000
+    assert "4/4 pass" in capsys.readouterr().out
+
+
+def test_a_crash_exits_4_not_1(tmp_path, paper_path, monkeypatch, capsys) -> None:
+    """An internal error during the runs is INCOMPLETE (exit 4), never 1, which means a funnel was left."""
+
+    def crash(task: campaign.Task) -> dict:
+        raise RuntimeError("boom")
+
+    path = write_campaign(tmp_path, paper_path, SMALL)
+    monkeypatch.setattr(campaign, "run_task", crash)
+    assert campaign.main([str(path), "--out", str(tmp_path / "out"), "--workers", "1", "--quiet"]) == 4
+    assert "formation-campaign: INCOMPLETE: internal error" in capsys.readouterr().err

@@ -26,7 +26,8 @@ figures ``pass_rate.png`` and ``worst_margin.png``.
 ``formation-campaign --sweep-rate FILE RATE…`` runs the file's own plant at each rate and prints
 the pass/fail table next to the rate each agent needs (:mod:`formation_sim.core.rates`).
 
-Exit status: 0 done, 2 invalid campaign or formation file (naming the field), 130 interrupted.
+Exit status (:mod:`formation_msgs_py.outcome`): 0 done, 2 invalid campaign or formation file (naming the
+field), 4 an I/O or internal error (the runs finished are kept: a rerun resumes), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from typing import TYPE_CHECKING, Any
 
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.loader import read_document
+from formation_msgs_py.outcome import ExitCode, guarded
 
 if TYPE_CHECKING:  # numpy, the loader of formations and the cores: imported where used, not for --help
     from formation_msgs_py.spec import FormationSpec, SignalModel
@@ -354,13 +356,16 @@ def run_tasks(todo: list[Task], log: Path, *, workers: int, scheduler: str | Non
 
 
 def wilson(passes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """95 % Wilson score interval of a pass rate."""
+    """95 % Wilson score interval (low, high) of the pass rate ``passes / n``; low <= rate <= high
+    (a 100 % rate has high == 1.0, a 0 % rate low == 0.0); no runs: (0, 1)."""
     if n == 0:
         return 0.0, 1.0
     p = passes / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # the interval contains p exactly; rounding leaves the upper bound of a 100 % rate (the lower of
+    # a 0 % rate) a unit in the last place inside it, so p itself bounds it
+    return max(0.0, min(p, centre - half)), min(1.0, max(p, centre + half))
 
 
 def summarise(rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
@@ -436,11 +441,12 @@ def plot_campaign(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     for r in rates:
-        worst = [
-            min(m for m in (row["worst_margin_e"], row["worst_margin_psi"], row["worst_margin_v"]) if m is not None)
+        margins = (
+            [m for m in (row["worst_margin_e"], row["worst_margin_psi"], row["worst_margin_v"]) if m is not None]
             for row in rows
             if row["control_rate"] == r
-        ]
+        )
+        worst = [min(m) for m in margins if m]  # a run stopped before its first check has no margin
         ax.hist(worst, bins=30, alpha=0.5, label=f"{r:g} Hz")
     ax.axvline(0.0, color="r", lw=1)
     ax.set_xlabel("worst margin over the run (< 0: a funnel was left)")
@@ -501,7 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-campaign",
         description="Monte Carlo campaign of headless runs (see the module docstring for the file), or a rate sweep. "
-        "Exit status: 0 done, 2 invalid input, 130 interrupted.",
+        "Exit status: 0 done, 2 invalid input, 4 I/O or internal error (a rerun resumes), 130 interrupted.",
     )
     p.add_argument("campaign", type=Path, nargs="?", help="campaign file (YAML)")
     p.add_argument("--out", type=Path, help="output directory (default out/<campaign>-campaign); resumes if it exists")
@@ -514,6 +520,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@guarded("formation-campaign")
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -544,7 +551,10 @@ def main(argv: list[str] | None = None) -> int:
         summary = run_campaign(campaign, out, workers=args.workers, scheduler=args.scheduler, quiet=args.quiet)
     except KeyboardInterrupt:
         print("\nformation-campaign: interrupted; run again to resume", file=sys.stderr)
-        return 130
+        return ExitCode.INTERRUPTED
+    except OSError as exc:  # the runs finished are in runs.jsonl: a rerun resumes
+        print(f"\nformation-campaign: could not write {out}: {exc}; run again to resume", file=sys.stderr)
+        return ExitCode.INCOMPLETE
     for rate, s in summary["per_control_rate"].items():
         lo, hi = s["pass_rate_ci95"]
         print(f"  {rate:>8} Hz: {s['passes']}/{s['runs']} pass ({lo:.2f}-{hi:.2f} at 95 %)")

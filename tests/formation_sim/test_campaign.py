@@ -154,3 +154,67 @@ def test_a_crash_exits_4_not_1(tmp_path, paper_path, monkeypatch, capsys) -> Non
     monkeypatch.setattr(campaign, "run_task", crash)
     assert campaign.main([str(path), "--out", str(tmp_path / "out"), "--workers", "1", "--quiet"]) == 4
     assert "formation-campaign: INCOMPLETE: internal error" in capsys.readouterr().err
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_docs_reference_matches_the_declaration() -> None:
+    """docs/campaigns.md holds the table `formation-campaign --schema` prints, verbatim."""
+    doc = (REPO / "docs" / "campaigns.md").read_text(encoding="utf-8")
+    assert campaign.reference_markdown() in doc, "regenerate: formation-campaign --schema (see docs/campaigns.md)"
+
+
+def test_schema_option_prints_the_reference(capsys) -> None:
+    """formation-campaign --schema prints the reference table and exits 0."""
+    assert campaign.main(["--schema"]) == 0
+    assert capsys.readouterr().out == campaign.reference_markdown()
+
+
+def test_a_campaign_has_exactly_the_declared_keys() -> None:
+    """Campaign's attributes are CAMPAIGN_KEYS in order: the record the declaration's parser builds."""
+    import dataclasses
+
+    assert [f.name for f in dataclasses.fields(campaign.Campaign)] == [k.name for k in campaign.CAMPAIGN_KEYS]
+
+
+def test_every_declared_key_is_read_and_no_other(tmp_path, paper_path) -> None:
+    """A file with every declared key (the preset plus a duration) loads with each value; one more key
+    at the top or in vary is refused."""
+    doc = yaml.safe_load((REPO / "config" / "campaigns" / "paper_random_plants.yaml").read_text(encoding="utf-8"))
+    doc.update(formation="paper.yaml", duration=0.5)
+    declared = {k.name: {c.name for c in k.children} for k in campaign.CAMPAIGN_KEYS}
+    assert set(doc) == set(declared) and set(doc["vary"]) == declared["vary"]
+    c = load_campaign(write_campaign(tmp_path, paper_path, doc))
+    assert (c.samples, c.seed, c.control_rates, c.duration) == (100, 2026, (1000.0, 2000.0, 5000.0, 10000.0), 0.5)
+    assert c.vary == {
+        "mass": (0.5, 1.5),
+        "inertia": (0.5, 1.5),
+        "disturbance_amplitude": (0.0, 0.1),
+        "noise_amplitude": (0.0, 0.1),
+        "initial_rotation": 0.05,
+    }
+    for extra in ({"extra": 1}, {"vary": {**doc["vary"], "extra": [0, 1]}}):
+        with pytest.raises(campaign.CampaignError, match="extra: unknown key"):
+            load_campaign(write_campaign(tmp_path, paper_path, {**doc, **extra}))
+
+
+def test_defaults_are_the_declared_ones(tmp_path, paper_path) -> None:
+    """Without its optional keys a campaign has the declared defaults: the file's duration, nothing varied."""
+    required = {k.name for k in campaign.CAMPAIGN_KEYS if k.default is campaign.REQUIRED}
+    assert required == {"formation", "samples", "seed", "control_rates"}
+    c = load_campaign(write_campaign(tmp_path, paper_path, {k: v for k, v in SMALL.items() if k in required}))
+    assert (c.duration, c.vary) == (None, {})
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "config" / "campaigns").glob("*.yaml")), ids=lambda p: p.name)
+def test_shipped_campaign_files_are_valid(path: Path) -> None:
+    """Every campaign file in config/campaigns/ loads."""
+    assert load_campaign(path).samples > 0
+
+
+def test_docs_name_every_column_of_runs_csv() -> None:
+    """docs/campaigns.md names every column of runs.csv and every file a campaign writes."""
+    doc = (REPO / "docs" / "campaigns.md").read_text(encoding="utf-8")
+    names = [*campaign.COLUMNS, "runs.jsonl", "runs.csv", "summary.json", "pass_rate.png", "worst_margin.png"]
+    assert [name for name in names if f"`{name}`" not in doc] == []

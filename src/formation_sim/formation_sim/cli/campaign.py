@@ -1,18 +1,10 @@
 """Monte Carlo campaigns of headless runs: ``formation-campaign CAMPAIGN.yaml --out DIR``.
 
-A campaign file names a base formation and what varies between samples::
-
-    formation: paper_5agents.yaml      # relative to the campaign file
-    samples: 200                       # N random plants (and initial orientations)
-    seed: 1                            # sample i draws from SeedSequence(seed).spawn(N)[i]
-    control_rates: [1000, 2000, 5000, 10000]   # every sample runs at every rate (paired)
-    duration: 5.0                      # optional: overrides simulation.duration
-    vary:                              # all optional
-      mass: [0.5, 1.5]                 # per agent: m ← m·U(lo, hi)
-      inertia: [0.5, 1.5]              # per agent: J ← J·U(lo, hi)
-      disturbance_amplitude: [0.0, 0.1]   # per agent, 'paper' models: A_w ← U(lo, hi)
-      noise_amplitude: [0.0, 0.1]         # per agent, 'paper' models: A_n ← U(lo, hi)
-      initial_rotation: 0.1            # per agent: R(0) ← R(0)·exp(S(θ)), θ uniform in a ball [rad]
+A campaign file names a base formation, how many random samples to draw, the control rates to run
+each at and what varies between samples (plant, disturbance and noise amplitudes, initial
+attitudes). Its keys are declared once, in :data:`CAMPAIGN_KEYS`, which validates the file
+(:func:`parse_campaign`) and renders the reference of docs/campaigns.md
+(``formation-campaign --schema``).
 
 Each run is the compiled headless runner (sampled control) with its own plant; the physics rate is
 the file's, rounded to a multiple of the control rate. Runs go to a local process pool
@@ -40,7 +32,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,12 +41,11 @@ from typing import TYPE_CHECKING, Any
 from formation_msgs_py.errors import FormationSpecError
 from formation_msgs_py.loader import read_document
 from formation_msgs_py.outcome import ExitCode, guarded
+from formation_msgs_py.schema import REQUIRED
 
 if TYPE_CHECKING:  # numpy, the loader of formations and the cores: imported where used, not for --help
     from formation_msgs_py.spec import FormationSpec, SignalModel
 
-VARY_KEYS = ("mass", "inertia", "disturbance_amplitude", "noise_amplitude", "initial_rotation")
-TOP_KEYS = ("formation", "samples", "seed", "control_rates", "duration", "vary")
 COLUMNS = (
     "sample",
     "control_rate",
@@ -131,48 +122,204 @@ def _range(field: str, value: Any) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+def _file_name(field: str, value: Any, base: Path) -> Path:
+    if not isinstance(value, str):
+        raise CampaignError(field, f"expected a file name, got {value!r}")
+    path = (base / value).resolve()
+    if not path.is_file():
+        raise CampaignError(field, f"no such file {str(path)!r}")
+    return path
+
+
+def _count(field: str, value: Any, base: Path) -> int:
+    return int(_number(field, value, positive=True, integer=True))
+
+
+def _seed(field: str, value: Any, base: Path) -> int:
+    seed = int(_number(field, value, integer=True))
+    if seed < 0:
+        raise CampaignError(field, f"expected a non-negative integer, got {seed}")
+    return seed
+
+
+def _rates(field: str, value: Any, base: Path) -> tuple[float, ...]:
+    if not isinstance(value, list) or not value:
+        raise CampaignError(field, f"expected a non-empty list of rates [Hz], got {value!r}")
+    return tuple(float(_number(f"{field}[{k}]", r, positive=True)) for k, r in enumerate(value))
+
+
+def _duration(field: str, value: Any, base: Path) -> float:
+    return float(_number(field, value, positive=True))
+
+
+def _scale_range(field: str, value: Any, base: Path) -> tuple[float, float]:
+    lo, hi = _range(field, value)
+    if lo <= 0:
+        raise CampaignError(field, f"expected a positive scale range, got {list(value)!r}")
+    return lo, hi
+
+
+def _amplitude_range(field: str, value: Any, base: Path) -> tuple[float, float]:
+    return _range(field, value)
+
+
+def _angle(field: str, value: Any, base: Path) -> float:
+    angle = float(_number(field, value))
+    if not 0 <= angle < math.pi:
+        raise CampaignError(field, f"expected an angle in [0, pi) [rad], got {value!r}")
+    return angle
+
+
+@dataclass(frozen=True)
+class Key:
+    """One key of a campaign file: how it is checked (``parse``) and what its reference says."""
+
+    name: str
+    type: str
+    #: the value a missing (or null) key takes, or :data:`REQUIRED`
+    default: Any
+    unit: str
+    doc: str
+    #: (field path, value, the campaign file's directory) -> the checked value; raises CampaignError
+    parse: Callable[[str, Any, Path], Any] | None = None
+    #: the keys of a mapping
+    children: tuple[Key, ...] = ()
+
+
+def _vary_range(name: str, what: str, parse: Callable[[str, Any, Path], Any], kind: str) -> Key:
+    return Key(name, kind, None, "", f"per agent: {what}; `null`: not varied", parse)
+
+
+_AMPLITUDE = "[low, high], 0 ≤ low ≤ high"
+#: Every key of a campaign file: :func:`parse_campaign` validates with it, :func:`reference_markdown`
+#: renders it as the table of docs/campaigns.md (``formation-campaign --schema``).
+CAMPAIGN_KEYS: tuple[Key, ...] = (
+    Key(
+        "formation",
+        "file name",
+        REQUIRED,
+        "",
+        "the base formation file ([formation_file.md](formation_file.md)), relative to the campaign file; "
+        "its plant, initial state, gains, funnels and simulation settings are every sample's start",
+        _file_name,
+    ),
+    Key(
+        "samples",
+        "integer > 0",
+        REQUIRED,
+        "",
+        "N: random plants (and initial attitudes), each run at every rate",
+        _count,
+    ),
+    Key(
+        "seed",
+        "integer ≥ 0",
+        REQUIRED,
+        "",
+        "sample i draws from numpy's `SeedSequence(seed).spawn(N)[i]`: the same plant at every rate, "
+        "however the runs are spread",
+        _seed,
+    ),
+    Key(
+        "control_rates",
+        "non-empty list of numbers > 0",
+        REQUIRED,
+        "Hz",
+        "every sample runs at every rate (paired); the physics rate is the file's, rounded to a multiple of it",
+        _rates,
+    ),
+    Key(
+        "duration",
+        "number > 0",
+        None,
+        "s",
+        "simulated time of each run; `null`: the file's `simulation.duration`",
+        _duration,
+    ),
+    Key(
+        "vary",
+        "mapping",
+        {},
+        "",
+        "what differs between samples, each drawn uniformly and independently per agent; a key left out keeps "
+        "the file's value",
+        children=(
+            _vary_range("mass", "m ← m·U(low, high)", _scale_range, "[low, high], 0 < low ≤ high"),
+            _vary_range(
+                "inertia", "J ← J·U(low, high) (the whole matrix)", _scale_range, "[low, high], 0 < low ≤ high"
+            ),
+            _vary_range(
+                "disturbance_amplitude",
+                "amplitude A ← U(low, high) of a `paper` disturbance (other models unchanged)",
+                _amplitude_range,
+                _AMPLITUDE,
+            ),
+            _vary_range(
+                "noise_amplitude",
+                "amplitude A ← U(low, high) of a `paper` velocity noise (other models unchanged)",
+                _amplitude_range,
+                _AMPLITUDE,
+            ),
+            Key(
+                "initial_rotation",
+                "number in [0, π)",
+                None,
+                "rad",
+                "per agent: R(0) ← R(0)·exp(S(θ)), the rotation vector θ uniform in the ball of this radius; "
+                "`null`: not varied",
+                _angle,
+            ),
+        ),
+    ),
+)
+
+
+def _parse_keys(node: Any, keys: tuple[Key, ...], prefix: str, base: Path) -> dict[str, Any]:
+    names = [k.name for k in keys]
+    for key in node:
+        if key not in names:
+            raise CampaignError(f"{prefix}{key}", f"unknown key (expected one of {', '.join(names)})")
+    out: dict[str, Any] = {}
+    for k in keys:
+        field = prefix + k.name
+        value = node.get(k.name)
+        if k.default is REQUIRED and k.name not in node:
+            raise CampaignError(field, "missing")
+        if value is None and k.default is not REQUIRED:
+            out[k.name] = k.default
+        elif k.children:
+            if not isinstance(value, Mapping):
+                raise CampaignError(field, f"expected a mapping, got {value!r}")
+            out[k.name] = _parse_keys(value, k.children, f"{field}.", base)
+        else:
+            assert k.parse is not None  # a key without children declares its parser
+            out[k.name] = k.parse(field, value, base)
+    return out
+
+
 def parse_campaign(document: Any, base: Path) -> Campaign:
-    """Validate a parsed campaign document; ``base`` is the directory relative paths start from."""
+    """Validate a parsed campaign document against :data:`CAMPAIGN_KEYS`; ``base`` is the directory
+    relative paths start from."""
     if not isinstance(document, Mapping):
         raise CampaignError("<top>", f"a campaign file is a mapping, got {type(document).__name__}")
-    for key in document:
-        if key not in TOP_KEYS:
-            raise CampaignError(str(key), f"unknown key (expected one of {', '.join(TOP_KEYS)})")
-    for key in ("formation", "samples", "seed", "control_rates"):
-        if key not in document:
-            raise CampaignError(key, "missing")
-    if not isinstance(document["formation"], str):
-        raise CampaignError("formation", f"expected a file name, got {document['formation']!r}")
-    formation = (base / document["formation"]).resolve()
-    if not formation.is_file():
-        raise CampaignError("formation", f"no such file {str(formation)!r}")
-    samples = int(_number("samples", document["samples"], positive=True, integer=True))
-    seed = int(_number("seed", document["seed"], integer=True))
-    if seed < 0:
-        raise CampaignError("seed", f"expected a non-negative integer, got {seed}")
-    rates = document["control_rates"]
-    if not isinstance(rates, list) or not rates:
-        raise CampaignError("control_rates", f"expected a non-empty list of rates [Hz], got {rates!r}")
-    control_rates = tuple(float(_number(f"control_rates[{k}]", r, positive=True)) for k, r in enumerate(rates))
-    duration = document.get("duration")
-    if duration is not None:
-        duration = float(_number("duration", duration, positive=True))
-    vary = document.get("vary") or {}
-    if not isinstance(vary, Mapping):
-        raise CampaignError("vary", f"expected a mapping, got {vary!r}")
-    checked: dict[str, Any] = {}
-    for key, value in vary.items():
-        if key not in VARY_KEYS:
-            raise CampaignError(f"vary.{key}", f"unknown key (expected one of {', '.join(VARY_KEYS)})")
-        if key == "initial_rotation":
-            checked[key] = float(_number(f"vary.{key}", value))
-            if not 0 <= checked[key] < math.pi:
-                raise CampaignError(f"vary.{key}", f"expected an angle in [0, pi) [rad], got {value!r}")
-        else:
-            checked[key] = _range(f"vary.{key}", value)
-            if key in ("mass", "inertia") and checked[key][0] <= 0:
-                raise CampaignError(f"vary.{key}", f"expected a positive scale range, got {list(value)!r}")
-    return Campaign(formation, samples, seed, control_rates, duration, checked)
+    parsed = _parse_keys(document, CAMPAIGN_KEYS, "", base)
+    parsed["vary"] = {k: v for k, v in parsed["vary"].items() if v is not None}  # only what varies
+    return Campaign(**parsed)
+
+
+def reference_markdown() -> str:
+    """The reference table of every key of a campaign file, in Markdown (docs/campaigns.md)."""
+
+    def rows(keys: tuple[Key, ...], prefix: str) -> list[str]:
+        out = []
+        for k in keys:
+            default = "required" if k.default is REQUIRED else f"`{json.dumps(k.default)}`"
+            out.append(f"| `{prefix}{k.name}` | {k.type} | {default} | {k.unit} | {k.doc} |")
+            out.extend(rows(k.children, f"{prefix}{k.name}."))
+        return out
+
+    header = ["| key | type | default | unit | meaning |", "|---|---|---|---|---|"]
+    return "\n".join(header + rows(CAMPAIGN_KEYS, "")) + "\n"
 
 
 def load_campaign(path: Path) -> Campaign:
@@ -506,7 +653,8 @@ def sweep_rate(formation: Path, rates: list[float], out: Path, *, workers: int, 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="formation-campaign",
-        description="Monte Carlo campaign of headless runs (see the module docstring for the file), or a rate sweep. "
+        description="Monte Carlo campaign of headless runs (the campaign file: docs/campaigns.md, --schema), "
+        "or a rate sweep. "
         "Exit status: 0 done, 2 invalid input, 4 I/O or internal error (a rerun resumes), 130 interrupted.",
     )
     p.add_argument("campaign", type=Path, nargs="?", help="campaign file (YAML)")
@@ -517,6 +665,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--sweep-rate", nargs="+", metavar=("FILE", "RATE"), help="a formation file and control rates [Hz] to try"
     )
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--schema", action="store_true", help="print the reference of the campaign file's keys and exit")
     return p
 
 
@@ -524,6 +673,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.schema:
+        print(reference_markdown(), end="")
+        return 0
     try:
         if args.sweep_rate:
             formation = Path(args.sweep_rate[0])

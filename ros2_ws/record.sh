@@ -11,6 +11,7 @@
 # Start it first, then sim.sh FILE --wait-recorder: the simulator waits for it and the bag starts at
 # the first step; started later, it says which steps it missed. It is an observer: nothing waits
 # for it while stepping (for a lockstep bag that cannot lose a message: sim.sh FILE --bag DIR).
+# Started before replay.sh BAG, it records every replayed message (the replay waits for it).
 # A run whose command line overrides the file's mode, rate or duration: add --meta mode=M
 # control_rate=HZ duration=S, so that the bag says what was run (formation-analyze uses it).
 # Log times are simulation time in lockstep.

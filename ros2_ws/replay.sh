@@ -2,10 +2,13 @@
 # Replay a bag with its recorded timing and /clock (installs the environment on first use).
 #
 #   ros2_ws/replay.sh BAG [--rate R] [--topics T …] [--loop] [--start S] [--end S]
-#                     [--clock-hz HZ] [--wait any|all|none] [--wait-timeout S] [--foxglove [HOST:]PORT] [--quiet]
+#                     [--clock-hz HZ] [--wait any|all|none] [--wait-timeout S] [--wait-settle S]
+#                     [--foxglove [HOST:]PORT] [--quiet]
 #
-# Waits for a subscriber before it starts, shows progress once a second. Replaying a run's
-# relative poses and velocities into an agent (agent.sh FILE ID) re-runs that agent live.
+# Waits for a subscriber, then until every subscription it sees has matched and none has appeared
+# for --wait-settle S (2), so that a recorder started first (record.sh) records every message;
+# shows progress once a second. Replaying a run's relative poses and velocities into an agent
+# (agent.sh FILE ID) re-runs that agent live.
 # Network: --network host (default: LOCALHOST unless ROS_AUTOMATIC_DISCOVERY_RANGE is set) or lan;
 # --discovery server[:HOST:PORT]: a client of the discovery server at HOST:PORT (default 127.0.0.1:11811),
 # e.g. one that sim.sh --discovery server started.

@@ -3,15 +3,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import pytest
-from bag_helpers import PAPER, REPO, script
+from bag_helpers import PAPER, REPO, cpu_load, script
 
 from formation_bag.analysis import analyze_run
 from formation_bag.dataset import load_run
@@ -29,18 +25,6 @@ def _compare(ours: Any, theirs: Any, path: str) -> list[str]:
     if isinstance(theirs, float) and isinstance(ours, float):
         return [] if abs(ours - theirs) <= 1e-9 else [f"{path}: {ours!r} != {theirs!r}"]
     return [] if ours == theirs else [f"{path}: {ours!r} != {theirs!r}"]
-
-
-@contextmanager
-def cpu_load(n: int) -> Iterator[list[subprocess.Popen]]:
-    """``n`` busy-loop processes, stopped by their PIDs on exit."""
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True) for _ in range(n)]
-    try:
-        yield procs
-    finally:
-        for p in procs:
-            p.kill()
-            p.wait()
 
 
 def test_lockstep_bag_is_complete_under_cpu_load(ros_procs, tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from bag_helpers import PAPER, REPO, script
+from bag_helpers import PAPER, REPO, cpu_load, script
 from process_hygiene import kill_hard, remove_segments
 
 from formation_bag import messages as m
@@ -147,6 +147,72 @@ def test_replay_publishes_every_message_in_order(ros_procs, tmp_path: Path) -> N
     assert "published 150 messages" in rep_out
     got = json.loads(out.strip().splitlines()[-1])
     assert got["stamps"] == [k * 10_000_000 for k in range(150)]
+
+
+def _formation_bag(bag: Path, steps: int, period_ns: int) -> dict[str, int]:
+    """A bag of every closed-loop topic of the paper formation (and /diagnostics every 10th step),
+    ``steps`` steps ``period_ns`` apart; returns its count per topic."""
+    from formation_msgs_py.spec import load_formation
+
+    spec = load_formation(PAPER)
+    ids = list(spec.agent_ids)
+    links = [(e.tail, e.head) for e in spec.edges] + [(e.head, e.tail) for e in spec.edges]
+    enc = m.Encoder()
+    rng = np.random.default_rng(11)
+    start = 1_700_000_000 * m.NS_PER_S
+    counts: dict[str, int] = {}
+    with SegmentedBagWriter(bag) as w:
+
+        def put(topic: str, msgtype: str, log: int, data: bytes) -> None:
+            w.add_topic(topic, msgtype)
+            w.write(topic, log, data)
+            counts[topic] = counts.get(topic, 0) + 1
+
+        for k in range(steps):
+            stamp = k * period_ns
+            log = start + stamp
+            put("/clock", m.CLOCK, log, enc.clock(stamp))
+            p = rng.standard_normal((len(ids), 3))
+            put(
+                "/formation/ground_truth",
+                m.POSE_ARRAY,
+                log,
+                enc.poses(stamp, p.tolist(), [np.eye(3).tolist()] * len(ids)),
+            )
+            for i, j in links:
+                put(
+                    f"/agent_{i}/relative_pose/agent_{j}",
+                    m.POSE_STAMPED,
+                    log,
+                    enc.relative_pose(stamp, i, rng.standard_normal(3), (0.0, 0.0, 0.0, 1.0)),
+                )
+            for a in ids:
+                put(f"/agent_{a}/velocity", m.TWIST_STAMPED, log, enc.twist(stamp, a, rng.standard_normal(6)))
+                put(f"/agent_{a}/wrench", m.WRENCH_STAMPED, log, enc.wrench(stamp, a, rng.standard_normal(6)))
+            if k % 10 == 0:
+                put("/diagnostics", m.DIAGNOSTIC_ARRAY, log, enc.empty(stamp, m.DIAGNOSTIC_ARRAY))
+    return counts
+
+
+@pytest.mark.parametrize("told", ["formation", "discovering"])
+def test_recorder_started_before_a_replay_records_every_message(ros_procs, tmp_path: Path, told: str) -> None:
+    """A recorder started before formation-replay, beside two busy loops, records every replayed message."""
+    src = tmp_path / "src"
+    replayed = _formation_bag(src, steps=200, period_ns=10_000_000)  # 2 s at 100 Hz, 4 020 messages
+    bag = tmp_path / "bag"
+    # told the formation, it subscribes to every topic at once (the ground truth last); else it
+    # subscribes to each topic as it finds it on the graph (every 0.5 s)
+    told_args = ["--formation", str(PAPER)] if told == "formation" else []
+    with cpu_load(2):
+        rec = ros_procs.start([*script("formation-record"), "--out", str(bag), "--quiet", *told_args])
+        ros_procs.wait_line(rec, "formation-record: recording", 60)
+        rep = ros_procs.start([*script("formation-replay"), str(src), "--quiet", "--wait-timeout", "120"])
+        rep_out, rep_err = ros_procs.finish(rep, timeout=300)
+        assert rep.returncode == 0, rep_out + rep_err
+        assert ros_procs.stop(rec) == 0, ros_procs.finish(rec, 5)
+    with Bag(bag) as b:
+        recorded = {name: t.count for name, t in b.topics.items() if t.count}
+    assert recorded == replayed, rep_out + rep_err
 
 
 def test_replay_refuses_unknown_topic(short_bags) -> None:

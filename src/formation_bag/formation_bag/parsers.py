@@ -26,6 +26,10 @@ VELOCITY_MARGIN_MODES = ("rerun", "none")
 DEFAULT_TOLERANCE = 1e-12
 BAG_HELP = "bag directory (or a single .mcap/.db3 file)"
 NAMESPACE_HELP = "namespace of the run's topics (default none)"
+#: formation-replay --wait-settle [s]: longer than the recorder's discovery period and its wait before
+#: it subscribes to the ground truth (formation-record --discovery-period, record_node.DEFER_SETTLE:
+#: 0.5 s each), with room for a busy machine
+REPLAY_SETTLE = 2.0
 
 
 def record_parser() -> argparse.ArgumentParser:
@@ -107,14 +111,16 @@ def replay_parser() -> argparse.ArgumentParser:
         "--wait",
         choices=("any", "all", "none"),
         default="any",
-        help="before starting, wait until any (default) / all replayed topics have a subscriber",
+        help="before starting, wait until any (default) / all replayed topics have a subscriber and every "
+        "subscription seen on them has matched (none: start at once)",
     )
     p.add_argument("--wait-timeout", type=float, default=10.0, help="give up waiting after S s and start (default 10)")
     p.add_argument(
         "--wait-settle",
         type=float,
-        default=0.5,
-        help="once a subscriber is seen, wait S s more so discovery completes on its side (default 0.5)",
+        default=REPLAY_SETTLE,
+        help="start only once no subscription has appeared or matched for S s, so that a recorder subscribing "
+        f"as it discovers the topics misses nothing (default {REPLAY_SETTLE:g})",
     )
     p.add_argument(
         "--foxglove",

@@ -14,8 +14,8 @@ and exit status 4.
 
 An observer of any run: nothing waits for it while stepping (formation-launch has the simulator
 write the run's bag itself, ``formation-sim --bag``). ``formation-sim --wait-recorder`` waits for
-it to subscribe before the first step; a recorder started after the simulator reports the steps it
-missed.
+it to subscribe before the first step, and ``formation-replay`` until its subscriptions have matched
+and settled; a recorder started after the simulator reports the steps it missed.
 
 Topics: every docs/topics.md topic of ``--formation FILE`` (exact, known before anything runs),
 plus whatever the graph shows that matches (checked every ``--discovery-period`` s); or only

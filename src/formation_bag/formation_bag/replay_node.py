@@ -4,9 +4,13 @@ Messages are published as the recorded CDR bytes (rclpy's ``Publisher.publish`` 
 serialized data), each at ``t0 + (log_time − start) / rate`` on the wall clock (a coarse sleep,
 then a short spin for sub-millisecond accuracy). ``/clock`` is replayed as recorded when the bag
 has it; otherwise ``--clock-hz`` generates it from the bag's log time (as ``ros2 bag play --clock``).
-Before starting, the node waits for subscribers (``--wait``) so that the first messages are
-not lost, then shows progress once a second on stderr. ``--foxglove [HOST:]PORT`` serves the
-replayed display topics to a live view as well (:mod:`formation_sim.views.live_view`).
+Before starting, the node waits for subscribers (``--wait``), then until every subscription it
+sees on its topics has matched its publishers and none has appeared for ``--wait-settle`` s, so
+that a recorder started before it misses nothing (one that subscribes as it discovers the topics,
+or one told the formation, which subscribes to the ground truth last); its reliable publishers keep
+a history of at least :data:`PUBLISHER_DEPTH` messages, so a matched subscriber on a busy machine
+loses nothing either. Then it shows progress once a second on stderr. ``--foxglove [HOST:]PORT``
+serves the replayed display topics to a live view as well (:mod:`formation_sim.views.live_view`).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 from formation_bag import messages as m
 from formation_bag.parsers import replay_parser
 from formation_bag.reader import Bag
-from formation_bag.record_node import msg_class
+from formation_bag.record_node import SUB_DEPTH, msg_class
 from formation_msgs_py import topics
 from formation_msgs_py.errors import BagError, BagTopicError
 from formation_msgs_py.ros import qos as fqos
@@ -33,24 +37,47 @@ from formation_msgs_py.wire import clock_bytes
 from formation_sim.views.live_view import DEFAULT_RATE, SUBPROTOCOL, LiveView, LiveViewError, display_topics
 
 SPIN_BEFORE = 0.003  # s: sleep until this close to a deadline, then spin (scheduler wake-up latency)
+#: least history of a reliable replay publisher: what a matched subscriber that is slow to take (or
+#: whose side of discovery completes a little later) still gets from the writer's history, as the
+#: recorder's subscription queues (formation_bag.record_node.SUB_DEPTH)
+PUBLISHER_DEPTH = SUB_DEPTH
+WAIT_POLL = 0.05  # s between two looks at the graph while waiting for subscribers
+
+
+def deepened(profile: QoSProfile) -> QoSProfile:
+    """``profile`` with a history of at least :data:`PUBLISHER_DEPTH` if it is reliable and keep-last.
+
+    A publisher's depth is not part of QoS matching: subscribers match exactly as with the recorded
+    profile."""
+    if profile.reliability != ReliabilityPolicy.RELIABLE or profile.history != HistoryPolicy.KEEP_LAST:
+        return profile
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=max(int(profile.depth), PUBLISHER_DEPTH),
+        reliability=profile.reliability,
+        durability=profile.durability,
+    )
 
 
 def to_rclpy_qos(profiles: Sequence[Any], topic: str) -> QoSProfile:
-    """The first recorded offered QoS profile as an rclpy profile (the project's default if none)."""
+    """The first recorded offered QoS profile as an rclpy profile (the project's default if none),
+    with the history of a replay publisher (:func:`deepened`)."""
     if topic == topics.CLOCK:
-        return fqos.CLOCK
+        return deepened(fqos.CLOCK)
     if not profiles:
-        return fqos.CONTROL
+        return deepened(fqos.CONTROL)
     q = profiles[0]
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_ALL if q.history == QosHistory.KEEP_ALL else HistoryPolicy.KEEP_LAST,
-        depth=max(1, int(q.depth)),
-        reliability=ReliabilityPolicy.BEST_EFFORT
-        if q.reliability == QosReliability.BEST_EFFORT
-        else ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL
-        if q.durability == QosDurability.TRANSIENT_LOCAL
-        else DurabilityPolicy.VOLATILE,
+    return deepened(
+        QoSProfile(
+            history=HistoryPolicy.KEEP_ALL if q.history == QosHistory.KEEP_ALL else HistoryPolicy.KEEP_LAST,
+            depth=max(1, int(q.depth)),
+            reliability=ReliabilityPolicy.BEST_EFFORT
+            if q.reliability == QosReliability.BEST_EFFORT
+            else ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL
+            if q.durability == QosDurability.TRANSIENT_LOCAL
+            else DurabilityPolicy.VOLATILE,
+        )
     )
 
 
@@ -92,7 +119,7 @@ class Replayer(Node):
         if topics.CLOCK not in self.pubs and clock_hz > 0:
             from rosgraph_msgs.msg import Clock
 
-            self.clock_pub = self.create_publisher(Clock, topics.CLOCK, fqos.CLOCK)
+            self.clock_pub = self.create_publisher(Clock, topics.CLOCK, deepened(fqos.CLOCK))
             self.clock_hz = clock_hz
             self._Clock = Clock
         if live is not None:  # the display topics replayed, or generated (/clock)
@@ -101,19 +128,47 @@ class Replayer(Node):
             live.open(served)
             self.live_topics = frozenset(served)
 
-    def wait_for_subscribers(self, mode: str, timeout: float, settle: float) -> bool:
-        """Wait until ``any``/``all`` publishers have a subscriber (at most ``timeout`` s), then ``settle`` s."""
+    def subscription_counts(self) -> dict[str, tuple[int, int]]:
+        """Per topic published: (subscriptions the graph shows, subscriptions matched with our publisher)."""
+        pubs = dict(self.pubs)
+        if self.clock_pub is not None:
+            pubs[topics.CLOCK] = self.clock_pub
+        return {name: (self.count_subscribers(name), pub.get_subscription_count()) for name, pub in pubs.items()}
+
+    def wait_for_subscribers(self, mode: str, timeout: float, settle: float) -> list[str]:
+        """Wait until ``any``/``all`` topics have a subscriber, every subscription the graph shows on
+        them has matched our publishers, and none appeared or matched for ``settle`` s (at most
+        ``timeout`` s); returns what was still missing then (empty: ready).
+
+        DDS delivers nothing published before both sides of a topic have matched. A recorder that
+        subscribes as it discovers topics (every 0.5 s) or that subscribes to the ground truth last
+        (``formation-record --formation``, 0.5 s after it matched the rest) adds subscriptions a
+        moment after the first ones: each change starts the ``settle`` s again.
+        """
         if mode == "none":
-            return True
-        pubs = list(self.pubs.values())
-        deadline = time.monotonic() + timeout
+            return []
         check = any if mode == "any" else all
-        while time.monotonic() < deadline:
-            if check(p.get_subscription_count() > 0 for p in pubs):
-                time.sleep(settle)  # our side matched; let the subscribers' side (and other topics) match too
-                return True
-            time.sleep(0.02)
-        return False
+        deadline = time.monotonic() + timeout
+        seen = self.subscription_counts()
+        since = time.monotonic()
+        while True:
+            wanted = check(matched > 0 for _, matched in seen.values())
+            unmatched = {t: (n, k) for t, (n, k) in seen.items() if k < n}
+            now = time.monotonic()
+            if wanted and not unmatched and now - since >= settle:
+                return []
+            if now >= deadline:
+                if wanted:
+                    missing = []
+                elif mode == "any":
+                    missing = ["no subscriber"]
+                else:
+                    missing = ["no subscriber on " + ", ".join(sorted(t for t, (_, k) in seen.items() if k == 0))]
+                return missing + [f"{t}: {k} of {n} subscriptions matched" for t, (n, k) in sorted(unmatched.items())]
+            time.sleep(WAIT_POLL)
+            now_seen = self.subscription_counts()
+            if now_seen != seen:
+                seen, since = now_seen, time.monotonic()
 
     def play(
         self,
@@ -214,8 +269,12 @@ def main(argv: list[str] | None = None) -> int:
     node = None
     try:
         node = Replayer(bag, selected, clock_hz=args.clock_hz, live=live)
-        if not node.wait_for_subscribers(args.wait, args.wait_timeout, args.wait_settle):
-            print(f"formation-replay: no subscriber after {args.wait_timeout:g} s; starting anyway", file=sys.stderr)
+        missing = node.wait_for_subscribers(args.wait, args.wait_timeout, args.wait_settle)
+        if missing:
+            print(
+                f"formation-replay: after {args.wait_timeout:g} s still {'; '.join(missing)}; starting anyway",
+                file=sys.stderr,
+            )
         print(f"formation-replay: replaying {len(selected)} topics of {args.bag} at rate {args.rate:g}", flush=True)
         while True:
             n = node.play(rate=args.rate, start=start, stop=stop, progress=not args.quiet)

@@ -232,10 +232,12 @@ class FormationSpec:
     def with_agent_gains(self, gains: Mapping[str, Mapping[str, float]]) -> FormationSpec:
         """A copy whose agents use other live gains: ``{agent id: {"delta"|"gamma": value}}`` (values
         checked by the caller, as an agent checks its parameters)."""
-        agents = tuple(
-            replace(a, controller=replace(a.controller, **gains[a.id])) if gains.get(a.id) else a for a in self.agents
-        )
-        return replace(self, agents=agents)
+        agents = []
+        for a in self.agents:
+            g, c = gains.get(a.id, {}), a.controller
+            controller = replace(c, delta=g.get("delta", c.delta), gamma=g.get("gamma", c.gamma))
+            agents.append(replace(a, controller=controller))
+        return replace(self, agents=tuple(agents))
 
     def with_simulation(self, **changes: Any) -> FormationSpec:
         """A copy with simulation settings replaced (re-checked: rates stay multiples)."""

@@ -50,10 +50,15 @@ class Measurements:
                 out[i][j] = (self.p_rel[k], self.R_rel[k])
         return out
 
-    def received(self, ns: int, p_rel: np.ndarray, R_rel: np.ndarray, velocities: np.ndarray) -> Measurements:
+    def received(
+        self, ns: int, p_rel: np.ndarray, R_rel: np.ndarray, velocities: np.ndarray, in_range: np.ndarray | None = None
+    ) -> Measurements:
         """These measurements as received: stamped ``ns``, with the relative poses and twists decoded
-        from the messages (the quaternions stay the ones sent)."""
-        return replace(self, ns=ns, t=control_time(ns), p_rel=p_rel, R_rel=R_rel, velocities=velocities)
+        from the messages (the quaternions stay the ones sent) and, if given, the ends received."""
+        in_range = self.in_range if in_range is None else in_range
+        return replace(
+            self, ns=ns, t=control_time(ns), p_rel=p_rel, R_rel=R_rel, velocities=velocities, in_range=in_range
+        )
 
 
 class Simulation:

@@ -85,6 +85,7 @@ from formation_sim.core.simulation import Measurements, Simulation
 from formation_sim.node.display import DEFAULT_MARKER_RATE, DisplayPublisher, declare_simulator_parameters
 from formation_sim.node.run_bag import VIEW_FILE, RunBag
 from formation_sim.node.sim_options import sim_preflight
+from formation_sim.node.step_messages import StepMessages
 from formation_sim.node.stepping import (
     APPLY,
     DUPLICATE,
@@ -165,22 +166,19 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(Clock, topics.CLOCK, qos.CLOCK)
         self.gt_pub = self.create_publisher(PoseArray, topics.GROUND_TRUTH, qos.GROUND_TRUTH)
         self.vel_pubs = [self.create_publisher(TwistStamped, topics.velocity(a), meas_qos) for a in self.ids]
-        # hot path: messages are published and taken as CDR bytes (formation_msgs_py.ros.conversions)
-        self.vel_codecs = [conversions.twist_codec(a) for a in self.ids]
         # one publisher per directed tree link; each agent's by edge end (Measurements' order)
-        self.links: dict[tuple[str, str], tuple[Any, conversions.StampedCodec]] = {}
+        self.links: dict[tuple[str, str], Any] = {}
         for e in spec.edges:
             for obs, tgt in ((e.tail, e.head), (e.head, e.tail)):
-                pub = self.create_publisher(PoseStamped, topics.relative_pose(obs, tgt), meas_qos)
-                self.links[(obs, tgt)] = (pub, conversions.relative_pose_codec(obs))
+                self.links[(obs, tgt)] = self.create_publisher(PoseStamped, topics.relative_pose(obs, tgt), meas_qos)
         ends = measurement_ends(simulator_view(spec))
-        self.agent_ends: list[list[tuple[int, Any, conversions.StampedCodec]]] = [[] for _ in self.ids]
+        self.agent_ends: list[list[tuple[int, Any]]] = [[] for _ in self.ids]
         for k, (obs, tgt) in enumerate(zip(ends.observer, ends.target)):
-            self.agent_ends[self.ids.index(obs)].append((k, *self.links[(obs, tgt)]))
+            self.agent_ends[self.ids.index(obs)].append((k, self.links[(obs, tgt)]))
+        # hot path: messages are published and taken as CDR bytes (formation_msgs_py.ros.conversions)
         self.wrench_codecs = [conversions.wrench_codec(a) for a in self.ids]
-        #: the bytes of the current step's relative pose of every edge end, and velocity of every agent
-        self.sent_poses: list[bytes] = [b""] * len(ends.observer)
-        self.sent_velocities: list[bytes] = [b""] * n
+        #: the bytes of the current step's messages, and what the agents decode from them
+        self.messages = StepMessages(spec)
         self.wrenches = WrenchBook(n)
         # the shadow of every agent; in lockstep also the witness every answer must agree with
         self.shadow = Witness(spec, judging=spec.simulation.mode == "lockstep")
@@ -345,46 +343,24 @@ class SimNode(Node):
             self._answer(i, self.witness.ns, held)  # type: ignore[union-attr]  # judging: there is one
 
     # publishing ------------------------------------------------------------------------------
-    def publish_step(self, meas: Measurements, ns: int, only: list[int] | None = None) -> None:
-        """Relative poses (pairs in range) and velocities of one step, stamped ``ns`` (``only``: the
+    def publish_step(self, meas: Measurements, only: list[int] | None = None) -> None:
+        """Relative poses (pairs in range) and velocities of one step, stamped ``meas.ns`` (``only``: the
         step's bytes again to those agents); the bag gets them once all are out (RunBag.held: the last
         agent's leave ~50 µs sooner)."""
         if only is None:
-            self._encode(meas, ns)
+            self.messages.encode(meas)
         in_range = meas.in_range.tolist()
-        poses, velocities = self.sent_poses, self.sent_velocities
+        poses, velocities = self.messages.poses, self.messages.velocities
         with nullcontext() if self.bag is None else self.bag.held():
             for i, ends in enumerate(self.agent_ends):
                 if only is not None and i not in only:
                     continue
-                for k, pub, _ in ends:
+                for k, pub in ends:
                     if in_range[k]:
                         pub.publish(poses[k])
                 # its velocity after its poses: an agent computes when its velocity is in, and the
                 # first agents compute while the simulator publishes for the others
                 self.vel_pubs[i].publish(velocities[i])
-
-    def _encode(self, meas: Measurements, ns: int) -> None:
-        """The CDR bytes of every message of a step: position and quaternion as the measurement model gives them."""
-        p_rel, q_rel, vel = meas.p_rel.tolist(), meas.q_rel.tolist(), meas.velocities.tolist()
-        for ends in self.agent_ends:
-            for k, _, codec in ends:
-                self.sent_poses[k] = codec.encode(ns, (*p_rel[k], *q_rel[k]))
-        for i, codec in enumerate(self.vel_codecs):
-            self.sent_velocities[i] = codec.encode(ns, vel[i])
-
-    def decoded(self, meas: Measurements) -> Measurements:
-        """What the agents decode from the step's bytes, with their own decoders (formation_msgs_py.wire):
-        the stamp, the relative poses of the ends in range and the twists."""
-        p_rel, R_rel = meas.p_rel.copy(), meas.R_rel.copy()
-        in_range = meas.in_range.tolist()
-        from_values = conversions.relative_pose_from_values
-        for ends in self.agent_ends:
-            for k, _, codec in ends:
-                if in_range[k]:
-                    p_rel[k], R_rel[k] = from_values(codec.decode(self.sent_poses[k])[1])
-        twists = [codec.decode(data) for codec, data in zip(self.vel_codecs, self.sent_velocities)]
-        return meas.received(twists[0][0], p_rel, R_rel, np.array([v for _, v in twists]))
 
     def publish_clock(self, ns: int) -> None:
         self.clock_pub.publish(conversions.clock_bytes(ns))
@@ -407,7 +383,7 @@ class SimNode(Node):
         out = []
         for i, a in enumerate(self.ids):
             ok = self.vel_pubs[i].get_subscription_count() > 0 and self.wrench_subs[i].get_publisher_count() > 0
-            ok = ok and all(pub.get_subscription_count() > 0 for (obs, _), (pub, _) in self.links.items() if obs == a)
+            ok = ok and all(pub.get_subscription_count() > 0 for (obs, _), pub in self.links.items() if obs == a)
             if not ok:
                 out.append(a)
         return out
@@ -578,12 +554,12 @@ class Runner:
             sent = mono()
             node.pub_wall = {ns: sent}
             wait.begin(ns, sent)
-            node.publish_step(meas, ns)
+            node.publish_step(meas)
             # while the agents compute: /clock, ground truth, display, the witness (the shadow
             # controllers on what the agents decode) and the funnel check of step k (an agent's stamp
             # checks allow /clock to come a little later)
             self._publish_aux(k, meas.t, ns)
-            margin_v, _ = self.shadow.step(node.decoded(meas), rec)
+            margin_v, _ = self.shadow.step(node.messages.decoded(meas), rec)
             s = sim.state
             rec.add(meas.t, s.p, s.R, s.v, None)
             witness = self.shadow.answers
@@ -597,7 +573,7 @@ class Runner:
                 if wrong:
                     raise WrongAnswerError([node.ids[i] for i in wrong], self._wrong_answers(wrong, ns))
                 if late:
-                    node.publish_step(meas, ns, only=late)
+                    node.publish_step(meas, only=late)
                     timing.resends += 1
                     for i in late:
                         rec.fault(meas.t, "resent_step", node.ids[i])
@@ -673,11 +649,11 @@ class Runner:
             node.pub_wall[ns] = mono()
             if len(node.pub_wall) > 64:
                 del node.pub_wall[next(iter(node.pub_wall))]
-            node.publish_step(meas, ns)  # first: the agents' time to answer runs from here
+            node.publish_step(meas)  # first: the agents' time to answer runs from here
             if done is not None:
                 self._close_step(done, u, faults, late_tick)
             self._publish_aux(k, meas.t, ns)
-            margin_v, errors = self.shadow.step(node.decoded(meas), rec)
+            margin_v, errors = self.shadow.step(node.messages.decoded(meas), rec)
             prev = (meas, sim.state, margin_v, errors)
             self.progress(meas.t)
         if prev is not None:  # the last sample, with the wrenches held at the end

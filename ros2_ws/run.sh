@@ -19,8 +19,10 @@
 # other options (see formation-headless --help).
 # Verdict PASS / FAIL / INCOMPLETE (with the reason) in the last lines and OUT/summary.json. Exit status:
 # 0 PASS, 1 FAIL (a funnel was violated), 2 invalid input (nothing started), 3 a process died or an
-# agent stopped answering, 4 incomplete (I/O error, disk full, lag budget, data missing), 130
-# interrupted. Details: docs/ros2.md.
+# agent stopped answering, 4 incomplete (I/O error, disk full, lag budget, data missing), 5 wrong
+# answer (lockstep: an agent answered a step, again when re-sent, with a wrench the simulator's witness
+# refuses), 130 interrupted. --params-file FILE hands one ROS 2 parameters file to every agent (their
+# gains). Details: docs/ros2.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case "${1:-}" in

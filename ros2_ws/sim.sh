@@ -13,7 +13,8 @@
 # 127.0.0.1:11811; across machines an address the agents reach), runs the simulator as its client and
 # stops the server when the simulator exits; every agent.sh/record.sh takes the same --discovery.
 # Environment: ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_STATIC_PEERS as for agent.sh.
-# Exit status: 0 PASS, 1 FAIL, 2 invalid, 3 a process died or an agent stopped answering, 4 incomplete, 130 interrupted.
+# Exit status: 0 PASS, 1 FAIL, 2 invalid, 3 a process died or an agent stopped answering, 4 incomplete,
+# 5 wrong answer (an agent's wrench refused by the witness, again when the step was re-sent), 130 interrupted.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 case "${1:-}" in

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -32,6 +33,7 @@ from ros_helpers import (
     launch_beside_a_forger,
     read_log,
     ros_context,
+    run,
     wait_for_line,
 )
 
@@ -144,3 +146,36 @@ def test_the_witness_follows_an_agent_whose_gain_changed_live(procs, ros_env: di
     assert then["gamma"] == 20.0 and then["source"] == "live change" and 0.0 < then["from_t"] < DURATION, then
     assert all(len(agents[a]["gains"]) == 1 for a in agents if a != "3"), agents
     assert "agent 3: δ=0.1, γ=20 from t=" in log, log
+
+
+def test_an_agent_that_answers_wrongly_is_named_with_its_own_exit_status(procs, tmp_path: Path) -> None:
+    """Agent 3 reads another copy of the formation file (edge 3-4 wants 2.55 m, not 2.5 m): its first answer
+    differs from the witness's, the same answer to the re-sent step names it (exit 5, wrong answer), no
+    wrench of it is applied, and formation-analyze of the run's bag says the same reason and status."""
+    doc = yaml.safe_load(PAPER.read_text())
+    for edge in doc["edges"]:
+        if (str(edge["tail"]), str(edge["head"])) == ("3", "4"):
+            edge["distance"] = 2.55
+    other = tmp_path / "other_copy.yaml"
+    other.write_text(yaml.safe_dump(doc))
+    for a in load_formation(PAPER).agents:
+        procs.agent(other if a.id == "3" else PAPER, a.id)
+    out = tmp_path / "out"
+    sim = procs.sim(PAPER, out, "--duration", "0.05", "--bag", str(tmp_path / "bag"))
+    code = sim.wait(timeout=180)
+    log = read_log(sim)
+    assert code == 5, log
+    summary = json.loads((out / "summary.json").read_text())
+    reason = summary["incomplete_reason"]
+    assert summary["verdict"] == "INCOMPLETE" and summary["exit_status"] == 5, summary
+    assert reason.startswith("lockstep: wrong answer: agent 3 (max |u - witness|"), reason
+    assert "allowed bit for bit" in reason and "at t=0.000000 s, re-sent" in reason, reason
+    assert summary["faults"]["3"]["answer_mismatch"]["count"] >= 2, summary["faults"]
+    u = np.load(out / "trajectory.npz")["u"]
+    assert not np.any(u[:, load_formation(PAPER).agent_ids.index("3")]), "a wrench of agent 3 was applied"
+    analyzed = tmp_path / "analysis"
+    analyze = [executable("formation-analyze"), str(tmp_path / "bag"), "--out", str(analyzed), "--no-plots"]
+    code, text = run(analyze, dict(os.environ))
+    assert code == 5, text
+    again = json.loads((analyzed / "summary.json").read_text())
+    assert again["incomplete_reason"].startswith("the run stopped: " + reason), again["incomplete_reason"]

@@ -47,7 +47,7 @@ from formation_bag import messages as m
 from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.parsers import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_bag.rerun import AgentRerun, rerun_all
-from formation_msgs_py.bag import KEY_REPAIRED
+from formation_msgs_py.bag import KEY_REPAIRED, KEY_RUN_STOPPED
 from formation_msgs_py.errors import BagError, FormationError
 from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
@@ -302,6 +302,21 @@ class _StepReplay:
         self.recorder.add(t, np.array(p_list), np.array(R_list), np.array(v), u, margin_v)
 
 
+def run_stopped(custom_data: dict[str, str]) -> Incomplete | None:
+    """Why the recorded run stopped before its end, as its simulator wrote it into the bag
+    (:data:`formation_msgs_py.bag.KEY_RUN_STOPPED`), or None (it did not say)."""
+    text = custom_data.get(KEY_RUN_STOPPED)
+    if not text:
+        return None
+    try:
+        said = json.loads(text)
+        code = ExitCode(int(said["exit_status"]))
+        reason = str(said["reason"])
+    except (ValueError, KeyError, TypeError):
+        return None  # unreadable: the data's own gaps say enough
+    return Incomplete(code, reason)
+
+
 def analyze_run(
     run: RunData,
     *,
@@ -330,6 +345,9 @@ def analyze_run(
         wrenches=not settings.realtime,
     )
     incomplete = Incomplete(ExitCode.INCOMPLETE, "data missing: " + "; ".join(missing)) if missing else None
+    stopped = run_stopped(run.custom_data)
+    if stopped is not None and incomplete is not None:  # the run says why its data ends: that first
+        incomplete = Incomplete(stopped.code, f"the run stopped: {stopped.reason}; {incomplete.reason}")
     bag_info = bag_report(run, settings, missing, replay, velocity_margins)
     bag_info["analysis_time"] = time.perf_counter() - started
     summary = recorder.summary(

@@ -5,8 +5,9 @@ Who counts what (kinds):
 
 - the simulator (formation_sim.node.sim_node): ``resent_step`` (lockstep: a step published again to an
   agent that had not answered), :data:`ANSWER_MISMATCH` (lockstep: an answer that differed from
-  the witness, the simulator's shadow of that agent's controller on the measurements it published,
-  by more than round-off; not applied, the step stays unanswered: formation_sim.node.stepping),
+  the witness, the simulator's run of that agent's controller on what the agent received: bit for
+  bit where the agent computes as the simulator can, else beyond the round-off bound; not applied,
+  the step stays unanswered: formation_sim.node.witness),
   ``stale_command`` (realtime: a tick applied an agent's older wrench, its answer to the last step
   was not in), ``zero_wrench`` (realtime: that wrench was older than
   ``command_timeout`` and replaced by zero), ``late_tick`` (realtime, agent ``simulator``: a tick
@@ -113,6 +114,10 @@ MEANINGS = {
     "resent_step": "lockstep: an agent's answer had not arrived within the step timeout (a slow or "
     "stopped process), so the simulator sent that step's measurements again; the step is integrated "
     "only with the agent's answer, so the trajectory is the same as without the delay",
+    "answer_mismatch": "lockstep: an agent's wrench differed from the witness (the simulator's own run of "
+    "that agent's controller on what it was sent: bit for bit on the same platform, else beyond the "
+    "round-off bound) and was not applied; the step was sent again. The same wrench again ends the run "
+    "INCOMPLETE, exit 5 (wrong answer); an agent that then agreed was applied, the trajectory unchanged",
     "stale_command": "realtime: a tick applied the agent's previous wrench, its answer to the last "
     "step was not in yet (zero-order hold)",
     "zero_wrench": "realtime: the agent's last wrench was older than command_timeout and was replaced by zero",

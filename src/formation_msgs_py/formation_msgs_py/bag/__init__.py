@@ -14,6 +14,9 @@ KEY_FORMATION_FILE = "formation_file"
 #: custom_data key that ``formation-bag repair`` sets when it salvaged a file a killed writer left open
 #: (what was recovered); formation-analyze reports the run INCOMPLETE with it
 KEY_REPAIRED = "repaired"
+#: custom_data key the simulator sets when its run stopped before its end: JSON {"exit_status", "reason"}
+#: (a process died, a wrong answer, an interruption); formation-analyze reports the same reason and status
+KEY_RUN_STOPPED = "run_stopped"
 #: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time): their log
 #: time in simulation time is that stamp; other types (markers, funnel values, /tf) take the latest one
 STAMPED_TYPES = frozenset(

@@ -827,7 +827,8 @@ class SimProcess:
             self.live.close()
         bag = self.bag
         if bag is not None:
-            self.extra["recorder"] = bag.close()
+            stopped = None if incomplete is None else (int(incomplete.code), incomplete.reason)
+            self.extra["recorder"] = bag.close(stopped)
             if bag.failed is not None and incomplete is None:
                 print(f"formation-sim: ERROR: {bag.failed}", file=sys.stderr, flush=True)
                 incomplete = Incomplete(ExitCode.INCOMPLETE, bag.failed)

@@ -152,22 +152,30 @@ class Procs:
     logdir: Path
     started: list[subprocess.Popen] = field(default_factory=list)
 
-    def start(self, name: str, cmd: list[str], **kw) -> subprocess.Popen:
+    def start(self, name: str, cmd: list[str], env: dict[str, str] | None = None, **kw) -> subprocess.Popen:
+        """``cmd`` in its own process group, its output in ``name``.log; ``env`` adds to the test's environment."""
         log = open(self.logdir / f"{name}.log", "wb")
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True, **kw)
+        environment = {**self.env, **(env or {})}
+        proc = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=environment, start_new_session=True, **kw
+        )
         log.close()
         proc.log_path = self.logdir / f"{name}.log"  # type: ignore[attr-defined]
         self.started.append(proc)
         return proc
 
-    def agent(self, formation: Path, agent_id: str, *params: str) -> subprocess.Popen:
-        """An agent process; ``params`` are more ``NAME:=VALUE`` parameters."""
+    def agent(
+        self, formation: Path, agent_id: str, *params: str, env: dict[str, str] | None = None
+    ) -> subprocess.Popen:
+        """An agent process; ``params`` are more ``NAME:=VALUE`` parameters, ``env`` more environment."""
         cmd = [executable("formation-agent"), "--ros-args", "-p", f"formation_file:={formation}"]
         cmd += ["-p", f"agent_id:='{agent_id}'", *(x for p in params for x in ("-p", p))]
-        return self.start(f"agent_{agent_id}", cmd)
+        return self.start(f"agent_{agent_id}", cmd, env)
 
-    def sim(self, formation: Path, out: Path, *extra: str) -> subprocess.Popen:
-        return self.start("sim", [executable("formation-sim"), str(formation), "--out", str(out), "--no-plots", *extra])
+    def sim(self, formation: Path, out: Path, *extra: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+        """The simulator; ``extra`` more options, ``env`` more environment."""
+        cmd = [executable("formation-sim"), str(formation), "--out", str(out), "--no-plots", *extra]
+        return self.start("sim", cmd, env)
 
     def stop_all(self) -> None:
         alive = [p for p in self.started if p.poll() is None]

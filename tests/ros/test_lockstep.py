@@ -249,3 +249,25 @@ def test_a_rate_whose_period_is_no_whole_number_of_nanoseconds(
     assert_equals_headless(
         out / "trajectory.npz", duration, record_rate=rate, overrides={"control_rate": rate, "physics_rate": rate}
     )
+
+
+def test_agents_of_other_code_forms_and_platforms_in_one_run(procs, tmp_path: Path) -> None:
+    """A compiled simulator with agent 3 interpreted on its platform (judged bit for bit against an
+    interpreted witness) and agent 2 interpreted on what stands for another host (numba told of another
+    CPU: another platform fingerprint, judged within the round-off bound; numpy's exp and log differ from
+    the compiled witness's libm in the last places on CPUs with AVX-512): every answer agrees, the run
+    passes with no fault."""
+    other_cpu = {"NUMBA_DISABLE_JIT": "1", "NUMBA_CPU_NAME": "generic"}
+    for a in load_formation(PAPER).agent_ids:
+        env = {"NUMBA_DISABLE_JIT": "1"} if a == "3" else other_cpu if a == "2" else {"NUMBA_DISABLE_JIT": "0"}
+        procs.agent(PAPER, a, env=env)
+    out = tmp_path / "out"
+    sim = procs.sim(PAPER, out, "--duration", "0.2", env={"NUMBA_DISABLE_JIT": "0"})
+    assert sim.wait(timeout=300) == 0, read_log(sim)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["verdict"] == "PASS" and summary["faults"] == {}, summary["faults"]
+    agents = summary["witness"]["agents"]
+    assert (agents["3"]["judged"], agents["3"]["code_form"]) == ("bit for bit", "interpreted"), agents["3"]
+    assert (agents["2"]["judged"], agents["2"]["code_form"]) == ("within the round-off bound", "interpreted")
+    assert agents["2"]["largest_ratio_to_tolerance"] < 1.0, agents["2"]
+    assert all(agents[a]["judged"] == "bit for bit" for a in ("1", "4", "5")), agents

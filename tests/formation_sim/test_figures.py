@@ -1,5 +1,5 @@
-"""The velocity-error figure's data and the animation, from a short trajectory (no ROS; the headless
-tests check that every figure is written)."""
+"""The velocity-error figure's data, the figures' captions (verdict and run length) and the animation,
+from a short trajectory (no ROS; the headless tests check that every figure is written)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from formation_sim.views.figures import velocity_errors
 
 
 @pytest.fixture(scope="module")
-def short_run():
+def short_recorder() -> RunRecorder:
     """The paper's first 0.2 s at 1 kHz control, recorded every 20 steps (11 samples)."""
     spec = load_formation(Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml")
     sim = Simulation(simulator_view(spec), physics_rate=1000.0, control_rate=1000.0)
@@ -29,7 +29,13 @@ def short_run():
         s = sim.state
         rec.add(sim.t, s.p, s.R, s.v, u, margin_v)
         sim.advance(u)
-    return spec, rec.arrays()
+    return rec
+
+
+@pytest.fixture(scope="module")
+def short_run(short_recorder: RunRecorder):
+    """The formation and the trajectory of :func:`short_recorder`."""
+    return short_recorder.spec, short_recorder.arrays()
 
 
 def test_velocity_errors_start_inside_their_auto_funnel(short_run) -> None:
@@ -75,9 +81,10 @@ def test_edge_figures_are_two_columns_with_one_legend(short_run, tmp_path: Path)
     seen = []
     real_save = figures._save
     figures_save = lambda fig, path: seen.append((fig, path.name)) or real_save(fig, path)  # noqa: E731
+    summary = {"verdict": "PASS", "first_violation": None, "duration": 0.2, "requested_duration": 0.2}
     try:
         figures._save = figures_save
-        figures.plot_run(tmp_path, spec, arrays)
+        figures.plot_run(tmp_path, spec, arrays, summary)
     finally:
         figures._save = real_save
     assert tuple(name for _, name in seen) == figures.FIGURES
@@ -105,3 +112,74 @@ def test_every_runner_help_and_outputs_page_name_every_figure() -> None:
     }
     missing = [(where, name) for where, text in texts.items() for name in (*FIGURES, LAYOUT_NAME) if name not in text]
     assert not missing
+
+
+def test_every_figure_shows_the_verdict_and_the_run_length(short_recorder, tmp_path: Path, monkeypatch) -> None:
+    """A run that stopped at 0.2 s of 5 s: each figure write_outputs writes (as every runner and
+    formation-analyze do) is titled INCOMPLETE with its reason and "t = 0–0.2 s of 5 s", in the
+    verdict's colour, clear of the legend and inside the figure, and its PNG says the same."""
+    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from formation_sim.views import figures
+    from formation_sim.views.outputs import write_outputs
+
+    summary = short_recorder.summary(wall_time=1.0, requested_duration=5.0)
+    assert summary["verdict"] == "INCOMPLETE"
+    seen = {}
+    real_save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda fig, path: seen.setdefault(path.name, fig) and real_save(fig, path))
+    write_outputs(tmp_path, short_recorder, summary)
+    assert tuple(seen) == figures.FIGURES
+    expected = "INCOMPLETE: duration not reached: t=0.2 s of 5 s — t = 0–0.2 s of 5 s"
+    for name, fig in seen.items():
+        title = next(t for t in fig.texts if t.get_text() == fig.get_suptitle())
+        assert title.get_text().replace("\n", " ") == expected, name
+        assert title.get_color() == figures.VERDICT_COLOURS["INCOMPLETE"], name
+        assert Image.open(tmp_path / name).text["Description"] == expected, name
+        renderer = FigureCanvasAgg(fig).get_renderer()  # the figure was closed after it was saved
+        box, legend = title.get_window_extent(renderer), fig.legends[0].get_window_extent(renderer)
+        assert 0 <= box.x0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height, name
+        assert box.y0 >= legend.y1, name  # the caption sits above the legend, not on it
+    plt.close("all")
+
+
+def test_the_caption_says_each_verdict_its_reason_and_the_time_covered() -> None:
+    """PASS, FAIL (with its first violation and an early stop), INCOMPLETE with a long reason (shortened),
+    and a run whose requested duration is unknown."""
+    from formation_sim.views.outputs import CAPTION_REASON_CHARS, run_caption
+
+    base = {"first_violation": None, "incomplete_reason": None, "duration": 5.0, "requested_duration": 5.0}
+    assert run_caption({**base, "verdict": "PASS"}, 0.0) == "PASS: every funnel held — t = 0–5 s of 5 s"
+    fv = {"t": 2.15925, "kind": "velocity", "agent": "1", "channel": "vx"}
+    fail = {**base, "verdict": "FAIL", "first_violation": fv, "duration": 2.159}
+    assert run_caption(fail, 0.0) == "FAIL: first violation at t=2.1593 s: velocity 1 (vx) — t = 0–2.159 s of 5 s"
+    stopped = run_caption({**fail, "incomplete_reason": "interrupted"}, 0.0)
+    assert stopped.startswith("FAIL: first violation at t=2.1593 s: velocity 1 (vx); then the run stopped early: ")
+    long = {**base, "verdict": "INCOMPLETE", "incomplete_reason": "data missing: " + "agent_3 wrench gap; " * 20}
+    verdict, covered = run_caption({**long, "duration": 1.5}, 0.0).split(" — ")
+    assert verdict.startswith("INCOMPLETE: data missing: agent_3") and verdict.endswith(" …")
+    assert len(verdict) <= CAPTION_REASON_CHARS and covered == "t = 0–1.5 s of 5 s"
+    unknown = {**base, "verdict": "PASS", "requested_duration": None, "duration": 3.25}
+    assert run_caption(unknown, 0.5) == "PASS: every funnel held — t = 0.5–3.25 s (no requested duration)"
+
+
+def test_the_figures_of_a_ros_run_show_the_launchers_verdict(short_recorder, tmp_path: Path, capsys) -> None:
+    """The simulator captions its figures PASS; an agent that died in a realtime run makes the run
+    INCOMPLETE (exit 3), and formation-launch draws the figures again with that verdict."""
+    from formation_msgs_py.options import RunOptions
+    from formation_sim.launch import launcher as launch
+    from formation_sim.views.figures import FIGURES
+    from formation_sim.views.outputs import write_outputs
+
+    write_outputs(tmp_path, short_recorder, short_recorder.summary(wall_time=1.0, requested_duration=0.2))
+    assert Image.open(tmp_path / "errors.png").text["Description"].startswith("PASS: every funnel held")
+    env = {"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    run = launch.Launcher(short_recorder.spec, RunOptions(command="launch", mode="realtime"), tmp_path, env)
+    run.timing = {"start": 0.0, "stop_from": 1.0, "stopped": 2.0}
+    (tmp_path / "logs").mkdir()  # where the processes' logs were
+    run.agent_died.append("agent_3 died (killed by SIGKILL) at t=0.1 s")
+    assert launch._finish(run, None) == 3
+    for name in FIGURES:
+        caption = Image.open(tmp_path / name).text["Description"]
+        assert caption == "INCOMPLETE: agent_3 died (killed by SIGKILL) at t=0.1 s — t = 0–0.2 s of 0.2 s", name

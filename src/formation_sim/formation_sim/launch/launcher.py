@@ -252,6 +252,8 @@ class Launcher:
         self.interrupted: set[str] = set()
         #: a --secure run: the children's logs are searched for failed TLS handshakes at the end
         self.secure = False
+        #: (verdict, incomplete_reason) of the simulator's summary.json, whose figures say it
+        self.simulator_verdict: tuple[Any, Any] | None = None
 
     def on_signal(self, signum: int, _frame: Any) -> None:
         if self.signalled is None:
@@ -439,6 +441,7 @@ class Launcher:
         path = self.out / "summary.json"
         try:
             summary = json.loads(path.read_text(encoding="utf-8"))
+            self.simulator_verdict = (summary.get("verdict"), summary.get("incomplete_reason"))
         except (OSError, ValueError):
             summary = {
                 "formation": self.spec.name,
@@ -587,7 +590,12 @@ def _remove_created(out: Path, existed: bool) -> None:
 def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
     """Complete and write summary.json and processes.json, print the verdict; the exit status."""
     from formation_msgs_py.faults import write_json
-    from formation_sim.views.outputs import format_summary, report_animation, verdict_line  # numba: not for --help
+    from formation_sim.views.outputs import (  # numba: not for --help
+        format_summary,
+        redraw_figures,
+        report_animation,
+        verdict_line,
+    )
 
     out, args = launcher.out, launcher.args
     summary = launcher.summary()
@@ -601,6 +609,11 @@ def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
     except OSError as exc:
         print(f"formation-launch: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr)
         code = ExitCode.INCOMPLETE
+    if launcher.simulator_verdict not in (None, (summary.get("verdict"), summary.get("incomplete_reason"))):
+        try:  # the simulator's figures are captioned with its verdict, which the launcher's replaces
+            redraw_figures(out, launcher.spec, summary)
+        except OSError as exc:
+            print(f"formation-launch: the figures still show the simulator's verdict: {exc}", file=sys.stderr)
     print(format_summary(summary) if "edges" in summary else verdict_line(summary), flush=True)
     if args.animate and (out / "trajectory.npz").exists():
         import numpy as np

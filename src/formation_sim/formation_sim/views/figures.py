@@ -1,8 +1,10 @@
 """The run's figures, like the paper's (errors in their funnels, control inputs), from trajectory.npz.
 
 Edges and agents in a grid of at most two (edges) or three (agents) columns, so that the text stays
-readable at a page's width; one legend per figure, above the panels (every panel draws the same
-kinds of line):
+readable at a page's width; above the panels, the run's verdict with its short reason and the
+simulated time covered of the requested duration (the figure's title, coloured by the verdict, and
+the PNG's ``Description``: :func:`formation_sim.views.outputs.run_caption`), then one legend per
+figure (every panel draws the same kinds of line):
 
 - ``errors.png``: per edge k, e_k = ‖p_k2 − p_k1‖² − d_k² [m²] with its two bounds C_con·ρ_e (upper,
   dashed) and −C_col·ρ_e (lower, dash-dotted) over the whole run, and below it the second half of
@@ -23,6 +25,8 @@ Arrays as in trajectory.npz (agents and edges in file order).
 from __future__ import annotations
 
 import math
+import textwrap
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,17 +41,40 @@ FIGURES = ("errors.png", "orientation_errors.png", "inputs.png", "velocity_error
 VELOCITY_LABELS = ("$v_x$", "$v_y$", "$v_z$", r"$\omega_x$", r"$\omega_y$", r"$\omega_z$")
 COMPONENT_COLOURS = ("C0", "C1", "C2")
 ZOOM_FROM = 0.5  # the insets show the second half of the run, over which they sit
+#: the colour of each verdict in the caption
+VERDICT_COLOURS = {"PASS": "#1a7f37", "FAIL": "#c62828", "INCOMPLETE": "#b35c00"}
+CAPTION_PT = 11
+#: inches: one caption line at CAPTION_PT with its leading, the gap above the caption, and the mean
+#: width of a character (DejaVu Sans, bold, at 11 pt; the caption is wrapped to the figure's width)
+CAPTION_LINE, CAPTION_GAP, CAPTION_CHAR = 0.22, 0.08, 0.1
 
 
-def _grid(plt, rows: int, cols: int, width: float, height: float, *, top: float = 0.35, **kwargs):
-    """``plt.subplots`` of rows x cols panels, each cell ``width`` x ``height`` inches, with fixed margins.
+@dataclass(frozen=True)
+class Caption:
+    """What every figure of a run says above its panels: verdict, reason and run length, in the verdict's colour."""
 
-    Margins and gaps are set in inches (room for a title above each panel, tick labels and an axis
-    label left and below), not computed by ``tight_layout``: that costs a second drawing of every
-    text, about half the CPU of a run's figures.
+    text: str
+    colour: str
+
+
+def _caption_height(fig) -> float:
+    """Inches the caption (the figure's suptitle, wrapped) takes at the top of ``fig``."""
+    return CAPTION_GAP + CAPTION_LINE * (fig.get_suptitle().count("\n") + 1)
+
+
+def _grid(plt, rows: int, cols: int, width: float, height: float, caption: Caption, *, top: float = 0.35, **kwargs):
+    """``plt.subplots`` of rows x cols panels, each cell ``width`` x ``height`` inches, with fixed margins,
+    and ``caption`` above them, wrapped to the figure's width.
+
+    Margins and gaps are set in inches (room for the caption, a title above each panel, tick labels
+    and an axis label left and below), not computed by ``tight_layout``: that costs a second drawing
+    of every text, about half the CPU of a run's figures.
     """
     left, right, bottom, gap_w, gap_h = 0.75, 0.15, 0.5, 0.75, 0.7
-    fig_w, fig_h = width * cols, height * rows + top
+    fig_w = width * cols
+    text = textwrap.fill(caption.text, width=max(20, int((fig_w - 0.3) / CAPTION_CHAR)))
+    top += CAPTION_GAP + CAPTION_LINE * (text.count("\n") + 1)
+    fig_h = height * rows + top
     axes_w = (fig_w - left - right - gap_w * (cols - 1)) / cols
     axes_h = (fig_h - top - bottom - gap_h * (rows - 1)) / rows
     fig, axes = plt.subplots(rows, cols, figsize=(fig_w, fig_h), squeeze=False, **kwargs)
@@ -59,17 +86,28 @@ def _grid(plt, rows: int, cols: int, width: float, height: float, *, top: float 
         wspace=gap_w / axes_w,
         hspace=gap_h / axes_h,
     )
+    fig.suptitle(
+        text, y=1 - CAPTION_GAP / fig_h, va="top", fontsize=CAPTION_PT, fontweight="bold", color=caption.colour
+    )
     return fig, axes
 
 
 def _panels(
-    plt, n: int, *, stacked: int = 1, max_cols: int = 4, width: float = 4.2, height: float = 3.0, top: float = 0.35
+    plt,
+    n: int,
+    caption: Caption,
+    *,
+    stacked: int = 1,
+    max_cols: int = 4,
+    width: float = 4.2,
+    height: float = 3.0,
+    top: float = 0.35,
 ):
     """A grid of n cells (at most ``max_cols`` per row), each a column of ``stacked`` panels sharing t;
     returns the figure and, per cell, its list of panels."""
     cols = min(n, max_cols)
     rows = math.ceil(n / cols) * stacked
-    fig, axes = _grid(plt, rows, cols, width, height, top=top)
+    fig, axes = _grid(plt, rows, cols, width, height, caption, top=top)
     cells = [[axes[(k // cols) * stacked + j][k % cols] for j in range(stacked)] for k in range(n)]
     for k in range(n, rows // stacked * cols):
         for j in range(stacked):
@@ -93,35 +131,43 @@ def _zoom(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> None:
 
 
 def _figure_legend(fig, handles: list, ncol: int) -> None:
-    """One legend for the whole figure, above the panels: every panel draws the same kinds of line."""
-    fig.legend(handles=handles, loc="upper center", ncol=ncol, fontsize=9, frameon=False, bbox_to_anchor=(0.5, 1.0))
+    """One legend for the whole figure, under the caption and above the panels: every panel draws the
+    same kinds of line."""
+    y = 1 - _caption_height(fig) / fig.get_figheight()
+    fig.legend(handles=handles, loc="upper center", ncol=ncol, fontsize=9, frameon=False, bbox_to_anchor=(0.5, y))
 
 
 def _save(fig, path: Path) -> Path:
-    fig.savefig(path, dpi=110)
+    # the caption also as the PNG's text: a viewer or a script reads the verdict without the pixels
+    fig.savefig(path, dpi=110, metadata={"Description": " ".join(fig.get_suptitle().split("\n"))})
     return path
 
 
-def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> list[Path]:
-    """errors.png, orientation_errors.png, inputs.png and velocity_errors.png in ``out_dir``."""
+def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], summary: dict[str, Any]) -> list[Path]:
+    """errors.png, orientation_errors.png, inputs.png and velocity_errors.png in ``out_dir``, each
+    captioned with ``summary``'s verdict and run length (summary.json of the same run)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from formation_sim.views.outputs import run_caption
+
+    t_start = float(arrays["t"][0]) if len(arrays["t"]) else 0.0
+    caption = Caption(run_caption(summary, t_start), VERDICT_COLOURS.get(summary["verdict"], "black"))
     # titles at the top of their axes: matplotlib's default (axes.titley None) places each one
     # clear of top decorations that these figures do not have, at the price of laying out every
     # tick label once more (~1/6 of the figures' time)
     with plt.rc_context({"axes.titley": 1.0}):
-        return _plot_all(plt, out_dir, spec, arrays)
+        return _plot_all(plt, out_dir, spec, arrays, caption)
 
 
-def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> list[Path]:
+def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> list[Path]:
     return [
-        _distance_errors(plt, out_dir, spec, arrays),
-        _orientation_errors(plt, out_dir, spec, arrays),
-        _inputs(plt, out_dir, spec, arrays),
-        _velocity_errors(plt, out_dir, spec, arrays),
+        _distance_errors(plt, out_dir, spec, arrays, caption),
+        _orientation_errors(plt, out_dir, spec, arrays, caption),
+        _inputs(plt, out_dir, spec, arrays, caption),
+        _velocity_errors(plt, out_dir, spec, arrays, caption),
     ]
 
 
@@ -132,9 +178,11 @@ ERROR: dict[str, Any] = {"color": "C0", "lw": 1.3}
 EDGE_CELL: dict[str, Any] = {"stacked": 2, "max_cols": 2, "width": 4.4, "height": 2.1, "top": 0.75}
 
 
-def _edge_figure(plt, spec: FormationSpec, t: np.ndarray, per_edge, title: str, ylabel: str, legend: list):
+def _edge_figure(
+    plt, spec: FormationSpec, t: np.ndarray, per_edge, title: str, ylabel: str, legend: list, caption: Caption
+):
     """A 2-column grid with one cell per edge; ``per_edge(k)`` gives the cell's (y, style) series."""
-    fig, cells = _panels(plt, len(spec.edges), **EDGE_CELL)
+    fig, cells = _panels(plt, len(spec.edges), caption, **EDGE_CELL)
     for k, (e, (ax, ax_zoom)) in enumerate(zip(spec.edges, cells)):
         series = per_edge(k, e)
         for y, style in series:
@@ -150,7 +198,7 @@ def _edge_figure(plt, spec: FormationSpec, t: np.ndarray, per_edge, title: str, 
     return fig
 
 
-def _distance_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+def _distance_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
     from matplotlib.lines import Line2D
 
     def per_edge(k: int, e) -> list:
@@ -162,13 +210,15 @@ def _distance_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, 
         Line2D([], [], **UPPER, label=r"$C_{con}\,\rho_e$ (connectivity bound)"),
         Line2D([], [], **LOWER, label=r"$-C_{col}\,\rho_e$ (collision bound)"),
     ]
-    fig = _edge_figure(plt, spec, arrays["t"], per_edge, "distance error", "e [m²]", legend)
+    fig = _edge_figure(plt, spec, arrays["t"], per_edge, "distance error", "e [m²]", legend, caption)
     path = _save(fig, out_dir / "errors.png")
     plt.close(fig)
     return path
 
 
-def _orientation_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+def _orientation_errors(
+    plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
+) -> Path:
     from matplotlib.lines import Line2D
 
     def per_edge(k: int, e) -> list:
@@ -179,17 +229,17 @@ def _orientation_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[st
         Line2D([], [], **UPPER, label=r"$\rho_\psi$ (bound)"),
     ]
     ylabel = r"$\psi$ [-] (0 aligned, 2 at $\pi$)"
-    fig = _edge_figure(plt, spec, arrays["t"], per_edge, "orientation error", ylabel, legend)
+    fig = _edge_figure(plt, spec, arrays["t"], per_edge, "orientation error", ylabel, legend, caption)
     path = _save(fig, out_dir / "orientation_errors.png")
     plt.close(fig)
     return path
 
 
-def _inputs(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+def _inputs(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
     from matplotlib.lines import Line2D
 
     t, u = arrays["t"], arrays["u"]
-    fig, cells = _panels(plt, len(spec.agents), stacked=2, max_cols=3, width=3.6, height=2.2, top=0.7)
+    fig, cells = _panels(plt, len(spec.agents), caption, stacked=2, max_cols=3, width=3.6, height=2.2, top=0.7)
     for i, (a, (ax_f, ax_t)) in enumerate(zip(spec.agents, cells)):
         for ax, lo, what, unit in ((ax_f, 0, "force", "N"), (ax_t, 3, "torque", "N·m")):
             for c in range(3):
@@ -208,13 +258,13 @@ def _inputs(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarra
     return path
 
 
-def _velocity_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
+def _velocity_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
     from matplotlib.lines import Line2D
 
     t = arrays["t"]
     e_v, rho_v = velocity_errors(spec, arrays)
     n = len(spec.agents)
-    fig, axes = _grid(plt, n, 2, 4.5, 2.2, top=0.75, sharex=True)
+    fig, axes = _grid(plt, n, 2, 4.5, 2.2, caption, top=0.75, sharex=True)
     quantities = (("linear", "m/s"), ("angular", "rad/s"))
     for i, a in enumerate(spec.agents):
         for half, (ax, (kind, unit)) in enumerate(zip(axes[i], quantities)):

@@ -7,6 +7,7 @@ import io
 import os
 import shutil
 import tempfile
+import textwrap
 import time
 from pathlib import Path
 from typing import Any
@@ -40,15 +41,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
         figures = 0.0
         if plots:
             t_figures = time.monotonic()
-            from formation_sim.views.figures import plot_run  # matplotlib only when figures are wanted
-
-            staging = Path(tempfile.mkdtemp(dir=out_dir, prefix=".figures."))
-            try:
-                for path in plot_run(staging, recorder.spec, recorder.arrays()):
-                    os.replace(path, out_dir / path.name)
-                    written.append(path.name)
-            finally:
-                shutil.rmtree(staging, ignore_errors=True)
+            write_figures(out_dir, recorder.spec, recorder.arrays(), summary, written)
             written.append(write_layout(out_dir, recorder.spec).name)
             figures = time.monotonic() - t_figures
     except OSError as exc:
@@ -67,6 +60,36 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
         raise
     write_json(out_dir / "summary.json", {**summary, "outputs": [*written, "summary.json"]})
     return figures
+
+
+def write_figures(
+    out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], summary: dict[str, Any], written: list[str]
+) -> None:
+    """The figures (:mod:`formation_sim.views.figures`) captioned with ``summary``'s verdict, drawn in
+    a staging directory and each renamed into ``out_dir``; appends each name to ``written`` once there."""
+    from formation_sim.views.figures import plot_run  # matplotlib only when figures are wanted
+
+    staging = Path(tempfile.mkdtemp(dir=out_dir, prefix=".figures."))
+    try:
+        for path in plot_run(staging, spec, arrays, summary):
+            os.replace(path, out_dir / path.name)
+            written.append(path.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def redraw_figures(out_dir: Path, spec: FormationSpec, summary: dict[str, Any]) -> list[str]:
+    """The figures ``summary["outputs"]`` lists, drawn again from OUT/trajectory.npz with ``summary``'s
+    verdict in their caption (formation-launch's verdict, when it differs from the simulator's); the
+    names written. Raises OSError."""
+    from formation_sim.views.figures import FIGURES
+
+    written: list[str] = []
+    if any(name in summary.get("outputs", ()) for name in FIGURES):
+        with np.load(out_dir / "trajectory.npz") as data:
+            arrays = dict(data)
+        write_figures(out_dir, spec, arrays, summary, written)
+    return written
 
 
 def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray]) -> Path:
@@ -114,8 +137,7 @@ def verdict_line(summary: dict[str, Any]) -> str:
         text = f"PASS: every funnel held over {summary['duration']:g} s (worst margin {_f(summary['worst_margin'])})"
         return "\n".join([text, *tls_lines(summary.get("security"))])
     if verdict == Verdict.FAIL.value:
-        where = fv.get("edge") or fv.get("agent")
-        text = f"FAIL: first violation at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
+        text = f"FAIL: first violation {violation_text(fv)}"
         reason = summary.get("incomplete_reason")
         text += f"; then the run stopped early: {reason}" if reason else ""
         return "\n".join([text, *tls_lines(summary.get("security"))])
@@ -124,12 +146,46 @@ def verdict_line(summary: dict[str, Any]) -> str:
     if intruders:  # the reason names them on one line; here one line each
         reason = reason.replace(": " + "; ".join(intruders), "")
     if fv:  # untrusted input: a violation seen is no evidence about the controller
-        where = fv.get("edge") or fv.get("agent")
-        seen = f"a violation seen at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
+        seen = f"a violation seen {violation_text(fv)}"
     else:
         seen = f"no violation in the {_f(summary['duration'])} s checked"
     text = f"INCOMPLETE: {reason} ({seen}, worst margin {_f(summary['worst_margin'])})"
     return "\n".join([text, *(f"  intruder: {line}" for line in intruders)])
+
+
+def violation_text(fv: dict[str, Any]) -> str:
+    """``at t=2.0345 s: velocity 1 (vx)``: a first violation of summary.json (time [s], kind, edge or
+    agent, channel)."""
+    return f"at t={fv['t']:.4f} s: {fv['kind']} {fv.get('edge') or fv.get('agent')} ({fv['channel']})"
+
+
+#: characters of the verdict and its reason a figure's caption shows (the whole reason is in summary.json)
+CAPTION_REASON_CHARS = 120
+
+
+def run_caption(summary: dict[str, Any], t_start: float) -> str:
+    """The verdict with its short reason and the simulated time covered of the requested duration,
+    for a figure's title: ``INCOMPLETE: duration not reached: t=2.159 s of 5 s — t = 0–2.159 s of 5 s``.
+
+    ``t_start`` [s]: the first recorded sample's time; the end is summary.json's ``duration`` (the
+    last sample checked)."""
+    verdict, fv = summary["verdict"], summary["first_violation"]
+    reason = summary.get("incomplete_reason")
+    if verdict == Verdict.PASS.value:
+        text = "PASS: every funnel held"
+    elif verdict == Verdict.FAIL.value:
+        text = f"FAIL: first violation {violation_text(fv)}"
+        if reason:
+            text += f"; then the run stopped early: {reason}"
+    else:
+        text = f"{verdict}: {reason}"
+    text = textwrap.shorten(text, CAPTION_REASON_CHARS, placeholder=" …")
+    end, asked = summary.get("duration"), summary.get("requested_duration")
+    if end is None:
+        covered = "no sample checked"
+    else:
+        covered = f"t = {t_start:g}–{end:g} s " + ("(no requested duration)" if asked is None else f"of {asked:g} s")
+    return f"{text} — {covered}"
 
 
 def _tls_failures(security: Any) -> dict[str, dict[str, Any]]:

@@ -52,8 +52,10 @@ def _refused(r: subprocess.CompletedProcess, expected: str) -> None:
     [
         (["--duration", "1e-12"], r"--duration 1e-12 s is shorter than one control period"),
         (["--duration", "1e12"], r"--duration 1e\+12 s is longer than any run"),
-        (["--control-rate", "1e12", "--allow-low-rate"], r"simulation.duration in .* at a physics rate of 1e\+12 Hz "
-         r"\(--control-rate\) is 5e\+12 steps"),
+        (["--control-rate", "5e8", "--allow-low-rate"], r"simulation.duration in .* at a physics rate of 5e\+08 Hz "
+         r"\(--control-rate\) is 2.5e\+09 steps"),
+        (["--control-rate", "2e9", "--allow-low-rate"], r"control rate 2e\+09 Hz \(--control-rate\) has a period under "
+         r"a nanosecond"),
     ],
 )  # fmt: skip
 def test_impossible_durations_and_rates_exit_2_and_leave_out_untouched(

@@ -156,6 +156,11 @@ def test_the_caption_says_each_verdict_its_reason_and_the_time_covered() -> None
     assert run_caption(fail, 0.0) == "FAIL: first violation at t=2.1593 s: velocity 1 (vx) — t = 0–2.159 s of 5 s"
     stopped = run_caption({**fail, "incomplete_reason": "interrupted"}, 0.0)
     assert stopped.startswith("FAIL: first violation at t=2.1593 s: velocity 1 (vx); then the run stopped early: ")
+    # a realtime run that went on to its end after an agent died did not stop early
+    went_on = run_caption({**fail, "duration": 5.0, "incomplete_reason": "agent_3 was killed by SIGKILL"}, 0.0)
+    assert went_on == (
+        "FAIL: first violation at t=2.1593 s: velocity 1 (vx); then agent_3 was killed by SIGKILL — t = 0–5 s of 5 s"
+    )
     long = {**base, "verdict": "INCOMPLETE", "incomplete_reason": "data missing: " + "agent_3 wrench gap; " * 20}
     verdict, covered = run_caption({**long, "duration": 1.5}, 0.0).split(" — ")
     assert verdict.startswith("INCOMPLETE: data missing: agent_3") and verdict.endswith(" …")
@@ -172,14 +177,18 @@ def test_the_figures_of_a_ros_run_show_the_launchers_verdict(short_recorder, tmp
     from formation_sim.views.figures import FIGURES
     from formation_sim.views.outputs import write_outputs
 
-    write_outputs(tmp_path, short_recorder, short_recorder.summary(wall_time=1.0, requested_duration=0.2))
+    summary = short_recorder.summary(wall_time=1.0, requested_duration=0.2)
+    write_outputs(tmp_path, short_recorder, {**summary, "last_answer_t": {"3": 0.1}})
     assert Image.open(tmp_path / "errors.png").text["Description"].startswith("PASS: every funnel held")
     env = {"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     run = launch.Launcher(short_recorder.spec, RunOptions(command="launch", mode="realtime"), tmp_path, env)
     run.timing = {"start": 0.0, "stop_from": 1.0, "stopped": 2.0}
     (tmp_path / "logs").mkdir()  # where the processes' logs were
-    run.agent_died.append("agent_3 died (killed by SIGKILL) at t=0.1 s")
+    run.agent_died.append(launch.Death("3", "agent_3 was killed by SIGKILL"))
     assert launch._finish(run, None) == 3
     for name in FIGURES:
         caption = Image.open(tmp_path / name).text["Description"]
-        assert caption == "INCOMPLETE: agent_3 died (killed by SIGKILL) at t=0.1 s — t = 0–0.2 s of 0.2 s", name
+        assert caption == (
+            "INCOMPLETE: agent_3 was killed by SIGKILL after answering the step of t=0.1000 s; the realtime run "
+            "went on with its … — t = 0–0.2 s of 0.2 s"
+        ), name

@@ -3,7 +3,10 @@ in), and every run it refuses before anything starts (exit 2, one line, OUT unto
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
+import io
+import json
 import os
 import re
 import subprocess
@@ -14,6 +17,7 @@ from bin_helpers import executable
 
 from formation_deploy.keys import init_keys, process_names
 from formation_msgs_py.faults import FaultLog, write_json
+from formation_msgs_py.outcome import ExitCode, Incomplete
 from formation_sim.launch.launcher import RESERVE_BYTES, SpaceReserve, agent_faults_file, merge_agent_faults
 
 
@@ -197,3 +201,93 @@ def test_the_stop_grace_grows_with_the_processes_stopped_at_once() -> None:
 
     assert stop_grace(6) == stop_grace(1) == 2.5
     assert abs(stop_grace(42) - 6.1) < 1e-9  # float sum: 2.5 + 0.1 · 36
+
+
+def _completed(tmp_path: Path, violation_t: float | None, stop: Incomplete | None = None) -> tuple[int, dict, str]:
+    """(exit status, summary.json, printed verdict) of a realtime launch of the paper's formation whose
+    simulator ran its 10 s and whose agent 3, after answering the step of t = 3.12 s, was killed."""
+    from formation_msgs_py.options import RunOptions
+    from formation_msgs_py.spec import load_formation
+    from formation_sim.launch import launcher as launch
+
+    fv = None if violation_t is None else {"t": violation_t, "kind": "velocity", "agent": "3", "channel": "vx"}
+    simulator = {
+        "formation": "paper_5agents",
+        "mode": "ros2-realtime",
+        "control_rate": 100.0,
+        "verdict": "PASS" if fv is None else "FAIL",
+        "incomplete_reason": None,
+        "exit_status": 0 if fv is None else 1,
+        "requested_duration": 10.0,
+        "duration": 10.0,
+        "funnels_held": fv is None,
+        "first_violation": fv,
+        "worst_margin": 0.3 if fv is None else -0.2,
+        "faults": {},
+        "last_answer_t": {"1": 10.0, "2": 10.0, "3": 3.12, "4": 10.0, "5": 10.0},
+    }
+    (tmp_path / "logs").mkdir(parents=True)
+    write_json(tmp_path / "summary.json", simulator)
+    env = {"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    spec = load_formation(Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml")
+    run = launch.Launcher(spec, RunOptions(command="launch", mode="realtime"), tmp_path, env)
+    run.timing = {"start": 0.0, "stop_from": 11.0, "stopped": 12.0}
+    run.stop = stop
+    run.agent_died.append(launch.Death("3", "agent_3 was killed by SIGKILL"))
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = launch._finish(run, None)
+    return code, json.loads((tmp_path / "summary.json").read_text()), printed.getvalue()
+
+
+DEATH = (
+    "agent_3 was killed by SIGKILL after answering the step of t=3.1200 s; "
+    "the realtime run went on with its wrench held, then zeroed"
+)
+
+
+def test_a_violation_after_an_agent_died_in_a_realtime_run_is_incomplete(tmp_path: Path) -> None:
+    """The run went on after agent 3 died; a violation followed: INCOMPLETE, exit 3, the death (agent,
+    signal, its last step) named first, the violation kept as information."""
+    code, summary, printed = _completed(tmp_path, 3.89)
+    assert (code, summary["verdict"], summary["exit_status"]) == (3, "INCOMPLETE", 3), printed
+    assert summary["incomplete_reason"] == DEATH
+    assert summary["first_violation"]["t"] == 3.89
+    assert f"INCOMPLETE: {DEATH} (a violation seen at t=3.8900 s: velocity 3 (vx), worst margin -0.2)" in printed
+    assert "stopped early" not in printed
+
+
+def test_a_violation_before_an_agent_died_in_a_realtime_run_is_fail(tmp_path: Path) -> None:
+    """A violation while every agent was still answering stays FAIL (exit 1), the death after it named;
+    the run did not stop early and the verdict does not say it did."""
+    code, summary, printed = _completed(tmp_path, 2.5)
+    assert (code, summary["verdict"], summary["exit_status"]) == (1, "FAIL", 1), printed
+    assert summary["incomplete_reason"] == DEATH
+    assert f"FAIL: first violation at t=2.5000 s: velocity 3 (vx); then {DEATH}\n" in printed
+
+
+def test_an_agent_death_without_a_violation_and_an_interrupt_after_it(tmp_path: Path) -> None:
+    """No violation: INCOMPLETE, exit 3, the death named; interrupted later: both named, the death
+    first, exit 130."""
+    code, summary, printed = _completed(tmp_path / "quiet", None)
+    assert (code, summary["verdict"], summary["incomplete_reason"]) == (3, "INCOMPLETE", DEATH), printed
+    stop = Incomplete(ExitCode.INTERRUPTED, "interrupted (SIGINT)")
+    code, summary, printed = _completed(tmp_path / "interrupted", 3.89, stop)
+    assert (code, summary["verdict"]) == (130, "INCOMPLETE"), printed
+    assert summary["incomplete_reason"] == f"{DEATH}; interrupted (SIGINT)"
+
+
+def test_the_simulators_own_stop_is_kept_after_the_deaths_without_the_untrusted_input() -> None:
+    """The simulator's reason (lag budget; interrupted keeps 130) comes without the untrusted input,
+    which the verdict names again; a PASS, a reason-less FAIL or untrusted input alone give none."""
+    from formation_sim.launch.launcher import simulator_stop
+
+    lag, untrusted = "realtime lag budget exceeded: 31 s behind", "untrusted input: 1 intruder(s)"
+    lagging = {"verdict": "INCOMPLETE", "exit_status": 4, "incomplete_reason": f"{lag}; {untrusted}"}
+    assert simulator_stop(lagging, untrusted) == Incomplete(ExitCode.INCOMPLETE, lag)
+    interrupted = {"verdict": "FAIL", "exit_status": 130, "incomplete_reason": "interrupted (SIGINT)"}
+    assert simulator_stop(interrupted, None) == Incomplete(ExitCode.INTERRUPTED, "interrupted (SIGINT)")
+    assert simulator_stop({"verdict": "FAIL", "exit_status": 1, "incomplete_reason": None}, None) is None
+    assert (
+        simulator_stop({"verdict": "INCOMPLETE", "exit_status": 4, "incomplete_reason": untrusted}, untrusted) is None
+    )

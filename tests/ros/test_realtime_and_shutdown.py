@@ -207,6 +207,33 @@ def test_a_killed_process_is_named(launched, victim: str) -> None:
     assert_clean_end(run, code, summary, 3, f"{victim} was killed by SIGKILL")
 
 
+def test_a_realtime_run_goes_on_after_a_killed_agent_and_names_it_first(launched) -> None:
+    """kill -9 of an agent in a realtime launch: the run goes on to its end; INCOMPLETE, exit 3, the
+    death named first (agent, signal, the step it last answered); a violation only after it is no FAIL."""
+    args = ("--duration", "5", "--physics-rate", "100", "--lag-budget", "30", "--no-record")
+    run = launched("--mode", "realtime", *args, formation=REALTIME)
+    run.wait_stepping()
+    left = kill_hard(run.pid_of("agent_3"))
+    code, summary = run.finish(timeout=300)
+    remove_segments(left)
+    text, reason, fv = run.text(), summary["incomplete_reason"], summary["first_violation"]
+    assert summary["duration"] == summary["requested_duration"] == 5.0, text  # it did not stop early
+    last = summary["last_answer_t"]["3"]
+    assert reason == (
+        f"agent_3 was killed by SIGKILL after answering the step of t={last:.4f} s; "
+        "the realtime run went on with its wrench held, then zeroed"
+    ), text
+    assert summary["faults"]["3"]["zero_wrench"]["first_t"] > last, summary["faults"]["3"]
+    if fv is None or fv["t"] > last:  # as the run went on without agent 3: evidence about nothing
+        assert code == summary["exit_status"] == 3 and summary["verdict"] == "INCOMPLETE", text
+        assert f"INCOMPLETE: {reason} (" in text, text
+    else:  # a violation while every agent still answered (a simulator lagging on a busy machine): FAIL
+        assert code == summary["exit_status"] == 1 and summary["verdict"] == "FAIL", text
+        assert f"; then {reason}" in text, text
+    assert "stopped early" not in text and "Traceback" not in text + run.logs(), text
+    assert processes_mentioning(str(run.formation)) == [], text
+
+
 def test_killed_launcher_leaves_children_stopped_and_a_summary(launched) -> None:
     """SIGKILL of the launcher: its children get SIGTERM, stop, and the simulator still writes its summary."""
     run = launched("--duration", "5")

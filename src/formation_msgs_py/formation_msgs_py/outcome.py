@@ -11,7 +11,10 @@
 | ``INCOMPLETE`` | interrupted (SIGINT/SIGTERM)                                             | 130  |
 
 A crash never exits 1: 1 means a funnel was violated and nothing else. A violation seen before a
-run stopped early is still FAIL (exit 1, or 130 when interrupted): the data shows it. Missing
+run stopped early is still FAIL (exit 1, or 130 when interrupted): the data shows it. A run that
+went on after a process died (realtime: the simulator zeroes a dead agent's wrench) is FAIL only
+for a violation while every agent was still answering; a violation after the death is no
+evidence about the controller: INCOMPLETE, exit 3, the violation kept as information. Missing
 data is never a violation. A run with untrusted input (a publisher the formation does not expect
 on its topics) is INCOMPLETE whatever its funnels did: its evidence says nothing about the
 controller (a violation may be the intruder's doing, a pass its luck).
@@ -66,6 +69,9 @@ class Incomplete:
 
     code: ExitCode
     reason: str
+    #: the run went on after this cause (an agent died in realtime): its data is whole up to this
+    #: simulated time [s] only. None: the run stopped for it (its data is whole up to its end)
+    whole_until: float | None = None
 
 
 @dataclass(frozen=True)
@@ -77,17 +83,25 @@ class Outcome:
     reason: str | None = None
 
 
-def decide(violated: bool, incomplete: Incomplete | None, untrusted: str | None = None) -> Outcome:
+def decide(
+    violated: bool, incomplete: Incomplete | None, untrusted: str | None = None, violation_t: float | None = None
+) -> Outcome:
     """The verdict of a run: a violation seen is FAIL even if the run stopped early; missing data
     or an early stop without a violation is INCOMPLETE. An interrupted run exits 130 either way.
 
     ``untrusted`` (the reason, e.g. :func:`formation_msgs_py.publisher_watch.untrusted_input`):
     INCOMPLETE, exit 4, whatever the funnels did; an early stop keeps its own exit status (a
-    process died: 3, interrupted: 130) and both reasons are given."""
+    process died: 3, interrupted: 130) and both reasons are given.
+
+    ``violation_t`` [s]: when the first violation was seen. A violation after ``incomplete.whole_until``
+    (the run went on without a dead process) is INCOMPLETE with ``incomplete``'s exit status; one at or
+    before it, or at an unknown time, is FAIL: a death never hides a violation of the whole formation."""
     if untrusted is not None:
         if incomplete is None:
             return Outcome(Verdict.INCOMPLETE, ExitCode.INCOMPLETE, untrusted)
         return Outcome(Verdict.INCOMPLETE, incomplete.code, f"{incomplete.reason}; {untrusted}")
+    if violated and incomplete is not None and _after(violation_t, incomplete.whole_until):
+        return Outcome(Verdict.INCOMPLETE, incomplete.code, incomplete.reason)
     if violated:
         interrupted = incomplete is not None and incomplete.code == ExitCode.INTERRUPTED
         code = ExitCode.INTERRUPTED if interrupted else ExitCode.FAIL
@@ -95,6 +109,11 @@ def decide(violated: bool, incomplete: Incomplete | None, untrusted: str | None 
     if incomplete is not None:
         return Outcome(Verdict.INCOMPLETE, incomplete.code, incomplete.reason)
     return Outcome(Verdict.PASS, ExitCode.PASS)
+
+
+def _after(t: float | None, whole_until: float | None) -> bool:
+    """True if a violation at ``t`` is known to follow the time its run's data stopped being whole."""
+    return t is not None and whole_until is not None and t > whole_until
 
 
 class _PipeGuard:

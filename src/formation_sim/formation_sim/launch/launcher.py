@@ -7,11 +7,13 @@ Recording (the default): the simulator writes OUT/bag itself (``formation-sim --
 crosses DDS twice, nothing is lost). The simulator's progress is relayed from its log. The run
 stops on completion, Ctrl-C, SIGTERM, SIGHUP or the death of a process (in realtime an agent's
 death is reported and the run goes on: the simulator zeroes that agent's wrench); the death is
-named. With ``--discovery server`` a Fast DDS discovery server (:mod:`formation_sim.launch.discovery_server`)
-is the run's first process and every other one its client; it is stopped with the others.
+named, with the step the agent last answered (:func:`went_on_without`). With ``--discovery
+server`` a Fast DDS discovery server (:mod:`formation_sim.launch.discovery_server`) is the run's
+first process and every other one its client; it is stopped with the others.
 After the last step, the agents are stopped while the simulator writes OUT, then
 OUT/summary.json is completed with the verdict of the whole run: the simulator's, made INCOMPLETE
-when a process died or the run was interrupted, and with every agent's own fault counts
+when a process died or the run was interrupted (FAIL if a violation came first), and with every
+agent's own fault counts
 (``faults_file``: resets, refused measurements, missing poses). ``OUT/logs/processes.json`` lists every
 process with its exit status, CPU time and peak memory.
 """
@@ -26,7 +28,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -204,6 +206,47 @@ def merge_agent_security(summary: dict[str, Any], logs: Path, agent_ids: Sequenc
         summary["incomplete_reason"] = f"{reason}; {after}" if reason else after
 
 
+@dataclass(frozen=True)
+class Death:
+    """An agent that died during a realtime run, which went on without it."""
+
+    agent_id: str
+    #: how it ended, as :meth:`formation_sim.launch.supervisor.Child.describe_exit` says it
+    how: str
+
+
+def went_on_without(deaths: Sequence[Death], last_answer: Mapping[str, float | None] | None) -> Incomplete:
+    """INCOMPLETE, a process died (exit 3), for agents that died in a realtime run that went on: each
+    named with the step it last answered (``last_answer`` [s]: the simulator's summary.json
+    ``last_answer_t``, None where it does not say), the run's data whole up to the earliest of them."""
+    parts, whole = [], []
+    for d in deaths:
+        if last_answer is None or d.agent_id not in last_answer:
+            parts.append(f"{d.how} (when is unknown: the simulator's summary does not say)")
+            whole.append(0.0)
+        elif (t := last_answer[d.agent_id]) is None:
+            parts.append(f"{d.how} before it answered a step")
+            whole.append(0.0)
+        else:
+            parts.append(f"{d.how} after answering the step of t={t:.4f} s")
+            whole.append(t)
+    wrench = "its wrench" if len(deaths) == 1 else "their wrenches"
+    reason = f"{', '.join(parts)}; the realtime run went on with {wrench} held, then zeroed"
+    return Incomplete(ExitCode.PROCESS_DIED, reason, whole_until=min(whole))
+
+
+def simulator_stop(summary: Mapping[str, Any], untrusted: str | None) -> Incomplete | None:
+    """The simulator's own reason its run is INCOMPLETE or stopped early (lag budget, I/O error,
+    interrupted), without the untrusted input that :func:`decide` names again; None if it has none."""
+    reason = summary.get("incomplete_reason")
+    if summary.get("verdict") == "PASS" or not reason or reason == untrusted:
+        return None
+    if untrusted:
+        reason = reason.removesuffix(f"; {untrusted}")
+    interrupted = summary.get("exit_status") == ExitCode.INTERRUPTED
+    return Incomplete(ExitCode.INTERRUPTED if interrupted else ExitCode.INCOMPLETE, reason)
+
+
 def build_parser() -> OptionParser:
     return options.build_parser(
         options.LAUNCH,
@@ -242,7 +285,8 @@ class Launcher:
         self.sup = Supervisor(env, out / "logs", key_names=_KEY_NAMES, batch=args.scheduling == "batch")
         self.stop: Incomplete | None = None
         self.signalled: int | None = None
-        self.agent_died: list[str] = []
+        #: realtime: agents that died while the run went on
+        self.agent_died: list[Death] = []
         self._tty = sys.stdout.isatty()
         self._follow: LogFollower | None = None
         #: when the simulator's log last grew [monotonic s]
@@ -387,7 +431,7 @@ class Launcher:
                 msg = f"{c.describe_exit()} (log: {c.log})"
                 if c.role == "agent" and self.mode == "realtime":
                     self.note(msg + "; realtime run continues, its wrench is zeroed by the simulator")
-                    self.agent_died.append(c.describe_exit())
+                    self.agent_died.append(Death(c.name.removeprefix("agent_"), c.describe_exit()))
                     continue
                 self.note(msg + "; stopping the run")
                 code = ExitCode.INCOMPLETE if c.returncode == ExitCode.INCOMPLETE else ExitCode.PROCESS_DIED
@@ -464,13 +508,20 @@ class Launcher:
         merge_agent_faults(summary, self.out / "logs", self.spec.agent_ids)
         merge_agent_security(summary, self.out / "logs", self.spec.agent_ids)
         tls = self._tls_failures(summary)
+        untrusted = untrusted_input(summary.get("security"))
         incomplete = self.stop
-        if incomplete is None and self.agent_died:
-            incomplete = Incomplete(ExitCode.PROCESS_DIED, "; ".join(self.agent_died))
+        if self.agent_died:
+            # the deaths came first; then whatever stopped the run, if anything did
+            died = went_on_without(self.agent_died, summary.get("last_answer_t"))
+            stopped = incomplete or simulator_stop(summary, untrusted)
+            if stopped is not None:
+                code = ExitCode.INTERRUPTED if stopped.code == ExitCode.INTERRUPTED else ExitCode.PROCESS_DIED
+                died = Incomplete(code, f"{died.reason}; {stopped.reason}", died.whole_until)
+            incomplete = died
         if incomplete is not None:
             # the simulator's own verdict counts its intruders already; this one replaces it
-            untrusted = untrusted_input(summary.get("security"))
-            result = decide(summary.get("first_violation") is not None, incomplete, untrusted)
+            fv = summary.get("first_violation")
+            result = decide(fv is not None, incomplete, untrusted, None if fv is None else fv.get("t"))
             summary.update(
                 verdict=result.verdict.value,
                 incomplete_reason=result.reason,

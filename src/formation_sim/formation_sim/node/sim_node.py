@@ -700,6 +700,9 @@ class Runner:
         info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
         info["security"] = self.node.watch.watch.report()
         info["witness"] = self.shadow.report()
+        # the step each agent last answered (None: never): the launcher dates an agent's death by it
+        stamps = self.node.wrenches.stamp
+        info["last_answer_t"] = {a: stamps[i] / NS if stamps[i] >= 0 else None for i, a in enumerate(self.node.ids)}
         info.update(extra)
         return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)
 

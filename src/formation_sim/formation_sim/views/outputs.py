@@ -137,20 +137,32 @@ def verdict_line(summary: dict[str, Any]) -> str:
         text = f"PASS: every funnel held over {summary['duration']:g} s (worst margin {_f(summary['worst_margin'])})"
         return "\n".join([text, *tls_lines(summary.get("security"))])
     if verdict == Verdict.FAIL.value:
-        text = f"FAIL: first violation {violation_text(fv)}"
-        reason = summary.get("incomplete_reason")
-        text += f"; then the run stopped early: {reason}" if reason else ""
+        text = f"FAIL: first violation {violation_text(fv)}{after_violation(summary)}"
         return "\n".join([text, *tls_lines(summary.get("security"))])
     reason = str(summary.get("incomplete_reason"))
     intruders = intruder_lines(summary.get("security"))
     if intruders:  # the reason names them on one line; here one line each
         reason = reason.replace(": " + "; ".join(intruders), "")
-    if fv:  # untrusted input: a violation seen is no evidence about the controller
+    if fv:  # untrusted input, or after an agent died: a violation seen is no evidence about the controller
         seen = f"a violation seen {violation_text(fv)}"
     else:
         seen = f"no violation in the {_f(summary['duration'])} s checked"
     text = f"INCOMPLETE: {reason} ({seen}, worst margin {_f(summary['worst_margin'])})"
     return "\n".join([text, *(f"  intruder: {line}" for line in intruders)])
+
+
+def after_violation(summary: dict[str, Any]) -> str:
+    """What a FAIL's ``incomplete_reason`` adds to its first violation: ``; then the run stopped early:
+    REASON`` when it did (its data ends short of the requested duration), else ``; then REASON`` (a
+    realtime run that went on after an agent died, a duration nobody requested), or nothing."""
+    reason = summary.get("incomplete_reason")
+    if not reason:
+        return ""
+    end, asked, rate = summary.get("duration"), summary.get("requested_duration"), summary.get("control_rate")
+    # reached to half a control period, as the recorder judges a duration reached
+    tol = 0.5 / rate if rate else 1e-9
+    early = end is not None and asked is not None and end < asked - tol
+    return f"; then the run stopped early: {reason}" if early else f"; then {reason}"
 
 
 def violation_text(fv: dict[str, Any]) -> str:
@@ -174,9 +186,7 @@ def run_caption(summary: dict[str, Any], t_start: float) -> str:
     if verdict == Verdict.PASS.value:
         text = "PASS: every funnel held"
     elif verdict == Verdict.FAIL.value:
-        text = f"FAIL: first violation {violation_text(fv)}"
-        if reason:
-            text += f"; then the run stopped early: {reason}"
+        text = f"FAIL: first violation {violation_text(fv)}{after_violation(summary)}"
     else:
         text = f"{verdict}: {reason}"
     text = textwrap.shorten(text, CAPTION_REASON_CHARS, placeholder=" …")

@@ -81,10 +81,10 @@ def test_edge_figures_are_two_columns_with_one_legend(short_run, tmp_path: Path)
     seen = []
     real_save = figures._save
     figures_save = lambda fig, path: seen.append((fig, path.name)) or real_save(fig, path)  # noqa: E731
-    summary = {"verdict": "PASS", "first_violation": None, "duration": 0.2, "requested_duration": 0.2}
+    caption = figures.Caption("PASS: every funnel held — t = 0–0.2 s of 0.2 s", "green")
     try:
         figures._save = figures_save
-        figures.plot_run(tmp_path, spec, arrays, summary)
+        figures.plot_run(tmp_path, spec, arrays, caption)
     finally:
         figures._save = real_save
     assert tuple(name for _, name in seen) == figures.FIGURES

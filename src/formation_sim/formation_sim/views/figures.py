@@ -143,18 +143,14 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], summary: dict[str, Any]) -> list[Path]:
+def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> list[Path]:
     """errors.png, orientation_errors.png, inputs.png and velocity_errors.png in ``out_dir``, each
-    captioned with ``summary``'s verdict and run length (summary.json of the same run)."""
+    captioned with the run's verdict and run length (:func:`formation_sim.views.outputs.run_caption`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from formation_sim.views.outputs import run_caption
-
-    t_start = float(arrays["t"][0]) if len(arrays["t"]) else 0.0
-    caption = Caption(run_caption(summary, t_start), VERDICT_COLOURS.get(summary["verdict"], "black"))
     # titles at the top of their axes: matplotlib's default (axes.titley None) places each one
     # clear of top decorations that these figures do not have, at the price of laying out every
     # tick label once more (~1/6 of the figures' time)

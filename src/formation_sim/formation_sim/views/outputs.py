@@ -67,11 +67,13 @@ def write_figures(
 ) -> None:
     """The figures (:mod:`formation_sim.views.figures`) captioned with ``summary``'s verdict, drawn in
     a staging directory and each renamed into ``out_dir``; appends each name to ``written`` once there."""
-    from formation_sim.views.figures import plot_run  # matplotlib only when figures are wanted
+    from formation_sim.views.figures import VERDICT_COLOURS, Caption, plot_run  # matplotlib only when drawn
 
+    t_start = float(arrays["t"][0]) if len(arrays["t"]) else 0.0
+    caption = Caption(run_caption(summary, t_start), VERDICT_COLOURS.get(summary["verdict"], "black"))
     staging = Path(tempfile.mkdtemp(dir=out_dir, prefix=".figures."))
     try:
-        for path in plot_run(staging, spec, arrays, summary):
+        for path in plot_run(staging, spec, arrays, caption):
             os.replace(path, out_dir / path.name)
             written.append(path.name)
     finally:

@@ -124,6 +124,7 @@ class AgentTeam:
         n_agents, n = len(self.ids), len(self.end_neighbours)
         self.start = new_funnel_start(n_agents)
         self.out, self.edge_out = new_outputs(n_agents, n)
+        self._ends_of = [(int(self.first_end[i]), int(self.first_end[i + 1])) for i in range(n_agents)]
         self.forms = [CODE_FORM] * n_agents
         self._step = [agent_step] * n_agents
         #: whether each agent's velocity funnel started at the step evaluated last
@@ -167,11 +168,11 @@ class AgentTeam:
             self._checked = meas.ends
 
     def step(self, i: int, meas: Measurements, agents: np.ndarray | None = None) -> None:
-        """Agent i's step on ``meas`` (at its its time ``meas.t``, the stamp's) into row i of :attr:`out`
+        """Agent i's step on ``meas`` (at its time ``meas.t``, the stamp's) into row i of :attr:`out`
         and its ends of :attr:`edge_out`: the fault wrench when one of its poses is missing.
         ``agents`` replaces the gains of every agent (a trial of other gains)."""
-        lo, hi = int(self.first_end[i]), int(self.first_end[i + 1])
-        if not meas.in_range[lo:hi].all():
+        lo, hi = self._ends_of[i]
+        if not all(meas.in_range[lo:hi]):
             fault_wrench(i, lo, hi, REASON_MISSING, self.out, self.edge_out)
             return
         self._step[i](
@@ -182,15 +183,19 @@ class AgentTeam:
     def evaluate(
         self, meas: Measurements, recorder: RunRecorder | None
     ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
-        """(u (N,6), margin_v (N,6), errors) at ``meas.t``; ``errors`` lists (agent index,
-        reason) of the agents at ERROR for their controller (:meth:`note_errors` records them). With a
-        recorder, the agents missing a pose are recorded now (``measurement`` faults)."""
+        """(u (N,6), margin_v (N,6), errors) at ``meas.t``; ``errors`` lists (agent index, reason) of
+        the agents at ERROR for their controller (:meth:`note_errors` records them). With a recorder,
+        the agents missing a pose are recorded now (``measurement`` faults)."""
         self._check_order(meas)
         out, in_range = self.out, meas.in_range
+        unstarted = np.isnan(self.start[:, T0]).tolist()
         for i in range(len(self.ids)):
-            self.started_now[i] = bool(np.isnan(self.start[i, T0]))
             self.step(i, meas)
-            self.started_now[i] = self.started_now[i] and not np.isnan(self.start[i, T0])
+        if any(unstarted):  # an agent's funnel starts at its first step with every pose
+            started = np.isnan(self.start[:, T0]).tolist()
+            self.started_now = [before and not after for before, after in zip(unstarted, started)]
+        elif any(self.started_now):
+            self.started_now = [False] * len(self.ids)
         errors: list[tuple[int, str]] = []
         if not in_range.all() or out[:, LEVEL].max() == ERROR:
             missing, errors = step_faults(self.first_end, self.end_neighbours, in_range, out[:, LEVEL], out[:, REASON])
@@ -202,6 +207,8 @@ class AgentTeam:
         """(agent index, reason) of every agent at ERROR for its controller at ``meas``, the step
         evaluated last (the agents missing a pose are :meth:`evaluate`'s ``measurement`` faults)."""
         out = self.out
+        if out[:, LEVEL].max() != ERROR:
+            return []
         return step_faults(self.first_end, self.end_neighbours, meas.in_range, out[:, LEVEL], out[:, REASON])[1]
 
     def bound(self, i: int, meas: Measurements, trial: Trial | None = None) -> np.ndarray:

@@ -51,13 +51,22 @@ class StepMessages:
     def decoded(self, meas: Measurements) -> Measurements:
         """``meas`` as the agents receive it: stamp, relative poses and twists decoded from the bytes by
         the agents' own decoder; an end out of range, or whose value its observer refuses, is not received."""
-        p_rel, R_rel, in_range = meas.p_rel.copy(), meas.R_rel.copy(), meas.in_range.copy()
+        p_rows, R_rows, in_range = meas.p_rel.tolist(), meas.R_rel.tolist(), meas.in_range.tolist()
         from_values = wire.relative_pose_from_values
-        for k in np.flatnonzero(in_range).tolist():
+        refused = False
+        for k, received in enumerate(in_range):
+            if not received:
+                continue
             _, values = self.pose_codecs[k].decode(self.poses[k])
             if self.checks[self.observer[k]].pose(self.target[k], meas.ns, values) is not None:
-                in_range[k] = False
+                in_range[k], refused = False, True
                 continue
-            p_rel[k], R_rel[k] = from_values(values)
+            p_rows[k], R_rows[k] = from_values(values)
         twists = [codec.decode(data) for codec, data in zip(self.twist_codecs, self.velocities)]
-        return meas.received(twists[0][0], p_rel, R_rel, np.array([v for _, v in twists]), in_range)
+        return meas.received(
+            twists[0][0],
+            np.array(p_rows),
+            np.array(R_rows),
+            np.array([v for _, v in twists]),
+            np.array(in_range) if refused else None,
+        )

@@ -47,12 +47,11 @@ class Expectation:
     def difference(self, answer: Sequence[float]) -> tuple[float, float] | None:
         """None if ``answer`` agrees; else (largest component difference, that component's
         tolerance: 0 for bit for bit). NaN never agrees."""
-        d = [abs(a - b) for a, b in zip(answer, self.u)]
         tol = self.tolerance
-        if tol is None:
-            if all(x == 0.0 for x in d):
-                return None
-        elif all(x <= t for x, t in zip(d, tol)):
+        if tol is None and tuple(answer) == self.u:  # the usual case, one comparison (NaN never equals)
+            return None
+        d = [abs(a - b) for a, b in zip(answer, self.u)]
+        if tol is not None and all(x <= t for x, t in zip(d, tol)):
             return None
         c = max(range(6), key=lambda k: d[k] if d[k] == d[k] else math.inf)
         return (d[c] if d[c] == d[c] else math.inf), (0.0 if tol is None else tol[c])

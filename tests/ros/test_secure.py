@@ -29,7 +29,7 @@ LAUNCH_UNCHECKED = (
 
 
 def test_secure_lockstep_equals_headless(ros_env: dict[str, str], tmp_path: Path) -> None:
-    """0.08 s of the paper preset through TLS (keys made for the run) equals run_headless (|Δe|, |Δψ| ≤ 1e-9)."""
+    """0.08 s of the paper preset through TLS (keys made for the run) equals run_headless, bit for bit."""
     out = tmp_path / "out"
     cmd = [executable("formation-launch"), str(PAPER), "--secure", "--out", str(out), "--no-plots", "--quiet"]
     cmd += ["--no-record", "--duration", "0.08", "--record-rate", "10000"]
@@ -39,7 +39,7 @@ def test_secure_lockstep_equals_headless(ros_env: dict[str, str], tmp_path: Path
     assert summary["launch"]["secure"]["transport"] == "TCPv4+TLS (mutual)"
     assert summary["launch"]["discovery_range"] == "SYSTEM_DEFAULT"
     assert "tls_handshake_failures" not in (summary.get("security") or {})
-    assert_equals_headless(out / "trajectory.npz", 0.08)  # the unsecured lockstep test's bound
+    assert_equals_headless(out / "trajectory.npz", 0.08)
 
 
 def test_a_certificate_the_others_refuse_is_named_in_the_verdict(ros_env: dict[str, str], tmp_path: Path) -> None:

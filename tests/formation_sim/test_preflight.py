@@ -65,8 +65,9 @@ def _options(paper_path: Path, **kw) -> RunOptions:
     [
         ({"duration": 1e-12}, r"^--duration 1e-12 s is shorter than one control period: 0\.0001 s at 10000 Hz "),
         ({"duration": 1e12}, r"^--duration 1e\+12 s is longer than any run \(at most 604800 s, a week\)$"),
-        ({"control_rate": 1e12}, r"^simulation\.duration in .*paper_5agents\.yaml 5 s at a physics rate of 1e\+12 Hz "
-         r"\(--control-rate\) is 5e\+12 steps, more than any run takes \(at most 1e\+09\)$"),
+        ({"control_rate": 5e8}, r"^simulation\.duration in .*paper_5agents\.yaml 5 s at a physics rate of 5e\+08 Hz "
+         r"\(--control-rate\) is 2\.5e\+09 steps, more than any run takes \(at most 1e\+09\)$"),
+        ({"control_rate": 1e12}, r"^control rate 1e\+12 Hz \(--control-rate\) has a period under a nanosecond"),
         ({"duration": 5e4, "record_rate": 1e4}, r"^--duration 50000 s recorded at 10000 Hz \(--record-rate\) keeps "
          r"5e\+08 trajectory rows \(544 GB\), more than this machine's memory \(8 GB\)$"),
     ],
@@ -74,8 +75,8 @@ def _options(paper_path: Path, **kw) -> RunOptions:
 def test_durations_no_run_can_take_are_refused_naming_the_option(
     paper_path: Path, given: dict, expected: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """No step, longer than a week, more than 1e9 physics steps, a trajectory beyond the machine's memory (8 GB
-    here; a row is 5 agents × 192 B + 4 edges × 32 B)."""
+    """No step, a period under a nanosecond, longer than a week, more than 1e9 physics steps, a trajectory
+    beyond the machine's memory (8 GB here; a row is 5 agents × 192 B + 4 edges × 32 B)."""
     monkeypatch.setattr(preflight, "physical_memory", lambda: 8_000_000_000)
     options = _options(paper_path, **given)
     problem = duration_problem(load_spec(options), options)

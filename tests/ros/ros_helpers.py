@@ -167,10 +167,12 @@ class Procs:
     def agent(
         self, formation: Path, agent_id: str, *params: str, env: dict[str, str] | None = None
     ) -> subprocess.Popen:
-        """An agent process; ``params`` are more ``NAME:=VALUE`` parameters, ``env`` more environment."""
+        """An agent process; ``params`` are more ``NAME:=VALUE`` parameters, ``env`` more environment. It runs
+        the compiled controller, as formation-launch starts agents at 1 kHz and above (alone, an agent runs
+        interpreted: its answers then equal an interpreted witness's, not the compiled headless run's)."""
         cmd = [executable("formation-agent"), "--ros-args", "-p", f"formation_file:={formation}"]
         cmd += ["-p", f"agent_id:='{agent_id}'", *(x for p in params for x in ("-p", p))]
-        return self.start(f"agent_{agent_id}", cmd, env)
+        return self.start(f"agent_{agent_id}", cmd, {"NUMBA_DISABLE_JIT": "0", **(env or {})})
 
     def sim(self, formation: Path, out: Path, *extra: str, env: dict[str, str] | None = None) -> subprocess.Popen:
         """The simulator; ``extra`` more options, ``env`` more environment."""

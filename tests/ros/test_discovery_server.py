@@ -88,7 +88,8 @@ def test_sim_sh_starts_the_server_and_agent_sh_joins_it(procs, tmp_path: Path) -
     port = free_udp_port("127.0.0.1")
     spec = f"server:127.0.0.1:{port}"
     for a in load_formation(PAPER).agents:
-        procs.start(f"agent_{a.id}", [str(REPO / "ros2_ws" / "agent.sh"), str(PAPER), a.id, "--discovery", spec])
+        agent = [str(REPO / "ros2_ws" / "agent.sh"), str(PAPER), a.id, "--discovery", spec]
+        procs.start(f"agent_{a.id}", agent, {"NUMBA_DISABLE_JIT": "0"})  # compiled, as the headless run core
     out = tmp_path / "out"
     sim_cmd = [str(REPO / "ros2_ws" / "sim.sh"), str(PAPER), "--discovery", spec, "--out", str(out), "--no-plots"]
     sim = procs.start("sim", [*sim_cmd, "--duration", "0.02", "--record-rate", "10000"])

@@ -9,7 +9,7 @@
 # group with a log in OUT/logs/; shows progress (sim time, real-time factor, worst funnel margin);
 # stops everything on completion, Ctrl-C, SIGTERM or the death of a process; prints the summary and
 # writes OUT (default out/<formation>-ros2-<mode>-<time>): summary.json, trajectory.npz, errors.png,
-# orientation_errors.png, inputs.png, velocity_errors.png, foxglove_layout.json, logs/, bag/ and
+# orientation_errors.png, inputs.png, velocity_errors.png, clearance.png, foxglove_layout.json, logs/, bag/ and
 # view.mcap (unless --no-record; view.mcap is what to open in Foxglove with foxglove_layout.json) and,
 # with --animate, animation.gif (docs/outputs.md).
 # Discovery stays on this host: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless set; a free

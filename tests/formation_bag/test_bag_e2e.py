@@ -77,7 +77,9 @@ def assert_markers_decode(bag: Path, expected: int) -> None:
             assert marker.header.frame_id == "world"
             by_ns[marker.ns] = by_ns.get(marker.ns, 0) + 1
         # paper: 5 agents (body, frame, label, force, torque) and 4 edges (line, desired-distance ghost)
-        assert by_ns == {"bodies": 5, "frames": 5, "labels": 5, "forces": 5, "torques": 5, "edges": 4, "desired": 4}
+        assert by_ns == {
+            "bodies": 5, "frames": 5, "labels": 5, "forces": 5, "torques": 5, "edges": 4, "desired": 4, "contacts": 5
+        }  # fmt: skip
 
 
 def test_recorded_realtime_run_gives_the_same_margins(ros_procs, tmp_path: Path) -> None:

@@ -26,14 +26,18 @@ def test_margin_colours() -> None:
 
 
 def test_scene_of_the_paper_start(scene_and_state) -> None:
-    """One body, frame, label and two arrows per agent; one line and one ghost per edge; values at t=0."""
+    """One body, frame, label, two arrows and a contact sphere (clear: nothing touches) per agent; one line
+    and one ghost per edge; values at t=0."""
     scene, spec, state = scene_and_state
     u = np.tile([3.0, 0.0, 0.0, 0.0, 0.0, 0.0], (len(spec.agents), 1))
     shapes = scene.shapes(0.0, state.p, state.R, u)
     count: dict[str, int] = {}
     for s in shapes:
         count[s.ns] = count.get(s.ns, 0) + 1
-    assert count == {"bodies": 5, "frames": 5, "labels": 5, "forces": 5, "torques": 5, "edges": 4, "desired": 4}
+    assert count == {
+        "bodies": 5, "frames": 5, "labels": 5, "forces": 5, "torques": 5, "edges": 4, "desired": 4, "contacts": 5
+    }  # fmt: skip
+    assert all(s.color[3] == 0.0 for s in shapes if s.ns == "contacts")
     frames = {s.id: s for s in shapes if s.ns == "frames"}
     i = 1  # agent 2: its frame's x axis is the first column of R_world_body, r_i long
     np.testing.assert_allclose(np.subtract(frames[i].points[1], frames[i].points[0]), state.R[i][:, 0], atol=1e-12)
@@ -106,3 +110,14 @@ def test_foxglove_layout_gives_each_distinct_funnel_its_bounds(paper_path) -> No
     assert [x for x in labels if x.startswith("C_con")] == ["C_con·ρ_e (1-2)", "C_con·ρ_e (1-3, 3-4, 3-5)"]
     psi = [p["label"] for p in foxglove_layout(spec)["configById"]["Plot!orientation"]["paths"]]
     assert [x for x in psi if x.startswith("ρ_ψ")] == ["ρ_ψ (1-2, 1-3, 3-4, 3-5)"]
+
+
+def test_two_bodies_in_contact_are_drawn_as_such(scene_and_state) -> None:
+    """Agents 2 and 4 (no edge between them) moved onto each other: their contact spheres turn red, the
+    others' stay clear."""
+    scene, _, state = scene_and_state
+    p = state.p.copy()
+    p[3] = p[1] + [0.5, 0.0, 0.0]  # 0.5 m apart, radii 1 m each: overlapping
+    contacts = {s.id: s for s in scene.shapes(0.0, p, state.R, None) if s.ns == "contacts"}
+    assert [i for i, s in sorted(contacts.items()) if s.color[3] > 0] == [1, 3]
+    assert contacts[3].position == tuple(p[3].tolist()) and contacts[3].scale == (2.0, 2.0, 2.0)

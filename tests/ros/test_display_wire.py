@@ -35,7 +35,7 @@ def test_markers_read_back_as_the_scene(paper_path, name) -> None:
         expected = MarkerArray(markers=[marker_message(s, ns) for s in scene.shapes(t, p, R, u)])
         reference = serialize_message(expected)
         got = deserialize_message(data, MarkerArray)
-        assert len(got.markers) == 5 * n + 2 * len(spec.edges)
+        assert len(got.markers) == 6 * n + 2 * len(spec.edges)  # a contact sphere per agent too
         assert got == deserialize_message(reference, MarkerArray)  # colours as float32, as sent
         assert len(data) == len(reference)  # the same layout (padding bytes are unspecified)
 

@@ -271,3 +271,33 @@ def test_agents_of_other_code_forms_and_platforms_in_one_run(procs, tmp_path: Pa
     assert (agents["2"]["judged"], agents["2"]["code_form"]) == ("within the round-off bound", "interpreted")
     assert agents["2"]["largest_ratio_to_tolerance"] < 1.0, agents["2"]
     assert all(agents[a]["judged"] == "bit for bit" for a in ("1", "4", "5")), agents
+
+
+def test_a_contact_is_reported_in_lockstep_realtime_and_the_analysis(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """Two non-neighbours steered into each other (tests/formation_sim/data/crossing_3agents.yaml): the
+    lockstep run reports the contact as the headless run does (pair 1-3 from t = 0.2 s), so does
+    formation-analyze of its bag, and so does a realtime run (at its own times)."""
+    from formation_msgs_py.spec import load_formation as load
+    from formation_sim.cli.headless import run_headless
+
+    crossing = REPO / "tests" / "formation_sim" / "data" / "crossing_3agents.yaml"
+    expected = run_headless(load(crossing), controller_mode="sampled").summary["clearance"]
+    assert expected["first_contact"] == {"t": 0.2, "pair": ["1", "3"]}
+    out = tmp_path / "lockstep"
+    code, log = run(
+        [executable("formation-launch"), str(crossing), "--out", str(out), "--no-plots", "--quiet"], ros_env
+    )
+    assert code == 0, log
+    assert json.loads((out / "summary.json").read_text())["clearance"] == expected
+    analysis = tmp_path / "analysis"
+    code, log = run([executable("formation-analyze"), str(out / "bag"), "--out", str(analysis), "--no-plots"], ros_env)
+    assert code == 0, log
+    analysed = json.loads((analysis / "summary.json").read_text())["clearance"]
+    assert analysed["first_contact"] == expected["first_contact"]
+    out = tmp_path / "realtime"
+    cmd = [executable("formation-launch"), str(crossing), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
+    code, log = run([*cmd, "--mode", "realtime", "--control-rate", "250"], ros_env)
+    assert code in (0, 1), log  # realtime: the funnels decide, at their own times
+    realtime = json.loads((out / "summary.json").read_text())["clearance"]
+    assert realtime["first_contact"]["pair"] == ["1", "3"], realtime
+    assert "CONTACT: agents 1 and 3 touched" in log

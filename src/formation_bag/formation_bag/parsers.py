@@ -140,7 +140,8 @@ def analyze_parser() -> argparse.ArgumentParser:
         prog="formation-analyze",
         description="Analyse a recorded run without ROS: recompute e_k and ψ_k from /formation/ground_truth, check "
         "every funnel, write OUT as docs/outputs.md (summary.json, trajectory.npz, errors.png, orientation_errors.png, "
-        "inputs.png, velocity_errors.png, foxglove_layout.json) plus errors.csv, inputs.csv, positions.csv, "
+        "inputs.png, velocity_errors.png, clearance.png, foxglove_layout.json) plus errors.csv, inputs.csv, "
+        "positions.csv, "
         "ages.json, ages.csv. Works on lockstep and realtime bags and on bags left by a killed recorder; missing "
         "data makes the verdict INCOMPLETE (never FAIL) and is listed. " + EXIT_STATUS_HELP + ".",
     )

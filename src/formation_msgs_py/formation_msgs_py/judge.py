@@ -15,6 +15,12 @@ Margins are the fraction of a funnel left between an error and its nearest bound
 error, 0 on the bound, negative outside); see :mod:`formation_msgs_py.funnels`. A fault (a
 missing measurement, a zeroed wrench, a saturated controller) is counted, never a violation:
 only the funnels decide FAIL, and missing data makes a run INCOMPLETE, never FAIL.
+
+Every pair of bodies is watched too, not only the tree's edges (the paper guarantees distances on
+the edges only): the *clearance* of a pair is the distance between their centres minus both radii
+[m] (:func:`pair_clearance`), and a clearance ≤ 0 is a *contact* (:func:`in_contact`). The smallest
+clearance of each pair, when, and its first contact are kept; a contact is a violation only where
+the formation file says so (``simulation.contact: fail``; default ``report``).
 """
 
 from __future__ import annotations
@@ -30,8 +36,9 @@ from formation_msgs_py.so3 import matmul3
 from formation_msgs_py.spec import FormationSpec
 
 VELOCITY_CHANNELS = ("vx", "vy", "vz", "wx", "wy", "wz")
-#: Violation kinds that name an edge; ``velocity`` names an agent.
+#: Violation kinds that name an edge; ``velocity`` names an agent, ``contact`` a pair of agents.
 EDGE_KINDS = ("distance", "orientation")
+CONTACT = "contact"
 
 
 @formula
@@ -66,6 +73,20 @@ def edge_margins(t, e, psi, c_col, c_con, rho_e_floor, decay_e, rho_psi_0, rho_p
 def outside(margin):
     """The funnel rule: a margin ≤ 0 (on a funnel's bound or beyond it) is a violation."""
     return margin <= 0.0
+
+
+@formula
+def pair_clearance(p_i, p_j, r_sum):
+    """‖p_j − p_i‖ − (r_i + r_j) [m] of two bodies at world positions p_i, p_j (3-tuples, of floats or
+    of arrays) with radii summing to ``r_sum``: the gap between their spheres, negative when they overlap."""
+    d0, d1, d2 = p_j[0] - p_i[0], p_j[1] - p_i[1], p_j[2] - p_i[2]
+    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - r_sum
+
+
+@formula
+def in_contact(clearance):
+    """The contact rule: two bodies touching or overlapping (clearance ≤ 0)."""
+    return clearance <= 0.0
 
 
 @formula
@@ -149,10 +170,29 @@ class EdgeErrors:
         return -self.c_col * inf, self.c_con * inf, np.array([e.rho_psi_inf for e in self.spec.edges])
 
 
+class Pairs:
+    """Every pair of bodies (i < j, in formation-file order): who, their radii's sum [m], and a name."""
+
+    def __init__(self, spec: FormationSpec) -> None:
+        n = len(spec.agents)
+        i, j = np.triu_indices(n, k=1)
+        radii = np.array([a.radius for a in spec.agents])
+        self.i, self.j = i.astype(np.int64), j.astype(np.int64)
+        self.r_sum = radii[i] + radii[j]
+        self.names = [f"{spec.agents[a].id}-{spec.agents[b].id}" for a, b in zip(i.tolist(), j.tolist())]
+        self.ids = [(spec.agents[a].id, spec.agents[b].id) for a, b in zip(i.tolist(), j.tolist())]
+
+    def clearances(self, p: np.ndarray) -> np.ndarray:
+        """The clearance [m] of every pair (P,) at world positions p (N,3), or (T,P) of p (T,N,3)."""
+        p = np.asarray(p, dtype=np.float64)
+        return pair_clearance(_vec(p[..., self.i, :]), _vec(p[..., self.j, :]), self.r_sum)
+
+
 class CheckedSteps(NamedTuple):
     """The check of every sample so far, made by the run core itself (formation_sim.core.loop, compiled,
     with :class:`Judge`'s rules): running minimum margins per edge (K,) and agent (N,), settle
-    times (K,) (NaN: none), peak force and torque per agent (N,)."""
+    times (K,) (NaN: none), peak force and torque per agent (N,), and per pair of bodies (P,) the
+    smallest clearance [m], when [s], and its first contact [s] (NaN: none)."""
 
     min_margin_e: np.ndarray
     min_margin_psi: np.ndarray
@@ -161,6 +201,9 @@ class CheckedSteps(NamedTuple):
     settle_psi: np.ndarray
     peak_force: np.ndarray
     peak_torque: np.ndarray
+    min_clearance: np.ndarray
+    min_clearance_t: np.ndarray
+    contact_t: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -173,7 +216,7 @@ class Violation:
     channel: str
 
     def as_dict(self) -> dict[str, Any]:
-        key = "edge" if self.kind in EDGE_KINDS else "agent"
+        key = "edge" if self.kind in EDGE_KINDS else "pair" if self.kind == CONTACT else "agent"
         return {"t": self.t, "kind": self.kind, key: self.where, "channel": self.channel}
 
 
@@ -205,6 +248,12 @@ class Judge:
         self.settle_e: list[float | None] = [None] * K
         self.settle_psi: list[float | None] = [None] * K
         self.band_lo, self.band_hi, self.band_psi = self.edges.steady_band()
+        self.pairs = Pairs(spec)
+        P = len(self.pairs.names)
+        self.min_clearance = np.full(P, np.inf)
+        self.min_clearance_t = np.full(P, np.nan)
+        self.contact_t = np.full(P, np.nan)
+        self.contact_fails = spec.simulation.contact == "fail"
         self.samples = 0
         self.t_first: float | None = None
         self.t_last: float | None = None
@@ -227,8 +276,9 @@ class Judge:
             margin_v = np.asarray(margin_v, dtype=np.float64).reshape(len(t), -1, 6)
             mv = margin_v.min(axis=2)  # (T,N); inf where unknown
             np.minimum(self.min_margin_v, mv.min(axis=0), out=self.min_margin_v)
+        clearance = self._clearances(t, p)
         if self.first_violation is None:
-            self.first_violation = _first_violation(self, t, xi_e, m_e, m_psi, margin_v, mv)
+            self.first_violation = _first_violation(self, t, xi_e, m_e, m_psi, margin_v, mv, clearance)
         np.minimum(self.min_margin_e, m_e.min(axis=0), out=self.min_margin_e)
         np.minimum(self.min_margin_psi, m_psi.min(axis=0), out=self.min_margin_psi)
         self._settle(t, sample.e, sample.psi)
@@ -238,6 +288,23 @@ class Judge:
         if single:
             return EdgeSample(sample.e[0], sample.psi[0], sample.rho_e[0], sample.rho_psi[0])
         return sample
+
+    def _clearances(self, t: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The clearance of every pair at samples t (T,) of p (T,N,3), (T,P); keeps each pair's smallest
+        (and when) and its first contact."""
+        clearance = self.pairs.clearances(p)
+        if clearance.shape[1] == 0:
+            return clearance
+        k = np.argmin(clearance, axis=0)
+        smallest = clearance[k, np.arange(clearance.shape[1])]
+        lower = smallest < self.min_clearance
+        self.min_clearance[lower] = smallest[lower]
+        self.min_clearance_t[lower] = t[k[lower]]
+        touching = in_contact(clearance)
+        first = touching.argmax(axis=0)
+        new = touching.any(axis=0) & np.isnan(self.contact_t)
+        self.contact_t[new] = t[first[new]]
+        return clearance
 
     def _margins(
         self, t: np.ndarray, p: np.ndarray, R: np.ndarray
@@ -251,7 +318,8 @@ class Judge:
         """The violation one sample (p (N,3), R (N,3,3), margin_v (N,6)) shows, without taking it."""
         _, xi_e, m_e, m_psi = self._margins(np.array([t]), p[None], R[None])
         margin_v = margin_v[None]
-        return _first_violation(self, np.array([t]), xi_e, m_e, m_psi, margin_v, margin_v.min(axis=2))
+        clearance = self.pairs.clearances(p[None])
+        return _first_violation(self, np.array([t]), xi_e, m_e, m_psi, margin_v, margin_v.min(axis=2), clearance)
 
     def take_checked(self, t: np.ndarray, checked: CheckedSteps, violation: Violation | None) -> None:
         """Samples at t (T,) that a run core checked itself: its running minima and settle times
@@ -261,6 +329,9 @@ class Judge:
         self.min_margin_v[:] = checked.min_margin_v
         self.settle_e = [None if np.isnan(s) else float(s) for s in checked.settle_e]
         self.settle_psi = [None if np.isnan(s) else float(s) for s in checked.settle_psi]
+        self.min_clearance[:] = checked.min_clearance
+        self.min_clearance_t[:] = checked.min_clearance_t
+        self.contact_t[:] = checked.contact_t
         self.first_violation = self.first_violation or violation
         self.samples += len(t)
         self.t_first = float(t[0]) if self.t_first is None else self.t_first
@@ -289,6 +360,27 @@ class Judge:
                 else:
                     settled[k] = float(t[out[-1] + 1])
 
+    def clearance(self) -> dict[str, Any]:
+        """summary.json ``clearance``: the smallest clearance of any pair of bodies [m], which pair and when,
+        the first contact (null: none) and every pair that touched, with the policy (``simulation.contact``)."""
+        policy = "fail" if self.contact_fails else "report"
+        if not len(self.pairs.names) or not np.isfinite(self.min_clearance).any():
+            return {"policy": policy, "min": None, "pair": None, "t": None, "first_contact": None, "contacts": []}
+        k = int(np.argmin(self.min_clearance))
+        touched = np.flatnonzero(~np.isnan(self.contact_t))
+        contacts = [
+            {"pair": list(self.pairs.ids[c]), "first_t": float(self.contact_t[c]), "min": float(self.min_clearance[c])}
+            for c in touched[np.argsort(self.contact_t[touched], kind="stable")].tolist()
+        ]
+        return {
+            "policy": policy,
+            "min": float(self.min_clearance[k]),
+            "pair": list(self.pairs.ids[k]),
+            "t": float(self.min_clearance_t[k]),
+            "first_contact": None if not contacts else {"t": contacts[0]["first_t"], "pair": contacts[0]["pair"]},
+            "contacts": contacts,
+        }
+
     def worst_margin(self) -> float:
         vals = [self.min_margin_e.min(initial=np.inf), self.min_margin_psi.min(initial=np.inf)]
         if np.isfinite(self.min_margin_v).any():
@@ -304,11 +396,19 @@ def _first_violation(
     m_psi: np.ndarray,
     margin_v: np.ndarray | None,
     mv: np.ndarray | None,
+    clearance: np.ndarray,
 ) -> Violation | None:
-    """The earliest sample :func:`outside` a funnel; at one sample the worst edge before any agent."""
+    """The earliest sample :func:`outside` a funnel (or, where contacts fail the run, in contact); at one
+    sample the worst edge before any agent, and any funnel before a contact."""
     m_edge = np.minimum(m_e, m_psi)
     bad_edge = np.flatnonzero(outside(m_edge.min(axis=1)))
     bad_v = np.flatnonzero(outside(mv.min(axis=1))) if mv is not None else np.empty(0, dtype=int)
+    if judge.contact_fails and clearance.shape[1]:
+        touching = np.flatnonzero(in_contact(clearance.min(axis=1)))
+        funnel = min([*bad_edge[:1].tolist(), *bad_v[:1].tolist()], default=None)
+        if touching.size and (funnel is None or touching[0] < funnel):
+            j = int(touching[0])
+            return Violation(float(t[j]), CONTACT, judge.pairs.names[int(np.argmin(clearance[j]))], "clearance")
     if bad_edge.size and (not bad_v.size or bad_edge[0] <= bad_v[0]):
         j = int(bad_edge[0])
         k = int(np.argmin(m_edge[j]))

@@ -243,6 +243,8 @@ OPTIONS: tuple[Option, ...] = (
            "machine batch costs ~11 %% less CPU per lockstep step; beside other busy processes it runs about "
            "half as fast (docs/ros2.md). Each process's policy is in OUT/logs/processes.json",
            frozenset({LAUNCH}), str, "normal", ("normal", "batch")),
+    Option("--contact", "override simulation.contact: two bodies touching is reported, or also fails the run",
+           RUNNERS, str, None, ("report", "fail"), overrides="contact", forward=True),
     Option("--allow-low-rate", "run even if the control rate is below what the velocity loop needs (warn)",
            RUNNERS, forward=True),
     Option("--stop-on-violation", "stop at the first funnel violation", frozenset({HEADLESS})),
@@ -294,6 +296,7 @@ class RunOptions:
     netns: str = "auto"
     discovery: Discovery = Discovery()
     scheduling: str = "normal"
+    contact: str | None = None
     allow_low_rate: bool = False
     stop_on_violation: bool = False
     progress_period: float = 1.0

@@ -329,6 +329,14 @@ SIMULATION_FIELDS: tuple[Field, ...] = (
         choices=("refuse", "warn"),
     ),
     Field(
+        "contact",
+        "enum",
+        "report",
+        "two bodies touching (clearance, the distance between centres minus both radii, at most 0, for any pair, "
+        "neighbours or not): report it (summary, verdict, figures, viewer), or also fail the run",
+        choices=("report", "fail"),
+    ),
+    Field(
         "step_timeout",
         "float",
         5.0,

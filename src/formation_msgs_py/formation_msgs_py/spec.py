@@ -197,6 +197,7 @@ class SimulationSpec:
     gravity: np.ndarray
     spanning_tree: bool
     rate_check: str
+    contact: str
     step_timeout: float
     command_timeout: float
 

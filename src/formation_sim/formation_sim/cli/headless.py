@@ -66,7 +66,9 @@ def build_parser() -> OptionParser:
         "formation-headless",
         "Run a formation's closed loop in one process (no ROS) and write OUT as docs/outputs.md: "
         "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png, velocity_errors.png, "
-        "foxglove_layout.json (not with --no-plots), animation.gif (with --animate). " + EXIT_STATUS_HELP + ".",
+        "clearance.png, foxglove_layout.json (not with --no-plots), animation.gif (with --animate). "
+        + EXIT_STATUS_HELP
+        + ".",
     )
 
 

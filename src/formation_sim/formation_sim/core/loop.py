@@ -49,8 +49,10 @@ from formation_msgs_py.judge import (
     Judge,
     edge_errors,
     edge_margins,
+    in_contact,
     in_steady_band,
     outside,
+    pair_clearance,
     settle,
 )
 from formation_msgs_py.so3 import flat_rows, matrix_rows, vec3
@@ -149,6 +151,9 @@ class Watch(NamedTuple):
     pairs: np.ndarray  # (K, 2) tail, head
     edges: np.ndarray  # (K, 20)
     checked: CheckedSteps
+    bodies: np.ndarray  # (P, 2) every pair of bodies i < j
+    r_sum: np.ndarray  # (P,) their radii's sum [m]
+    contact_fails: bool  # simulation.contact: fail (a contact is a violation)
 
 
 def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
@@ -161,7 +166,7 @@ def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
         row[W_FLOOR_E], row[W_DECAY_E] = funnels.rho_e_floor(e.c_col, e.c_con, e.rho_e_inf), e.decay_e
         row[W_RHO_PSI_0], row[W_RHO_PSI_INF], row[W_DECAY_PSI] = e.rho_psi_0, e.rho_psi_inf, e.decay_psi
         row[W_BAND_LO], row[W_BAND_HI], row[W_BAND_PSI] = band_lo[k], band_hi[k], band_psi[k]
-    K, N = len(spec.edges), len(spec.agents)
+    K, N, P = len(spec.edges), len(spec.agents), len(judge.pairs.names)
     checked = CheckedSteps(
         min_margin_e=np.full(K, np.inf),
         min_margin_psi=np.full(K, np.inf),
@@ -170,8 +175,13 @@ def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
         settle_psi=np.full(K, np.nan),
         peak_force=np.zeros(N),
         peak_torque=np.zeros(N),
+        min_clearance=np.full(P, np.inf),
+        min_clearance_t=np.full(P, np.nan),
+        contact_t=np.full(P, np.nan),
     )
-    return Watch(np.stack([judge.edges.tail, judge.edges.head], axis=1).astype(np.int64), edges, checked)
+    pairs = np.stack([judge.edges.tail, judge.edges.head], axis=1).astype(np.int64)
+    bodies = np.stack([judge.pairs.i, judge.pairs.j], axis=1).astype(np.int64)
+    return Watch(pairs, edges, checked, bodies, judge.pairs.r_sum.copy(), judge.contact_fails)
 
 
 @formula
@@ -206,7 +216,26 @@ def check_step(watch, buf, n, t, p, R, out):
         torque = np.sqrt(out[i, U + 3] * out[i, U + 3] + out[i, U + 4] * out[i, U + 4] + out[i, U + 5] * out[i, U + 5])
         c.peak_force[i] = max(c.peak_force[i], force)
         c.peak_torque[i] = max(c.peak_torque[i], torque)
-    return left
+    return check_clearances(watch, t, p) or left
+
+
+@formula
+def check_clearances(watch, t, p):
+    """Every pair of bodies at t [s] (the judge's formula and rule: :func:`formation_msgs_py.judge.pair_clearance`,
+    ``in_contact``): each pair's smallest clearance and its first contact; True if a contact fails the run."""
+    c = watch.checked
+    fails = False
+    for k in range(watch.bodies.shape[0]):
+        i, j = watch.bodies[k, 0], watch.bodies[k, 1]
+        clearance = pair_clearance(vec3(p[i]), vec3(p[j]), watch.r_sum[k])
+        if clearance < c.min_clearance[k]:
+            c.min_clearance[k] = clearance
+            c.min_clearance_t[k] = t
+        if in_contact(clearance):
+            if np.isnan(c.contact_t[k]):
+                c.contact_t[k] = t
+            fails = fails or watch.contact_fails
+    return fails
 
 
 @formula

@@ -243,6 +243,7 @@ class RunRecorder:
             "first_violation": None if j.first_violation is None else j.first_violation.as_dict(),
             "worst_margin": j.worst_margin(),
             "faults": self.faults.as_dict(),
+            "clearance": j.clearance(),
             "edges": {
                 name: {
                     "min_margin_e": j.min_margin_e[k],

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from formation_sim.views.markers import FormationScene, SceneFrame, Shape
+from formation_sim.views.markers import CONTACT_COLOUR, FormationScene, SceneFrame, Shape
 
 _CDR_LE = b"\x00\x01\x00\x00"
 _ADD = 0  # visualization_msgs/Marker.ADD
@@ -167,6 +167,8 @@ class MarkerArrayWire:
         self.edge_colour = _rows(column("edges", 3), 4)
         self.ghost_position = _rows(column("desired", 1), 3)
         self.ghost_colour = _rows(column("desired", 3), 3)  # r, g, b; alpha stays the template's
+        self.contact_position = _rows(column("contacts", 1), 3)
+        self.contact_alpha = np.asarray(column("contacts", 3), dtype=np.intp) + 3  # a: clear unless touching
         if len(self.body_pose) != n or len(self.edge_points) != k:
             raise ValueError(f"scene: {len(self.body_pose)} bodies, {len(self.edge_points)} edges; expected {n}, {k}")
 
@@ -189,6 +191,8 @@ class MarkerArrayWire:
         d[self.ghost_position] = f.ghosts
         self.f32[self.edge_colour] = f.edge_colours
         self.f32[self.ghost_colour] = f.edge_colours[:, :3]
+        d[self.contact_position] = p
+        self.f32[self.contact_alpha] = np.where(f.touching, CONTACT_COLOUR[3], 0.0)
         return self.cdr.message()
 
 

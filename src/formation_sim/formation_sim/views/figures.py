@@ -17,7 +17,10 @@ figure (every panel draws the same kinds of line):
 - ``velocity_errors.png``: per agent, e_v = v_i − v_i,des per channel inside ±ρ_v, linear [m/s]
   and angular [rad/s]. The agents' own e_v uses their noisy velocity; here it is recomputed from
   the recorded ground truth (the same controller on noise-free relative poses and velocity), so it
-  differs by the noise.
+  differs by the noise;
+- ``clearance.png``: per agent, its clearance to the nearest other body (the distance between
+  centres minus both radii [m], every body, neighbour or not: the judge's
+  :class:`formation_msgs_py.judge.Pairs`), with contact (clearance ≤ 0) shaded.
 
 Arrays as in trajectory.npz (agents and edges in file order).
 """
@@ -34,10 +37,11 @@ import numpy as np
 
 from formation_agent.controller import AgentController
 from formation_msgs_py import funnels
+from formation_msgs_py.judge import Pairs
 from formation_msgs_py.spec import FormationSpec, agent_view
 
 #: the files :func:`plot_run` writes, in order
-FIGURES = ("errors.png", "orientation_errors.png", "inputs.png", "velocity_errors.png")
+FIGURES = ("errors.png", "orientation_errors.png", "inputs.png", "velocity_errors.png", "clearance.png")
 VELOCITY_LABELS = ("$v_x$", "$v_y$", "$v_z$", r"$\omega_x$", r"$\omega_y$", r"$\omega_z$")
 COMPONENT_COLOURS = ("C0", "C1", "C2")
 ZOOM_FROM = 0.5  # the insets show the second half of the run, over which they sit
@@ -164,6 +168,7 @@ def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndar
         _orientation_errors(plt, out_dir, spec, arrays, caption),
         _inputs(plt, out_dir, spec, arrays, caption),
         _velocity_errors(plt, out_dir, spec, arrays, caption),
+        _clearance(plt, out_dir, spec, arrays, caption),
     ]
 
 
@@ -283,6 +288,44 @@ def _velocity_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, 
     ]
     _figure_legend(fig, legend, ncol=4)
     path = _save(fig, out_dir / "velocity_errors.png")
+    plt.close(fig)
+    return path
+
+
+def nearest_clearances(spec: FormationSpec, p: np.ndarray) -> np.ndarray:
+    """(T,N): each agent's clearance [m] to its nearest other body at world positions p (T,N,3)."""
+    pairs = Pairs(spec)
+    clearance = pairs.clearances(p)  # (T,P)
+    nearest = np.full((len(p), len(spec.agents)), np.inf)
+    for k, (i, j) in enumerate(zip(pairs.i.tolist(), pairs.j.tolist())):
+        np.minimum(nearest[:, i], clearance[:, k], out=nearest[:, i])
+        np.minimum(nearest[:, j], clearance[:, k], out=nearest[:, j])
+    return nearest
+
+
+def _clearance(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    t = arrays["t"]
+    nearest = nearest_clearances(spec, arrays["p"]) if len(spec.agents) > 1 else np.zeros((len(t), 1))
+    fig, axes = _grid(plt, 1, 1, 9.0, 3.2, caption, top=0.75)
+    ax = axes[0][0]
+    for i, a in enumerate(spec.agents):
+        ax.plot(t, nearest[:, i], lw=1.0, label=f"agent {a.id}")
+    ax.axhline(0.0, color="#c62828", lw=0.8)
+    low = min(float(nearest.min(initial=0.0)), 0.0)
+    ax.axhspan(low - 0.05 * (1 + abs(low)), 0.0, color="#c62828", alpha=0.12)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("clearance to the nearest body [m]")
+    ax.set_title("every body's clearance to its nearest other body (distance − both radii)", fontsize=10)
+    ax.grid(alpha=0.3)
+    handles: list[Any] = [
+        Line2D([], [], color=f"C{i % 10}", lw=1.0, label=f"agent {a.id}") for i, a in enumerate(spec.agents)
+    ]
+    handles.append(Patch(color="#c62828", alpha=0.12, label="contact (clearance ≤ 0)"))
+    _figure_legend(fig, handles[:20] + handles[-1:] if len(handles) > 21 else handles, ncol=min(6, len(handles)))
+    path = _save(fig, out_dir / "clearance.png")
     plt.close(fig)
     return path
 

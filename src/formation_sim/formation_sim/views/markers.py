@@ -11,7 +11,11 @@ One scene per display instant:
   would sit at the desired distance d_k along the current direction;
 - each agent's wrench: force (teal) and torque (purple) arrows in the world frame, length
   ``arrow_scale·ln(1 + |u|)`` m (logarithmic: peaks of 10³ N and steady values of 10⁻² N are
-  both visible).
+  both visible);
+- every body in contact with another (clearance ≤ 0, neighbours or not: the judge's
+  :class:`formation_msgs_py.judge.Pairs`): a translucent red sphere of its radius around it, so that a
+  pair that touches shows as two red spheres meeting (namespace ``contacts``, one per agent, clear
+  while it touches nothing: the markers stay the same at every instant).
 
 Positions in m (world frame), orientations as quaternions (x, y, z, w) of R_world_body.
 """
@@ -22,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from formation_msgs_py.judge import EdgeErrors
+from formation_msgs_py.judge import EdgeErrors, Pairs, in_contact
 from formation_msgs_py.rotations import quaternion_from_matrix
 from formation_msgs_py.spec import FormationSpec
 
@@ -37,6 +41,7 @@ BODY_COLOUR: Rgba = (0.55, 0.6, 0.7, 0.9)
 # teal, not orange: orange is a low margin on the edges
 FORCE_COLOUR: Rgba = (0.0, 0.6, 0.7, 1.0)
 TORQUE_COLOUR: Rgba = (0.6, 0.2, 0.85, 1.0)
+CONTACT_COLOUR: Rgba = (0.9, 0.0, 0.0, 0.45)
 GHOST_ALPHA = 0.25
 
 
@@ -94,7 +99,8 @@ class SceneFrame:
     ``q`` (N,4) quaternions (x, y, z, w) of R_world_body; ``axis_ends`` (N,3,3): end of body axis c
     of agent i at ``[i, c]``; ``labels`` (N,3); ``tips`` (N,2,3): tips of the force and torque
     arrows (they start at ``p``); ``edge_ends`` (K,2,3) tail and head; ``edge_colours`` (K,4) RGBA by
-    the worst margin; ``ghosts`` (K,3); ``funnels``: :meth:`FormationScene.funnels`.
+    the worst margin; ``ghosts`` (K,3); ``funnels``: :meth:`FormationScene.funnels`; ``touching`` (N,):
+    whether each agent is in contact with another body.
     """
 
     t: float
@@ -107,6 +113,7 @@ class SceneFrame:
     edge_colours: np.ndarray
     ghosts: np.ndarray
     funnels: dict[str, np.ndarray]
+    touching: np.ndarray
 
 
 class FormationScene:
@@ -122,6 +129,7 @@ class FormationScene:
         self.head = np.array([index[e.head] for e in spec.edges], dtype=int)
         self.d_des = np.array([e.d_des for e in spec.edges])
         self.edges = EdgeErrors(spec)
+        self.pairs = Pairs(spec)
 
     def funnels(self, t: float, p: np.ndarray, R: np.ndarray) -> dict[str, np.ndarray]:
         """Per edge (K,): e [m²], its bounds −C_col·ρ_e and C_con·ρ_e, ψ, ρ_ψ, and the margins."""
@@ -168,7 +176,16 @@ class FormationScene:
             edge_colours=margin_colours(np.minimum(f["margin_e"], f["margin_psi"])),
             ghosts=a + ahead * self.d_des[:, None],
             funnels=f,
+            touching=self.touching(p),
         )
+
+    def touching(self, p: np.ndarray) -> np.ndarray:
+        """(N,) whether each agent touches another body at world positions p (N,3)."""
+        pairs = in_contact(self.pairs.clearances(p))
+        out = np.zeros(len(self.ids), dtype=bool)
+        out[self.pairs.i[pairs]] = True
+        out[self.pairs.j[pairs]] = True
+        return out
 
     def shapes(self, t: float, p: np.ndarray, R: np.ndarray, u: np.ndarray | None) -> list[Shape]:
         """Every marker at time t [s] (:meth:`frame`); no wrench arrows when ``u`` is None."""
@@ -198,4 +215,8 @@ class FormationScene:
             size = 0.5 * float(self.radius[self.head[k]])
             ghost = (colour[0], colour[1], colour[2], GHOST_ALPHA)
             out.append(Shape("desired", k, SPHERE, _v(f.ghosts[k]), scale=(size, size, size), color=ghost))
+        for i in range(len(self.ids)):
+            size = 2.0 * float(self.radius[i])
+            colour = CONTACT_COLOUR if f.touching[i] else (*CONTACT_COLOUR[:3], 0.0)
+            out.append(Shape("contacts", i, SPHERE, _v(f.p[i]), scale=(size, size, size), color=colour))
         return out

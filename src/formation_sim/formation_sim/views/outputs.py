@@ -126,9 +126,37 @@ def format_summary(summary: dict[str, Any]) -> str:
     lines.append("  agent    peak force [N]   peak torque [N·m]   min margin v")
     for aid, s in summary["agents"].items():
         lines.append(f"  {aid:<8} {s['peak_force']:>14.4g}   {s['peak_torque']:>17.4g}   {_f(s['min_margin_v']):>12}")
+    lines.extend(clearance_lines(summary.get("clearance")))
     lines.extend(fault_lines(summary.get("faults") or {}))
     lines.extend(fault_meanings(summary.get("faults") or {}))
     return "\n".join(lines)
+
+
+def contact_note(summary: dict[str, Any]) -> str:
+    """``; but agents 1 and 3 touched at t=0.2000 s`` after a PASS with a contact reported, else ``""``."""
+    first = (summary.get("clearance") or {}).get("first_contact")
+    if not first:
+        return ""
+    a, b = first["pair"]
+    return f"; but agents {a} and {b} touched at t={first['t']:.4f} s (not a funnel: simulation.contact: report)"
+
+
+def clearance_lines(clearance: dict[str, Any] | None) -> list[str]:
+    """The smallest clearance between any two bodies, and every contact (a contact is never silent)."""
+    if not clearance or clearance.get("min") is None:
+        return []
+    a, b = clearance["pair"]
+    lines = [f"  clearance: smallest {clearance['min']:.4g} m, agents {a} and {b} at t={clearance['t']:.4f} s"]
+    for c in clearance.get("contacts", []):
+        a, b = c["pair"]
+        effect = (
+            "fails the run" if clearance["policy"] == "fail" else "reported (simulation.contact: fail fails the run)"
+        )
+        lines.append(
+            f"  CONTACT: agents {a} and {b} touched at t={c['first_t']:.4f} s "
+            f"(smallest clearance {c['min']:.4g} m); {effect}"
+        )
+    return lines
 
 
 def verdict_line(summary: dict[str, Any]) -> str:
@@ -137,7 +165,7 @@ def verdict_line(summary: dict[str, Any]) -> str:
     fv = summary["first_violation"]
     if verdict == Verdict.PASS.value:
         text = f"PASS: every funnel held over {summary['duration']:g} s (worst margin {_f(summary['worst_margin'])})"
-        return "\n".join([text, *tls_lines(summary.get("security"))])
+        return "\n".join([text + contact_note(summary), *tls_lines(summary.get("security"))])
     if verdict == Verdict.FAIL.value:
         text = f"FAIL: first violation {violation_text(fv)}{after_violation(summary)}"
         return "\n".join([text, *tls_lines(summary.get("security"))])
@@ -170,7 +198,8 @@ def after_violation(summary: dict[str, Any]) -> str:
 def violation_text(fv: dict[str, Any]) -> str:
     """``at t=2.0345 s: velocity 1 (vx)``: a first violation of summary.json (time [s], kind, edge or
     agent, channel)."""
-    return f"at t={fv['t']:.4f} s: {fv['kind']} {fv.get('edge') or fv.get('agent')} ({fv['channel']})"
+    where = fv.get("edge") or fv.get("pair") or fv.get("agent")
+    return f"at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
 
 
 #: characters of the verdict and its reason a figure's caption shows (the whole reason is in summary.json)
@@ -186,7 +215,7 @@ def run_caption(summary: dict[str, Any], t_start: float) -> str:
     verdict, fv = summary["verdict"], summary["first_violation"]
     reason = summary.get("incomplete_reason")
     if verdict == Verdict.PASS.value:
-        text = "PASS: every funnel held"
+        text = "PASS: every funnel held" + contact_note(summary)
     elif verdict == Verdict.FAIL.value:
         text = f"FAIL: first violation {violation_text(fv)}{after_violation(summary)}"
     else:

@@ -94,6 +94,47 @@ def test_refuses_to_overwrite_a_file_it_did_not_write(tmp_path: Path, capsys: py
     assert out.read_text().startswith(MARK)
 
 
+def test_paths_beside_the_compose_file_start_with_dot_slash(tmp_path: Path) -> None:
+    """A formation file and results beside the compose file are written ``./NAME``: Compose reads a
+    volume source without ``./`` or ``../`` as a named volume, not as a host directory."""
+    formation = tmp_path / "paper.yaml"
+    formation.write_text(PAPER.read_text())
+    out = tmp_path / "compose.yaml"
+    assert main([str(formation), "--out", str(out), "--context", "none", "--results", str(tmp_path / "out")]) == 0
+    s = services(out)
+    assert s["sim"]["volumes"] == [
+        "./paper.yaml:/opt/formation/formations/paper.yaml:ro",
+        "./out:/opt/formation/out",
+    ]
+    for svc in s.values():
+        for volume in svc["volumes"]:
+            assert volume.startswith(("./", "../")), volume
+
+
+def test_keeps_a_different_generated_file_unless_forced(
+    tmp_path: Path, paper_doc: dict[str, Any], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An existing --out generated from another formation file (or with other options) is kept, exit 2,
+    the message naming its source and --force; the same output again is 'up to date' (exit 0)."""
+    out = tmp_path / "compose.yaml"
+    assert main([str(PAPER), "--out", str(out), "--context", "none"]) == 0
+    first = out.read_text()
+    assert main([str(PAPER), "--out", str(out), "--context", "none"]) == 0
+    assert "up to date" in capsys.readouterr().out
+    other = tmp_path / "trio.yaml"
+    doc = copy.deepcopy(paper_doc)
+    doc["name"], doc["agents"], doc["edges"] = "trio", doc["agents"][:3], doc["edges"][:2]
+    other.write_text(yaml.safe_dump(doc))
+    assert main([str(other), "--out", str(out), "--context", "none"]) == 2
+    err = capsys.readouterr().err
+    assert "generated from paper_5agents.yaml" in err and "--force" in err
+    assert out.read_text() == first
+    assert main([str(PAPER), "--out", str(out), "--context", "none", "--host-network"]) == 2
+    assert out.read_text() == first
+    assert main([str(other), "--out", str(out), "--context", "none", "--force"]) == 0
+    assert sorted(services(out)) == ["agent_1", "agent_2", "agent_3", "sim"]
+
+
 def test_check_reports_a_stale_file(tmp_path: Path) -> None:
     """--check exits 1 and prints a diff when the file differs from the generator's output."""
     out = tmp_path / "compose.yaml"
@@ -170,7 +211,7 @@ def test_secure_compose_gives_each_service_only_its_own_key(tmp_path: Path) -> N
     ]
     assert "simulator=172.30.77.10" in agent3["command"] and "agent_3=172.30.77.13" in sim["command"]
     keyfiles = sorted(v.split(":")[0] for v in agent3["volumes"] if "/keys/" in v)
-    assert keyfiles == ["keys/agent_3.key", "keys/agent_3.pem", "keys/ca.pem"]
+    assert keyfiles == ["./keys/agent_3.key", "./keys/agent_3.pem", "./keys/ca.pem"]
     assert all(v.endswith(":ro") for v in agent3["volumes"])
     assert main([str(PAPER), "--out", str(out), "--host-network", "--secure", str(keys), "--force"]) == 2
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import shlex
 import subprocess
 import sys
 import time
@@ -263,3 +264,64 @@ def test_secure_scenario_across_hosts_equals_one_host(
 
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-v"]))
+
+
+# --- the documented example ---------------------------------------------------------------------
+
+DOCKER_MD = REPO / "docs" / "docker.md"
+
+
+def documented_hosts() -> dict[str, list[list[str]]]:
+    """docs/docker.md's "Without Docker" example: each machine's command lines (``ROS_DOMAIN_ID=…``
+    lines, split as the shell would, without the trailing ``&``), by machine letter."""
+    text = DOCKER_MD.read_text()
+    start = text.index("Without Docker, the same with the scripts")
+    block = text[text.index("```\n", start) + 4 :]
+    block = block[: block.index("```")]
+    hosts: dict[str, list[list[str]]] = {}
+    machine = None
+    for line in block.splitlines():
+        if line.startswith("# machine "):
+            machine = line.split()[2]
+            hosts[machine] = []
+        elif line.strip():
+            assert machine is not None, line
+            words = shlex.split(line.removesuffix("&"))
+            hosts[machine].append(words)
+    return hosts
+
+
+@needs_deployment
+def test_documented_example_without_docker_runs_across_two_hosts(
+    private_network: type[PrivateNetwork],
+    processes: Processes,
+    ros_env: Callable[..., dict[str, str]],
+    tmp_path: Path,
+) -> None:
+    """The lines of docs/docker.md's example run as written on two hosts of a private network, with
+    two substitutions only: the test run's own ROS_DOMAIN_ID for 42 (every line must set it), and
+    the simulator shortened to 0.05 s, writing into the test's directory. The simulator passes."""
+    hosts = documented_hosts()
+    assert sorted(hosts) == ["A", "B"]
+    lines = [words for commands in hosts.values() for words in commands]
+    agents = sorted(w[3] for w in lines if w[1] == "./ros2_ws/agent.sh")
+    assert agents == ["1", "2", "3", "4", "5"]
+    assert all(w[0] == "ROS_DOMAIN_ID=42" for w in lines), lines
+    net = private_network.create(["A", "B"], multicast=True)
+    base_env = ros_env()
+    sim = None
+    for name, commands in sorted(hosts.items(), key=lambda kv: kv[0] != "B"):  # B's agents first
+        for words in commands:
+            argv = words[1:]
+            if argv[0] == "./ros2_ws/sim.sh":
+                out = argv.index("--out")
+                argv = [*argv[:out], "--out", str(tmp_path / "run"), *argv[out + 2 :], *SHORT]
+                sim = processes.start("sim", argv, env=base_env, netns=net.host(name).netns)
+            else:
+                processes.start(f"agent_{argv[2]}", argv, env=base_env, netns=net.host(name).netns)
+    assert sim is not None
+    status = processes.wait(sim, timeout=240)
+    assert status == 0, f"sim exited {status}\n{processes.logs()}"
+    processes.stop_all()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["funnels_held"] is True

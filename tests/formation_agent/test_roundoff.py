@@ -62,3 +62,38 @@ def test_the_tolerance_is_twice_two_bounds() -> None:
     """Two correct computations within the bound each of the exact value: 2·bound apart, and 2 for the second order."""
     assert tolerance(3.0) == 12.0
     assert UNIT == 2.0**-53
+
+
+def test_an_agents_bounded_controller_bounds_as_the_witness_does() -> None:
+    """BoundedController (formation-rerun's) gives the wrench tolerance the simulator's team gives for the
+    same agent and step, bit for bit; zero after a fault output (the zero wrench is exact); a reset starts
+    the velocity funnel's bound again."""
+    from formation_agent.controller import ERROR
+    from formation_agent.roundoff import BoundedController
+    from formation_msgs_py.spec import agent_view
+
+    spec = load_formation(PAPER)
+    sim, team = Simulation(simulator_view(spec)), AgentTeam(spec)
+    i, agent = 2, spec.agent_ids[2]
+    view = agent_view(spec, agent)
+    ctrl = BoundedController(view)
+    lo = int(team.first_end[i])
+    for _ in range(30):
+        meas = sim.sense()
+        u, _, _ = team.evaluate(meas, None)
+        poses = {ie.neighbour: (meas.p_rel[lo + k], meas.R_rel[lo + k]) for k, ie in enumerate(view.edges)}
+        out = ctrl.compute(meas.t, poses, meas.velocities[i])
+        np.testing.assert_array_equal(out.wrench, u[i])
+        np.testing.assert_array_equal(ctrl.wrench_tolerance, team.bound(i, meas))
+        sim.advance(u)
+    assert set(ctrl.tolerances()) == {"wrench", "v_des", "xi_v", "margin_v", "e", "psi", "xi_e", "xi_psi",
+                                      "margin_e", "margin_psi"}  # fmt: skip
+    assert ctrl.fault_output(meas.t, "missing").level == ERROR
+    assert not ctrl.wrench_tolerance.any()
+    ctrl.reset()
+    fresh = BoundedController(view)
+    meas = sim.sense()
+    poses = {ie.neighbour: (meas.p_rel[lo + k], meas.R_rel[lo + k]) for k, ie in enumerate(view.edges)}
+    ctrl.compute(meas.t, poses, meas.velocities[i])
+    fresh.compute(meas.t, poses, meas.velocities[i])
+    np.testing.assert_array_equal(ctrl.wrench_tolerance, fresh.wrench_tolerance)

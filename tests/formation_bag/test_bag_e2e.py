@@ -23,6 +23,8 @@ def _compare(ours: Any, theirs: Any, path: str) -> list[str]:
         assert isinstance(ours, dict) and ours.keys() == theirs.keys(), (path, ours, theirs)
         return [d for k in theirs for d in _compare(ours[k], theirs[k], f"{path}.{k}")]
     if isinstance(theirs, float) and isinstance(ours, float):
+        # as tests/formation_bag/test_bag_analysis.py's assert_same_summary: rotations through quaternions
+        # move the margins by some 1e-13; the velocity margins are the re-run's, within the round-off bound
         return [] if abs(ours - theirs) <= 1e-9 else [f"{path}: {ours!r} != {theirs!r}"]
     return [] if ours == theirs else [f"{path}: {ours!r} != {theirs!r}"]
 
@@ -51,9 +53,9 @@ def test_lockstep_bag_is_complete_under_cpu_load(ros_procs, tmp_path: Path) -> N
     assert summary["bag"]["missing"] == [] and summary["bag"]["recorder_counts"]["missing"] == {}
     assert _compare({k: summary[k] for k in JUDGED}, {k: theirs[k] for k in JUDGED}, "") == []
     for r in reruns.values():
-        # formation-rerun's equality (1e-12 N, N·m): the agent process and the re-run evaluate the
-        # same controller kernels, not necessarily with the same floating-point operation order
-        assert r.compared == steps and r.first_difference(1e-12) is None
+        # formation-rerun's equality: within each step's round-off tolerance (bit for bit when the
+        # agent ran compiled on this host, as the launcher starts it at 10 kHz)
+        assert r.compared == steps and r.first_difference(None) is None
     assert summary["bag"]["wrenches_from_rerun"] == {}
     report = check_bag(bag)
     assert report.ok, report.problems

@@ -33,6 +33,8 @@ MARGIN_PSI, so that a test or the witness compares each output with its own boun
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+
 import numpy as np
 
 from formation_agent.controller import (
@@ -67,13 +69,17 @@ from formation_agent.controller import (
     XI_E,
     XI_PSI,
     XI_V,
+    AgentController,
+    ControlOutput,
     E,
     U,
     edge_errors,
+    new_outputs,
 )
 from formation_msgs_py import funnels
 from formation_msgs_py.compiled import formula, kernel
 from formation_msgs_py.so3 import flat_rows, matrix_rows, vec3
+from formation_msgs_py.spec import AgentView
 
 #: unit round-off of IEEE double: the largest relative error of one correctly rounded operation
 UNIT = 2.0**-53
@@ -287,3 +293,60 @@ def answer_bounds(
             total = row[U + first] + row[U + first + 1] + row[U + first + 2] + 5.0 * UNIT * limit
             for c in range(first, first + 3):
                 row[U + c] = total
+
+
+#: the columns of :class:`formation_agent.controller.ControlOutput`'s fields in the controller's
+#: outputs: per agent (``out``) or per edge end (``edge_out``)
+AGENT_FIELDS = {"wrench": U, "v_des": V_DES, "xi_v": XI_V, "margin_v": MARGIN_V}
+END_FIELDS = {"e": E, "psi": PSI, "xi_e": XI_E, "xi_psi": XI_PSI, "margin_e": MARGIN_E, "margin_psi": MARGIN_PSI}
+
+
+class BoundedController(AgentController):
+    """An agent's controller that also bounds each step's round-off, for comparing its outputs with
+    another computation's (a recorded wrench, another code form or host): after :meth:`compute`,
+    :meth:`tolerances` says how far each output of another correct computation of that step may lie
+    (:func:`tolerance` of :func:`answer_bounds`); after :meth:`fault_output`, zero (the zero wrench is
+    exact everywhere)."""
+
+    def __init__(self, view: AgentView) -> None:
+        super().__init__(view)
+        n = len(self.neighbours)
+        self._rho_v0_bound = np.full((1, 6), np.nan)
+        self._work = np.zeros((4, 6))
+        self._bound_out, self._bound_edge = new_outputs(1, n)
+
+    def reset(self) -> None:
+        super().reset()
+        self._rho_v0_bound[:] = np.nan
+
+    def compute(
+        self,
+        t: float,
+        relative_poses: Mapping[str, tuple[Sequence[float], Sequence[Sequence[float]]]],
+        v_measured: Sequence[float],
+    ) -> ControlOutput:
+        out = super().compute(t, relative_poses, v_measured)
+        v = np.asarray(v_measured, dtype=np.float64)
+        answer_bounds(
+            float(t), 0, 0, len(self.neighbours), self._p, self._R, v, self._agents, self._ends, self._start,
+            self._out, self._rho_v0_bound, self._work, self._bound_out, self._bound_edge,
+        )  # fmt: skip
+        return out
+
+    def fault_output(self, t: float, message: str) -> ControlOutput:
+        self._bound_out[:] = 0.0
+        self._bound_edge[:] = 0.0
+        return super().fault_output(t, message)
+
+    @property
+    def wrench_tolerance(self) -> np.ndarray:
+        """(6,) [N, N·m]: how far another correct computation of the last step's wrench may lie."""
+        return np.asarray(tolerance(self._bound_out[0, U : U + 6]))
+
+    def tolerances(self) -> dict[str, np.ndarray]:
+        """Of the last step, per field of :class:`ControlOutput`: (6,) per agent field, one per edge end
+        (the order of :attr:`neighbours`) per edge field."""
+        n = len(self.neighbours)
+        result = {k: np.asarray(tolerance(self._bound_out[0, c : c + 6])) for k, c in AGENT_FIELDS.items()}
+        result.update({k: np.asarray(tolerance(self._bound_edge[:n, c])) for k, c in END_FIELDS.items()})
+        return result

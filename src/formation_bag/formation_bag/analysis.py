@@ -396,7 +396,7 @@ def bag_report(
         "wrenches_from_rerun": replay.substituted,
         "recorder_counts": _recorder_counts(run.custom_data),
         "rerun": {
-            a: {"equal": r.first_difference(1e-12) is None, "max_abs_diff": r.max_abs_diff, "compared": r.compared}
+            a: {"equal": r.first_difference(None) is None, "max_abs_diff": r.max_abs_diff, "compared": r.compared}
             for a, r in replay.reruns.items()
         },
     }

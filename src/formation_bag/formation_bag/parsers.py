@@ -22,8 +22,6 @@ from formation_msgs_py.outcome import EXIT_STATUS_HELP
 
 #: formation-analyze --velocity-margins
 VELOCITY_MARGIN_MODES = ("rerun", "none")
-#: formation-rerun --tolerance: max |Δu| counted as equal
-DEFAULT_TOLERANCE = 1e-12
 BAG_HELP = "bag directory (or a single .mcap/.db3 file)"
 NAMESPACE_HELP = "namespace of the run's topics (default none)"
 #: formation-replay --wait-settle [s]: longer than the recorder's discovery period and its wait before
@@ -175,7 +173,9 @@ def rerun_parser() -> argparse.ArgumentParser:
         prog="formation-rerun",
         description="Feed the recorded measurements of one or all agents to the agent's controller core "
         "(offline, no ROS) and compare the wrenches with the recorded ones; steps whose measurement or wrench "
-        "the bag lacks are not compared and are counted. Exit status: 0 equal within --tolerance on complete "
+        "the bag lacks are not compared and are counted. A wrench is equal within the round-off tolerance of its "
+        "step (docs/controller.md: bit for bit from the same code on the same platform, within the bound from "
+        "another host or code form), or within --tolerance. Exit status: 0 equal on complete "
         "data, 1 a recorded wrench differs, 2 bad input, 4 equal where compared but data missing.",
     )
     p.add_argument("bag", type=Path, help=BAG_HELP)
@@ -186,7 +186,13 @@ def rerun_parser() -> argparse.ArgumentParser:
         type=Path,
         help="YAML file changing gains/funnels: {agents: {ID: {...}}, edges: {TAIL-HEAD: {...}}, defaults: {...}}",
     )
-    p.add_argument("--tolerance", type=float, default=DEFAULT_TOLERANCE, help="max |Δu| counted as equal (1e-12)")
+    p.add_argument(
+        "--tolerance",
+        type=float,
+        default=None,
+        metavar="X",
+        help="count |Δu| ≤ X [N, N·m] per component as equal (default: each step's round-off tolerance)",
+    )
     p.add_argument("--namespace", default="", help=NAMESPACE_HELP)
     p.add_argument(
         "--out",

@@ -8,9 +8,11 @@ and, per tree neighbour j, the relative pose with the *same* stamp, at time t = 
 A missing pose, or a measurement older than ``measurement_timeout`` behind both the latest recorded
 /clock and the agent's time (its last step computed with a pose: the agent judges stamps against
 its measurement stream, /clock only widens the window; formation_agent.measurement_checks), gives a
-zero wrench (a fault). The agent computed from exactly these decoded messages, so
-its wrench (stamped t) must be reproduced to 1e-12. With an
-override file (gains, funnels) the report lists where and how much the wrenches change.
+zero wrench (a fault). The agent computed from exactly these decoded messages, so its wrench
+(stamped t) is reproduced bit for bit by the same code form on the same platform, and elsewhere
+within the step's round-off tolerance (formation_agent.roundoff, docs/controller.md): the default
+comparison. ``--tolerance X`` compares to an absolute X instead. With an override file (gains,
+funnels) the report lists where and how much the wrenches change.
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from formation_agent.controller import ERROR, LEVEL_NAMES, AgentController, MissingMeasurementError
+from formation_agent.controller import ERROR, LEVEL_NAMES, MissingMeasurementError
+from formation_agent.roundoff import BoundedController
 from formation_bag import messages as m
 from formation_bag.dataset import RunData, Series, apply_overrides, load_run, spec_from_document
 from formation_bag.parsers import rerun_parser
@@ -48,6 +51,7 @@ class AgentRerun:
     faults: list[str | None]  # neighbours missing at that step ("2,3"), "stale", None if complete
     recorded: np.ndarray  # (T,6), NaN where no wrench with that stamp was recorded
     rerun: np.ndarray  # (T,6): the re-run's wrench (force N, torque N·m, body frame)
+    tolerance: np.ndarray  # (T,6): how far another correct computation of that wrench may lie
     margin_v: np.ndarray  # (T,6): the re-run's velocity-funnel margins
     level: np.ndarray  # (T,) int8: the controller's level (formation_agent.controller.LEVEL_NAMES)
     messages: dict[int, str]  # the controller's message at each ERROR step
@@ -73,25 +77,35 @@ class AgentRerun:
         d = np.abs(self.recorded - self.rerun)[self.comparable]
         return float(d.max()) if d.size else 0.0
 
-    def first_difference(self, tol: float) -> int | None:
-        d = np.abs(self.recorded - self.rerun).max(axis=1)
-        bad = np.nonzero((d > tol) & self.comparable)[0]  # missing data is never a difference
+    def differences(self, tol: float | None) -> np.ndarray:
+        """(T,) bool: the compared steps whose wrench differs by more than ``tol`` in a component (None: by
+        more than that step's round-off tolerance); missing data is never a difference."""
+        d = np.abs(self.recorded - self.rerun)
+        beyond = d > (self.tolerance if tol is None else tol)
+        return beyond.any(axis=1) & self.comparable
+
+    def first_difference(self, tol: float | None) -> int | None:
+        bad = np.nonzero(self.differences(tol))[0]
         return int(bad[0]) if bad.size else None
 
-    def report(self, tol: float) -> dict[str, Any]:
+    def report(self, tol: float | None) -> dict[str, Any]:
         """Differences per component (the norm of the tolerance): overall, of the force and of the torque."""
         k = self.first_difference(tol)
         d = np.abs(self.recorded - self.rerun)
         valid = self.comparable
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(d == 0.0, 0.0, d / self.tolerance)  # a fault's exact zero wrench: 0 of 0
         return {
             "steps": len(self.stamps),
             "compared": self.compared,
             "missing_recorded_wrench": int(np.sum(np.isnan(self.recorded[:, 0]))),
             "measurements_missing": self.measurements_missing,
             "equal": k is None,
+            "bit_for_bit": int(np.sum(valid & (d == 0.0).all(axis=1))),
             "max_abs_diff": self.max_abs_diff,
             "max_force_diff": float(d[valid, :3].max()) if valid.any() else 0.0,
             "max_torque_diff": float(d[valid, 3:].max()) if valid.any() else 0.0,
+            "largest_ratio_to_round_off": float(ratio[valid].max()) if valid.any() else 0.0,
             "rms_diff": float(np.sqrt(np.nanmean(d[valid] ** 2))) if valid.any() else 0.0,
             "first_difference": None
             if k is None
@@ -99,8 +113,9 @@ class AgentRerun:
                 "t": m.seconds(int(self.stamps[k])),
                 "recorded": self.recorded[k].tolist(),
                 "rerun": self.rerun[k].tolist(),
+                "round_off_tolerance": self.tolerance[k].tolist(),
             },
-            "steps_differing": int(np.sum(d[valid].max(axis=1) > tol)) if valid.any() else 0,
+            "steps_differing": int(np.sum(self.differences(tol))),
             "faults": sum(f is not None for f in self.faults),
             "levels": {name: int(np.sum(self.level == i)) for i, name in enumerate(LEVEL_NAMES)},
             "min_margin_v_rerun": float(self.margin_v.min()) if self.margin_v.size else math.inf,
@@ -117,7 +132,7 @@ def rerun_agent(
     """
     spec = spec or run.spec
     view = agent_view(spec, agent_id)
-    ctrl = AgentController(view)
+    ctrl = BoundedController(view)
     timeout_ns = round(view.controller.measurement_timeout * m.NS_PER_S)
     vel = run.velocity[agent_id]
     empty = Series(7)
@@ -129,6 +144,7 @@ def rerun_agent(
     stamps = np.empty(T, dtype=np.int64)
     recorded = np.full((T, 6), math.nan)
     rerun = np.empty((T, 6))
+    tolerance = np.empty((T, 6))
     margin_v = np.empty((T, 6))
     level = np.empty(T, dtype=np.int8)
     faults: list[str | None] = []
@@ -160,6 +176,7 @@ def rerun_agent(
             confirmed = stamp  # answered from the velocity and at least one pose
         stamps[n] = stamp
         rerun[n] = out.wrench
+        tolerance[n] = ctrl.wrench_tolerance
         margin_v[n] = out.margin_v
         level[n] = out.level
         if out.level == ERROR:
@@ -168,7 +185,9 @@ def rerun_agent(
             recorded[n] = wr.value(k)
         faults.append(fault)
         n += 1
-    return AgentRerun(agent_id, stamps[:n], faults, recorded[:n], rerun[:n], margin_v[:n], level[:n], messages)
+    return AgentRerun(
+        agent_id, stamps[:n], faults, recorded[:n], rerun[:n], tolerance[:n], margin_v[:n], level[:n], messages
+    )
 
 
 def rerun_all(
@@ -225,28 +244,30 @@ def main(argv: list[str] | None = None) -> int:
     except (BagError, FormationSpecError, InvalidRunError, FileNotFoundError) as exc:
         print(f"formation-rerun: {exc}", file=sys.stderr)
         return 2
-    report = {
+    agents = {a: r.report(args.tolerance) for a, r in results.items()}
+    report: dict[str, Any] = {
         "bag": str(args.bag),
         "override": None if args.override is None else str(args.override),
-        "tolerance": args.tolerance,
-        "agents": {a: r.report(args.tolerance) for a, r in results.items()},
+        "tolerance": "round-off bound" if args.tolerance is None else args.tolerance,
+        "agents": agents,
         "time": time.perf_counter() - started,
     }
-    equal = all(r["equal"] for r in report["agents"].values())
+    equal = all(r["equal"] for r in agents.values())
     report["equal"] = equal
-    for a, r in report["agents"].items():
-        verdict = "equal" if r["equal"] else "DIFFERENT"
+    for a, rep in agents.items():
+        verdict = "equal" if rep["equal"] else "DIFFERENT"
         line = (
-            f"agent {a}: {r['compared']}/{r['steps']} steps compared, largest component of |Δu| "
-            f"{r['max_abs_diff']:.3g} (force {r['max_force_diff']:.3g} N, torque {r['max_torque_diff']:.3g} N·m): "
+            f"agent {a}: {rep['compared']}/{rep['steps']} steps compared ({rep['bit_for_bit']} bit for bit), largest "
+            f"component of |Δu| {rep['max_abs_diff']:.3g} (force {rep['max_force_diff']:.3g} N, torque "
+            f"{rep['max_torque_diff']:.3g} N·m; {rep['largest_ratio_to_round_off']:.3g} of the round-off tolerance): "
             f"{verdict}"
         )
-        if r["first_difference"] is not None:
-            line += f", first at t={r['first_difference']['t']:.6f} s, {r['steps_differing']} steps differ"
-        if r["missing_recorded_wrench"]:
-            line += f"; {r['missing_recorded_wrench']} steps without a recorded wrench"
-        if r["measurements_missing"]:
-            line += f"; {r['measurements_missing']} steps with a measurement missing from the bag (not compared)"
+        if rep["first_difference"] is not None:
+            line += f", first at t={rep['first_difference']['t']:.6f} s, {rep['steps_differing']} steps differ"
+        if rep["missing_recorded_wrench"]:
+            line += f"; {rep['missing_recorded_wrench']} steps without a recorded wrench"
+        if rep["measurements_missing"]:
+            line += f"; {rep['measurements_missing']} steps with a measurement missing from the bag (not compared)"
         print(line)
     if args.out is not None:
         try:
@@ -265,18 +286,20 @@ def main(argv: list[str] | None = None) -> int:
                 t=r.stamps / m.NS_PER_S,
                 recorded=r.recorded,
                 rerun=r.rerun,
+                round_off_tolerance=r.tolerance,
                 margin_v=r.margin_v,
                 level=r.level,
             )
         print(f"report in {args.out}/rerun.json")
-    incomplete = any(r["missing_recorded_wrench"] or r["measurements_missing"] for r in report["agents"].values())
+    incomplete = any(r["missing_recorded_wrench"] or r["measurements_missing"] for r in agents.values())
     if not equal:
         verdict, code = "differ", ExitCode.FAIL
     elif incomplete:
         verdict, code = "reproduced where the bag has the data (INCOMPLETE: data missing)", ExitCode.INCOMPLETE
     else:
         verdict, code = "reproduced", ExitCode.PASS
-    print(f"formation-rerun: wrenches {verdict} (tolerance {args.tolerance:g})")
+    within = "each step's round-off bound" if args.tolerance is None else f"{args.tolerance:g}"
+    print(f"formation-rerun: wrenches {verdict} (tolerance: {within})")
     return code
 
 

@@ -10,9 +10,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from formation_agent.controller import ERROR, OK, AgentController, MissingMeasurementError
+from formation_agent.roundoff import BoundedController
 from formation_msgs_py.rotations import vee
 from formation_msgs_py.so3 import exp_so3
 from formation_msgs_py.spec import FormationSpec, agent_view, load_formation
+
+pytestmark = pytest.mark.numeric
 
 RNG = np.random.default_rng(5)
 
@@ -63,6 +66,8 @@ def test_tail_and_head_agree_on_every_edge(spec) -> None:
     for k, e in enumerate(spec.edges):
         for agent in (e.tail, e.head):
             slot = [ie.edge.index for ie in agent_view(spec, agent).edges].index(k)
+            # q and Q from the same p, R by other 3-term sums (any order): e = ‖q‖² − d² of lengths ≤ 10 m
+            # carries some 1e-14, ψ (entries ≤ 1) some 1e-15
             assert outs[agent].e[slot] == pytest.approx(truth[k][0], abs=1e-12)
             assert outs[agent].psi[slot] == pytest.approx(truth[k][1], abs=1e-12)
 
@@ -74,6 +79,7 @@ def test_norm_of_e_R_is_4psi_2_minus_psi() -> None:
     A = Q @ R_des
     e_R = vee(A - np.swapaxes(A, 1, 2))
     psi = 0.5 * (3 - np.trace(A, axis1=1, axis2=2))
+    # an identity, both sides from the same A (entries ≤ 1): a few roundings of values ≤ 16
     np.testing.assert_allclose(np.sum(e_R**2, axis=1), 4 * psi * (2 - psi), atol=1e-12)
 
 
@@ -143,8 +149,11 @@ def test_per_agent_law_equals_vector_form(spec, seed) -> None:
     t = rng.uniform(0, 0.05)
     expected = vector_form_v_des(spec, p, R, t)
     for a in spec.agents:
-        out = AgentController(agent_view(spec, a.id)).compute(t, measurements(spec, p, R, a.id), np.zeros(6))
-        np.testing.assert_allclose(out.v_des, expected[a.index], rtol=1e-10, atol=1e-12)
+        ctrl = BoundedController(agent_view(spec, a.id))
+        out = ctrl.compute(t, measurements(spec, p, R, a.id), np.zeros(6))
+        # two correct computations of one formula in other orders: within the step's round-off tolerance
+        # (formation_agent.roundoff), the vector form's matrix products being as exact as the edges' sums
+        assert np.all(np.abs(np.array(out.v_des) - expected[a.index]) <= ctrl.tolerances()["v_des"])
 
 
 @pytest.mark.parametrize("seed", range(10))
@@ -227,7 +236,9 @@ def test_rho_v0_is_set_at_the_first_step(spec) -> None:
     p, R = world(spec)
     v = np.array([0.1, -0.2, 0.3, 0.0, 0.05, -0.05])
     out = ctrl.compute(0.0, measurements(spec, p, R, "2"), v)
-    np.testing.assert_allclose(ctrl.rho_v0, 2 * np.abs(v - np.array(out.v_des)) + 1, rtol=1e-15)
+    # the same operations in the same order on the same numbers: the same bits
+    np.testing.assert_array_equal(ctrl.rho_v0, 2 * np.abs(v - np.array(out.v_des)) + 1)
+    # ρ_v(0) = (ρ_v0 − ρ∞)·e⁰ + ρ∞ rounds twice before the division: a few ulps
     np.testing.assert_allclose(out.xi_v, (v - np.array(out.v_des)) / np.array(ctrl.rho_v0), rtol=1e-12)
 
 
@@ -242,7 +253,7 @@ def test_wrench_is_bounded_by_the_controller_limits(spec) -> None:
     assert out.level == ERROR
     force, torque = np.linalg.norm(out.wrench[:3]), np.linalg.norm(out.wrench[3:])
     assert force <= 100.0 * (1 + 1e-12) and torque <= 100.0 * (1 + 1e-12)
-    assert force == pytest.approx(100.0, rel=1e-12)  # saturated, not zeroed
+    assert force == pytest.approx(100.0, rel=1e-12)  # saturated, not zeroed: the scaling's few roundings
 
 
 def test_controller_limits_default_to_the_actuators_and_never_exceed_them(paper_path: Path) -> None:

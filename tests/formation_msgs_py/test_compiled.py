@@ -20,6 +20,8 @@ import formation_agent.controller
 import numba.core.typing.cffi_utils, numba.np.arraymath
 loaded = sorted(m for m in ("coverage", "scipy", "scipy.linalg", "cffi") if m in sys.modules)
 import scipy.linalg
+
+pytestmark = pytest.mark.numeric
 hidden_left = [m for m in ("coverage", "scipy", "cffi") if sys.modules.get(m, 1) is None]
 print(json.dumps({"loaded": loaded, "hidden_left": hidden_left, "scipy_linalg_after": scipy.linalg.__name__}))
 """

@@ -14,6 +14,10 @@ from formation_msgs_py.errors import CollectedFormationSpecError, FormationSpecE
 from formation_msgs_py.schema import AGENT_FIELDS, Parsed, UnusableValueError, block, parse_mapping, parse_partial
 from formation_msgs_py.spec import agent_view, formation_from_dict, load_formation, simulator_view
 
+pytestmark = pytest.mark.numeric
+# pytest.approx's default (relative 1e-6) checks a value against its closed form: rounding is some
+# 1e-16 of it, a wrong formula or unit off by far more.
+
 
 def test_paper_preset(paper_path: Path) -> None:
     """The paper preset: 5 agents, tree (1,2) (1,3) (3,4) (3,5), C_col = 2.25, C_con = 9.75."""
@@ -27,7 +31,9 @@ def test_paper_preset(paper_path: Path) -> None:
     assert spec.simulation.substeps == 1
     # projected rotations are exact rotations
     for R in [a.R_world_body for a in spec.agents] + [e.R_des for e in spec.edges]:
-        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-14)
+        # U·D·Vᵀ of an SVD (LAPACK: backward stable, orthogonal factors to a modest multiple of 3u; its
+        # constants and summation order depend on the CPU's BLAS), then a 3-term product: ≤ 2e-14 = 90 ulp(1)
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=2e-14)
 
 
 def test_agent_view_holds_only_what_the_paper_lets_an_agent_know(paper_path: Path) -> None:
@@ -170,7 +176,8 @@ def test_rotation_forms_agree() -> None:
         doc["agents"][1]["orientation"] = form
         mats.append(formation_from_dict(doc).agents[1].R_world_body)
     for R in mats[1:]:
-        np.testing.assert_allclose(R, mats[0], atol=1e-15)
+        # each form through its own trigonometry or square root, then the SVD projection (as above): ≤ 90 ulp(1)
+        np.testing.assert_allclose(R, mats[0], atol=2e-14)
 
 
 def test_missing_file_and_bad_yaml(tmp_path) -> None:

@@ -15,6 +15,9 @@ from formation_sim.cli import check
 from formation_sim.cli.generate import generate
 from formation_sim.core import capacity
 
+# pytest.approx's default (relative 1e-6) checks sums and products of a few stated costs against their
+# closed form: rounding is some 1e-16 of them, a wrong count of messages off by a whole message.
+
 #: message costs stated for the formula checks, no work terms: every figure is messages × cost
 STATED = replace(
     capacity.DEFAULT_COSTS,

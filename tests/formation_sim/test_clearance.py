@@ -13,6 +13,8 @@ from formation_msgs_py.spec import load_formation
 from formation_sim.cli.headless import main, run_headless
 from formation_sim.views.figures import nearest_clearances
 
+pytestmark = pytest.mark.numeric
+
 DATA = Path(__file__).with_name("data")
 CROSSING = DATA / "crossing_3agents.yaml"
 PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
@@ -64,7 +66,7 @@ def test_the_paper_scenario_touches_nothing() -> None:
     assert c["first_contact"] is None and c["contacts"] == []
     assert c["pair"] == ["3", "5"] and c["t"] == 0.0
     p3, p5 = (tuple(spec.agent(a).position.tolist()) for a in ("3", "5"))
-    assert c["min"] == pair_clearance(p3, p5, 2.0) == pytest.approx(0.10297, abs=1e-5)
+    assert c["min"] == pair_clearance(p3, p5, 2.0) == pytest.approx(0.10297, abs=1e-5)  # 5 figures, by hand
 
 
 def test_clearance_is_distance_minus_both_radii() -> None:

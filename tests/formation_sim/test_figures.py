@@ -42,6 +42,8 @@ def test_velocity_errors_start_inside_their_auto_funnel(short_run) -> None:
     """ρ_v(0) = 2|e_v(0)| + 1 per channel (rho_0: auto), and every e_v stays inside ±ρ_v."""
     spec, arrays = short_run
     e_v, rho_v = velocity_errors(spec, arrays)
+    # the figure's e_v is v − v_des from the record; ρ_v(0) was formed from the controller's own e_v: a few
+    # roundings of values of order 1 apart, far below 1e-12
     np.testing.assert_allclose(rho_v[0], 2.0 * np.abs(e_v[0]) + 1.0, rtol=1e-12)
     assert np.all(np.abs(e_v) < rho_v)
 

@@ -7,10 +7,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from paper_reference import REFERENCE, golden_values
 
-from formation_msgs_py.spec import load_formation
+from formation_msgs_py.compiled import CODE_FORM, numeric_platform
+from formation_msgs_py.spec import load_formation, simulator_view
 from formation_sim.cli import headless
 from formation_sim.cli.headless import run_headless
+from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.simulation import Simulation
+from formation_sim.core.team import AgentTeam
+
+pytestmark = pytest.mark.numeric
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +40,7 @@ def test_paper_scenario_holds_every_funnel_and_converges(paper_run) -> None:
     assert summary["funnels_held"] and summary["first_violation"] is None
     traj = np.load(out / "trajectory.npz")
     e, psi = traj["e"], traj["psi"]
-    assert traj["t"][-1] == pytest.approx(5.0)
+    assert traj["t"][-1] == 5.0  # the last step's stamp, 5 000 000 000 ns, in seconds: exact
     assert np.all(np.abs(e[-1]) < 0.01 * np.abs(e[0]))
     assert np.all(e[-1] > -2.25 * 0.1 / 9.75) and np.all(e[-1] < 0.1)
     assert np.all(psi[-1] < 0.1) and np.all(psi[-1] < 0.05 * psi[0])
@@ -48,27 +55,80 @@ def test_paper_scenario_holds_every_funnel_and_converges(paper_run) -> None:
     assert json.loads((out / "foxglove_layout.json").read_text())["configById"]["Plot!distance"]["paths"]
 
 
-def test_paper_scenario_is_the_interpreted_loops_to_1e_9(paper_run) -> None:
-    """The compiled run core reproduces the interpreted closed loop it replaced (commit a93bff2).
+def perturbed_run(spec, pattern: str | None, seed: int = 1) -> RunRecorder:
+    """The headless loop (as :func:`run_headless`, sampled) with every agent's wrench moved at every step
+    by its full round-off tolerance (formation_agent.roundoff, docs/controller.md): with signs fixed for
+    the whole run (``"constant"``: the differences add up), drawn anew at every step (``"random"``), or
+    not at all (None: the headless run, bit for bit)."""
+    rng = np.random.default_rng(seed)
+    s = spec.simulation
+    sim, team = Simulation(simulator_view(spec)), AgentTeam(spec)
+    recorder = RunRecorder(spec, record_every=round(s.control_rate / s.record_rate), control_rate=s.control_rate)
+    n_steps = round(s.duration * s.control_rate)
+    signs = rng.choice([-1.0, 1.0], size=(len(spec.agents), 6))
+    for k in range(n_steps + 1):
+        meas = sim.sense()
+        u, margin_v, _ = team.evaluate(meas, None)
+        u = np.array(u)
+        if pattern is not None:
+            tol = np.array([team.bound(i, meas) for i in range(len(spec.agents))])
+            u += tol * (signs if pattern == "constant" else rng.choice([-1.0, 1.0], size=u.shape))
+        recorder.add(meas.t, sim.state.p, sim.state.R, sim.state.v, u, margin_v)
+        if k < n_steps:
+            sim.advance(u)
+    return recorder
 
-    ``data/paper_headless_reference.npz`` (made by ``data/make_paper_reference.py``): e, ψ at
-    the record rate, every margin and peak wrench. 1e-9: the loops differ only in rounding
-    (operation order of 3×3 products), which the stable closed loop does not amplify beyond that.
-    """
+
+#: margin over the largest response to a perturbation pattern: the patterns are two of many
+LOOP_SAFETY = 2.0
+
+
+def loop_tolerance(spec) -> dict[str, float]:
+    """How far the paper run may honestly lie from its reference, per golden value: LOOP_SAFETY times the
+    largest difference the two perturbed runs make. An answer of another platform lies within a few
+    per cent of the tolerance of the same step (test_roundoff.py; 2 % interpreted against compiled), and
+    the closed loop's response to differences this small is linear in them, so a run of another
+    platform lies well inside the perturbed runs' spread."""
+    plain = golden_values(perturbed_run(spec, None))
+    spread = dict.fromkeys(plain, 0.0)
+    for pattern in ("constant", "random"):
+        moved = golden_values(perturbed_run(spec, pattern))
+        for key in plain:
+            spread[key] = max(spread[key], float(np.abs(moved[key] - plain[key]).max()))
+    return {key: LOOP_SAFETY * value for key, value in spread.items()}
+
+
+def test_paper_scenario_is_its_reference_run(paper_run, paper_path) -> None:
+    """The paper run against ``data/paper_headless_reference.npz`` (``tests/paper_reference.py``):
+    bit for bit on the numeric platform that made it; on another (CPU, libm, numpy and numba builds and
+    their switches: formation_msgs_py.compiled.numeric_platform), within the closed loop's response to
+    round-off, measured here (:func:`loop_tolerance`), never a constant read off one machine."""
     out, summary = paper_run
-    ref = np.load(Path(__file__).with_name("data") / "paper_headless_reference.npz")
+    ref = np.load(REFERENCE)
     traj = np.load(out / "trajectory.npz")
-    np.testing.assert_array_equal(traj["t"], ref["t"])
-    np.testing.assert_allclose(traj["e"], ref["e"], rtol=0, atol=1e-9)
-    np.testing.assert_allclose(traj["psi"], ref["psi"], rtol=0, atol=1e-9)
     edges, agents = list(summary["edges"].values()), list(summary["agents"].values())
-    np.testing.assert_allclose([s["min_margin_e"] for s in edges], ref["min_margin_e"], rtol=0, atol=1e-9)
-    np.testing.assert_allclose([s["min_margin_psi"] for s in edges], ref["min_margin_psi"], rtol=0, atol=1e-9)
-    np.testing.assert_allclose([a["min_margin_v"] for a in agents], ref["min_margin_v"], rtol=0, atol=1e-9)
-    np.testing.assert_allclose([a["peak_force"] for a in agents], ref["peak_force"], rtol=1e-9)
-    np.testing.assert_allclose([a["peak_torque"] for a in agents], ref["peak_torque"], rtol=1e-9)
-    np.testing.assert_allclose(traj["p"][-1], ref["p_final"], rtol=0, atol=1e-9)
-    np.testing.assert_allclose(traj["v"][-1], ref["v_final"], rtol=0, atol=1e-9)
+    today = {
+        "t": traj["t"],
+        "e": traj["e"],
+        "psi": traj["psi"],
+        "p_final": traj["p"][-1],
+        "R_final": traj["R"][-1],
+        "v_final": traj["v"][-1],
+        "min_margin_e": np.array([s["min_margin_e"] for s in edges]),
+        "min_margin_psi": np.array([s["min_margin_psi"] for s in edges]),
+        "min_margin_v": np.array([a["min_margin_v"] for a in agents]),
+        "peak_force": np.array([a["peak_force"] for a in agents]),
+        "peak_torque": np.array([a["peak_torque"] for a in agents]),
+    }
+    np.testing.assert_array_equal(today["t"], ref["t"])
+    if str(ref["platform"]) == numeric_platform() and str(ref["code_form"]) == CODE_FORM:
+        for key, value in today.items():
+            np.testing.assert_array_equal(value, ref[key], err_msg=key)
+        return
+    tol = loop_tolerance(load_formation(paper_path))
+    for key, value in today.items():
+        assert tol[key] > 0 or key == "t", key
+        assert np.abs(value - ref[key]).max() <= tol[key], (key, np.abs(value - ref[key]).max(), tol[key])
 
 
 def test_trajectory_file_has_the_contract_shapes(paper_run) -> None:
@@ -97,6 +157,8 @@ def test_halving_the_physics_step_changes_errors_by_less_than_1e_6(paper_path) -
     spec = load_formation(paper_path, overrides={"duration": 0.5})
     a = run_headless(spec).recorder.arrays()
     b = run_headless(spec.with_simulation(physics_rate=20000.0)).recorder.arrays()
+    # a discretisation effect (the plant's RKMK4 step), independent of the platform: round-off moves these
+    # runs by some 1e-13 (test_paper_scenario_is_its_reference_run), a wrong integrator by far more than 1e-6
     assert np.abs(a["e"] - b["e"]).max() < 1e-6
     assert np.abs(a["psi"] - b["psi"]).max() < 1e-6
 
@@ -135,6 +197,7 @@ def test_continuous_controller_agrees_with_fast_sampling(paper_path) -> None:
     spec = load_formation(paper_path, overrides={"duration": 0.02, "record_rate": 10000.0})
     a = run_headless(spec, controller_mode="continuous").recorder.arrays()
     b = run_headless(spec, controller_mode="sampled").recorder.arrays()
+    # the zero-order hold's O(1/f) effect, as above: a discretisation, not a rounding
     assert np.abs(a["e"] - b["e"]).max() < 1e-3
     assert np.abs(a["psi"] - b["psi"]).max() < 1e-3
     assert np.abs(a["e"] - b["e"]).max() > 0  # they are different evaluations
@@ -179,4 +242,5 @@ def test_continuous_mode_substeps_to_rk4_stability_on_a_stiff_plant(paper_path) 
     assert fixed.first_violation is not None and fixed.first_violation.where == "5"
     assert sub.first_violation is None and finer.first_violation is None
     a, b = sub.arrays(), finer.arrays()
+    # substeps are a discretisation: as in test_halving_the_physics_step_changes_errors_by_less_than_1e_6
     assert np.abs(a["e"] - b["e"]).max() < 1e-6 and np.abs(a["psi"] - b["psi"]).max() < 1e-6

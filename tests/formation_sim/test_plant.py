@@ -14,6 +14,8 @@ from formation_sim.core.plant import Plant, PlantState
 from formation_sim.core.signals import signal_params, signals_at
 from formation_sim.core.simulation import Measurements
 
+pytestmark = pytest.mark.numeric
+
 
 def tumbling_body(gravity=(0.0, 0.0, 0.0)):
     """Two agents (the plant needs a formation); agent a has an asymmetric inertia."""
@@ -45,10 +47,14 @@ def integrate(plant: Plant, s: PlantState, u: np.ndarray, h: float, T: float) ->
 
 
 def test_rotation_stays_in_so3() -> None:
-    """Fast tumbling for 5 000 steps: ‖RᵀR − I‖_F stays below 1e-12."""
+    """Fast tumbling for 5 000 steps: ‖RᵀR − I‖_F stays within rounding (the Lie-group step keeps R on
+    SO(3); an integrator of R's entries would leave it by its truncation error, some 1e-8 here)."""
     plant, s = tumbling_body()
+    steps = 5000
     s = integrate(plant, s, np.zeros((2, 6)), 1e-3, 5.0)
-    assert orthonormality_error(s.R) < 1e-12
+    # each step multiplies R by exp(hΩ) (orthonormal to some 6u) in 3-term sums (some 6u more): even if every
+    # step's rounding went the same way, 12u per step; 2e-14 is measured here
+    assert orthonormality_error(s.R) < steps * 12 * 2.0**-53
 
 
 def test_torque_free_body_conserves_energy_and_momentum() -> None:
@@ -61,6 +67,7 @@ def test_torque_free_body_conserves_energy_and_momentum() -> None:
         w = st.v[0, 3:]
         return 0.5 * w @ J @ w + 0.5 * plant.mass[0] * st.v[0, :3] @ st.v[0, :3]
 
+    # RK4's truncation over 5 s at h = 1e-3 (not a rounding: platform independent)
     assert energy(s) == pytest.approx(energy(s0), rel=1e-9)
     np.testing.assert_allclose(s.R[0] @ J @ s.v[0, 3:], s0.R[0] @ J @ s0.v[0, 3:], atol=1e-9)
     # free translation: the world velocity R v_L is constant
@@ -85,6 +92,8 @@ def test_gravity_free_fall() -> None:
     plant, s = tumbling_body(gravity=(0, 0, -9.81))
     s.v[:] = 0.0
     s = integrate(plant, s, np.zeros((2, 6)), 1e-3, 1.0)
+    # RK4 is exact for a quadratic: only 1000 steps' roundings of |p| ≤ 5 (ulp 8.9e-16), < 1e-12 even if
+    # they all went one way
     np.testing.assert_allclose(s.p[:, 2], -0.5 * 9.81, atol=1e-12)
     np.testing.assert_allclose(s.p[1, :2], [2, 0], atol=1e-12)
 
@@ -103,6 +112,8 @@ def test_paper_disturbance_is_the_printed_formula(paper_path: Path) -> None:
     for i, a in enumerate(spec.agents):
         prm = a.dynamics.disturbance.params
         gain = prm["amplitude"] * np.sin(3.5 * np.trace(s.R[i]) * prm["frequency"] * t + prm["phase"])
+        # the same formula in the same order; only sin may differ (libm in the kernel, numpy's SIMD path
+        # here: a few ulps at an argument whose sine is not small)
         np.testing.assert_allclose(w[i], gain * s.v[i], rtol=1e-14)
 
 
@@ -116,7 +127,7 @@ def test_random_signal_is_seeded_and_bounded() -> None:
     va = np.array([signals_at(a, t, z, R, np.zeros((3, 6))) for t in ts])
     vb = np.array([signals_at(b, t, z, R, np.zeros((3, 6))) for t in ts])
     np.testing.assert_array_equal(va, vb)
-    assert np.abs(va).max() <= 0.3 + 1e-12
+    assert np.abs(va).max() <= 0.3 + 1e-12  # components scaled to sum to the bound: a few roundings of 0.3
     assert np.abs(va).max() > 0.1
 
 
@@ -133,8 +144,15 @@ def test_measurements_respect_the_sensing_radius(paper_path: Path) -> None:
 
     meas = measure()
     assert set(meas["3"]) == {"1", "4", "5"}
-    np.testing.assert_allclose(meas["2"]["1"][0], R[1].T @ (p[0] - p[1]), atol=1e-15)
-    np.testing.assert_allclose(meas["2"]["1"][1], R[1].T @ R[0], atol=1e-15)
+    unit = 2.0**-53
+    # two computations of 3-term sums of products, in any order (γ₃ each), after one rounded difference
+    bound = 2 * 3 * unit / (1 - 3 * unit) * (np.abs(R[1]).T @ np.abs(p[0] - p[1])) + unit * np.abs(R[1]).T @ (
+        np.abs(p[0]) + np.abs(p[1])
+    )
+    assert np.all(np.abs(meas["2"]["1"][0] - R[1].T @ (p[0] - p[1])) <= bound)
+    # the rotation also goes through the published quaternion and back (a square root and about ten
+    # roundings of entries ≤ 1 each way): within 32 ulp(1)
+    np.testing.assert_allclose(meas["2"]["1"][1], R[1].T @ R[0], atol=32 * 2.0**-52)
     p[3] = p[2] + [4.5, 0, 0]  # agent 4 leaves the 4 m sensing radius of agent 3
     meas = measure()
     assert set(meas["3"]) == {"1", "5"} and "3" not in meas["4"]
@@ -146,7 +164,7 @@ def test_plant_saturates_the_actuators() -> None:
     u = np.zeros((2, 6))
     u[0] = [1e8, 0.0, 0.0, 0.0, 0.0, -1e8]
     applied = plant.saturate(u)
-    assert applied[0] == pytest.approx([100.0, 0, 0, 0, 0, -100.0], abs=1e-12)
+    assert applied[0] == pytest.approx([100.0, 0, 0, 0, 0, -100.0], abs=1e-12)  # 100·(x/‖x‖): ulp(100) = 1.4e-14
     assert applied[1] == pytest.approx(np.zeros(6), abs=0.0)
     # the integrator applies the same: one step with 1e8 N equals one step with 100 N
     s_big = plant.step(0.0, s, u, 1e-3)

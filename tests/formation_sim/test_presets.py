@@ -12,6 +12,8 @@ import yaml
 from formation_msgs_py.spec import load_formation
 from formation_sim.cli.headless import main, run_headless
 
+pytestmark = pytest.mark.numeric
+
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 PRESETS = sorted(CONFIG.glob("*.yaml"))
 

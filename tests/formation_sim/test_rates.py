@@ -10,6 +10,8 @@ from formation_msgs_py.spec import load_formation
 from formation_sim.core.loop import initial_rho_v0
 from formation_sim.core.rates import mass_matrix, rate_need, rate_needs
 
+pytestmark = pytest.mark.numeric
+
 RNG = np.random.default_rng(11)
 
 
@@ -20,6 +22,8 @@ def test_diagonal_mass_matrix_gives_the_closed_form() -> None:
         gamma, rho = RNG.uniform(1, 20), RNG.uniform(0.05, 3.0, size=6)
         M_diag = np.array([m, m, m, *J])
         expected = np.max(2 * gamma / (M_diag * rho**2))
+        # the need is the largest eigenvalue of M⁻¹K by LAPACK (backward stable, any BLAS): the largest is
+        # of the order of the matrix's norm, so it carries some c·n·u ≈ 1e-15 relative
         assert rate_need(mass_matrix(m, np.diag(J)), gamma, rho) == pytest.approx(expected, rel=1e-12)
 
 
@@ -34,6 +38,7 @@ def test_rate_need_is_vectorised_over_time_and_rotation_invariant() -> None:
     diag = rate_need(mass_matrix(1.0, np.diag(J)), 10.0, rho)
     full = rate_need(mass_matrix(1.0, Q @ np.diag(J) @ Q.T), 10.0, rho)
     assert diag.shape == (2,)
+    # Q diag(J) Qᵀ rounds (3-term sums), the inverse amplifies by κ(J) = 9, then the eigenvalues as above
     np.testing.assert_allclose(full, diag, rtol=1e-10)
 
 
@@ -47,6 +52,7 @@ def test_paper_needs_are_the_closed_form_at_both_ends(paper_path) -> None:
         M_diag = np.array([a.dynamics.mass] * 3 + list(np.diag(a.dynamics.inertia)))
         for t, value in ((0.0, need.at_start), (T, need.at_end)):
             rho = funnels.rho(t, rho_v0, np.array(vf.rho_inf), np.array(vf.decay))
+            # as in test_diagonal_mass_matrix_gives_the_closed_form, plus one exp in ρ_v
             assert value == pytest.approx(np.max(2 * a.controller.gamma / (M_diag * rho**2)), rel=1e-12)
     needs = rate_needs(spec, initial_rho_v0(spec))  # docs/controller.md: about 0.5 kHz at t = 0 and 3 kHz at t = 5 s
     assert 400 < max(n.at_start for n in needs) < 700 and 2500 < max(n.at_end for n in needs) < 3500

@@ -22,6 +22,8 @@ from formation_sim.core.rates import rate_needs
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.views.outputs import format_summary, tls_reason, verdict_line, write_outputs
 
+pytestmark = pytest.mark.numeric
+
 T = np.array([0.0, 0.1, 0.2, 0.3, 0.4])
 #: the margins are formed from e/ρ_e with a few float operations: equal to 1e-12
 TOL = 1e-12
@@ -131,7 +133,7 @@ def test_collision_crossed_from_below(spec: FormationSpec) -> None:
         set_distance_error(spec, p[s], 1, -1.02 * edge.c_col * rho_e(spec, 1, T[s]))
     j = judge(spec, T, p, R)
     assert j.first_violation.as_dict() == {"t": 0.3, "kind": "distance", "edge": edge.name, "channel": "collision"}
-    assert j.min_margin_e[1] == pytest.approx(-0.02, abs=1e-9)
+    assert j.min_margin_e[1] == pytest.approx(-0.02, abs=1e-9)  # sqrt then square, as above
     assert j.settle_e[1] is None  # outside the band at the last sample
 
 
@@ -158,7 +160,7 @@ def test_settle_time_is_the_entry_into_the_steady_band(spec: FormationSpec) -> N
     assert j.first_violation is None
     assert j.settle_psi[3] == 0.3
     expected = min(1.0 - (2.0 * edge.rho_psi_inf) / rho_psi(spec, 3, t) for t in T[:3])
-    assert j.min_margin_psi[3] == pytest.approx(expected, abs=1e-9)
+    assert j.min_margin_psi[3] == pytest.approx(expected, abs=1e-9)  # acos then cos, as above
 
 
 def test_velocity_channel_and_edge_first_at_one_sample(spec: FormationSpec) -> None:
@@ -332,6 +334,7 @@ def test_rate_need_matches_the_closed_form(spec: FormationSpec) -> None:
         m_ll = np.array([a.dynamics.mass] * 3 + list(np.diag(a.dynamics.inertia)))
         rho_end = (need.rho_v0 - np.array(vf.rho_inf)) * np.exp(-np.array(vf.decay) * duration) + np.array(vf.rho_inf)
         gamma = a.controller.gamma
+        # a few roundings and one exp on each side: some 1e-15 relative
         assert need.at_start == pytest.approx(max(2 * gamma / (m_ll * need.rho_v0**2)), rel=1e-12)
         # ρ_v decreases monotonically: the need is largest at the end (rate_needs samples 401 times)
         assert need.at_end == pytest.approx(max(2 * gamma / (m_ll * rho_end**2)), rel=1e-12)

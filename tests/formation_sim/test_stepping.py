@@ -23,6 +23,8 @@ from formation_sim.node.stepping import (
 )
 from formation_sim.node.witness import AnswerWitness, Expectation
 
+pytestmark = pytest.mark.numeric
+
 IDS = ("1", "2", "3")
 PERIOD_NS = 100_000  # 10 kHz
 
@@ -192,6 +194,7 @@ def test_an_answer_within_its_tolerance_is_applied_and_one_beyond_is_not() -> No
     """An agent judged by the round-off bound: within the tolerance applies (the largest difference and its
     ratio to the tolerance are reported); beyond it, by any component, is a mismatch naming that tolerance."""
     u = np.ones((3, 6))
+    # 1 + 4e-10 rounds within ulp(1)/2 = 1.1e-16 of it, inside pytest.approx's relative 1e-6 of 4e-10
     book, witness = WrenchBook(3), _witness(u, tolerance=1e-9)
     close = tuple(u[0] + 4e-10)
     assert admit(0, 0, close, None, book, witness) == Admission(APPLY, close)

@@ -14,6 +14,8 @@ from formation_sim.core.measurement import Ends
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam
 
+pytestmark = pytest.mark.numeric
+
 PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
 
 

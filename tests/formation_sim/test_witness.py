@@ -22,6 +22,8 @@ from formation_sim.node.step_messages import StepMessages
 from formation_sim.node.stepping import APPLY, WrenchBook, admit
 from formation_sim.node.witness import AgentReport, Witness
 
+pytestmark = pytest.mark.numeric
+
 PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"
 
 
@@ -98,8 +100,9 @@ def test_the_whole_paper_run_through_the_bytes_is_the_headless_run() -> None:
 
 def test_answers_of_another_platform_agree_within_the_round_off_bound() -> None:
     """Agent 3 reports another numeric platform and runs interpreted (numpy's exp and log instead of the
-    compiled code's): its answers differ from the witness's in the last places, and every one of them over
-    the paper's 5 s lies within the step's round-off bound; the largest ratio to it is reported."""
+    compiled code's): where its answers differ from the witness's (in the last places, when numpy's SIMD
+    paths round otherwise than libm: on AVX-512 machines, not with those paths disabled), every one of them
+    over the paper's 5 s lies within the step's round-off bound, and the largest ratio to it is reported."""
     spec = load_formation(PAPER)
     witness = Witness(spec)
     three = spec.agent_ids.index("3")
@@ -108,17 +111,22 @@ def test_answers_of_another_platform_agree_within_the_round_off_bound() -> None:
     assert remote.set_form(three, FORM_INTERPRETED)
     local = AgentTeam(spec)
 
+    differed = []
+
     def answer(i, k, messages, meas):
         received = messages.decoded(meas)
         team = remote if i == three else local
         if i == 0 or i == three:  # one evaluation of each team per step
             team.evaluate(received, None)
+        if i == three:
+            differed.append(not np.array_equal(remote.out[i, :6], local.out[i, :6]))
         return received.ns, tuple(team.out[i, :6].tolist())
 
     lockstep_without_ros(spec, answer, witness)
     report = witness.report()["agents"]
     assert report["3"]["judged"] == "within the round-off bound"
-    assert 0.0 < report["3"]["largest_ratio_to_tolerance"] < 1.0, report["3"]
+    assert report["3"]["largest_ratio_to_tolerance"] < 1.0, report["3"]
+    assert (report["3"]["largest_ratio_to_tolerance"] > 0.0) == any(differed), report["3"]
     assert all(report[a]["judged"] == "bit for bit" for a in spec.agent_ids if a != "3")
 
 

@@ -80,7 +80,7 @@ def test_every_process_has_a_log_and_outputs(ros_env: dict[str, str], tmp_path: 
     r = _launch(ros_env, out, "--force", "--record", "--duration", "0.01")
     assert r.returncode == 0, r.stdout + r.stderr
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["duration"] == pytest.approx(0.01)
+    assert summary["duration"] == pytest.approx(0.01)  # 100 steps' stamps in integer ns over 1e9: a rounding
     assert not (out / "errors.png").exists() and (out / "notes.txt").read_text() == "mine"
     with (out / "bag" / "metadata.yaml").open() as f:
         info = yaml.safe_load(f)["rosbag2_bagfile_information"]

@@ -56,7 +56,7 @@ def test_realtime_zeroes_a_killed_agent_and_carries_on(procs, tmp_path: Path) ->
     assert summary["duration"] == 3.0
     # counted, not sampled: once zeroed, every tick up to the last one (t = 2.99 s) is counted
     zeroed = summary["faults"]["2"]["zero_wrench"]
-    assert zeroed["last_t"] == pytest.approx(2.99, abs=1e-9), zeroed
+    assert zeroed["last_t"] == pytest.approx(2.99, abs=1e-9), zeroed  # a stamp's time: integer ns over 1e9
     assert zeroed["count"] == round((zeroed["last_t"] - zeroed["first_t"]) * 100) + 1 > 50, zeroed
     # held while younger than command_timeout, before it was zeroed
     assert summary["faults"]["2"]["stale_command"]["last_t"] < zeroed["first_t"], summary["faults"]["2"]

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.numeric
+
 #: In a fresh compiled process: declare the kernels (imports numba and the numba modules that probe
 #: coverage, scipy and cffi), list which of those got imported, then import scipy.linalg as any
 #: other code of the process may.
@@ -20,8 +22,6 @@ import formation_agent.controller
 import numba.core.typing.cffi_utils, numba.np.arraymath
 loaded = sorted(m for m in ("coverage", "scipy", "scipy.linalg", "cffi") if m in sys.modules)
 import scipy.linalg
-
-pytestmark = pytest.mark.numeric
 hidden_left = [m for m in ("coverage", "scipy", "cffi") if sys.modules.get(m, 1) is None]
 print(json.dumps({"loaded": loaded, "hidden_left": hidden_left, "scipy_linalg_after": scipy.linalg.__name__}))
 """

@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -72,3 +76,15 @@ def live_descendants(root: int) -> dict[int, str]:
                 break
             p, hops = parent.get(p), hops + 1
     return out
+
+
+@contextmanager
+def cpu_load(n: int) -> Iterator[list[subprocess.Popen]]:
+    """``n`` busy-loop processes (a loaded machine), stopped by their PIDs on exit."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True) for _ in range(n)]
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import subprocess
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 from bin_helpers import executable
+from process_hygiene import cpu_load  # noqa: F401  (re-exported for the bag tests)
 
 from formation_msgs_py.spec import FormationSpec, load_formation
 
@@ -28,15 +26,3 @@ def script(name: str) -> list[str]:
     if name.endswith(".py"):
         return [sys.executable, str(HERE / name)]
     return [executable(name)]
-
-
-@contextmanager
-def cpu_load(n: int) -> Iterator[list[subprocess.Popen]]:
-    """``n`` busy-loop processes, stopped by their PIDs on exit."""
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True) for _ in range(n)]
-    try:
-        yield procs
-    finally:
-        for p in procs:
-            p.kill()
-            p.wait()

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from process_hygiene import live_descendants
+from process_hygiene import cpu_load, live_descendants
 from ros_helpers import (
     PAPER,
     REPO,
@@ -301,3 +301,50 @@ def test_a_contact_is_reported_in_lockstep_realtime_and_the_analysis(ros_env: di
     realtime = json.loads((out / "summary.json").read_text())["clearance"]
     assert realtime["first_contact"]["pair"] == ["1", "3"], realtime
     assert "CONTACT: agents 1 and 3 touched" in log
+
+
+LINKS_PRESET = REPO / "config" / "links_5agents_100hz.yaml"
+
+
+def test_a_run_with_links_in_lockstep_equals_headless_also_beside_busy_loops(
+    ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    """The link preset (delays and losses on poses, velocities and wrenches) in lockstep, agents compiled,
+    beside two busy loops: the headless run's trajectory, link ages and link statistics, bit for bit; its
+    bag's analysis reports the same link statistics."""
+    from formation_msgs_py.spec import load_formation as load
+    from formation_sim.cli.headless import run_headless
+
+    spec = load(LINKS_PRESET).with_simulation(duration=3.0)
+    expected = run_headless(spec)
+    out = tmp_path / "lockstep"
+    env = {**ros_env, "NUMBA_DISABLE_JIT": "0"}  # the headless run's code form: the same bits
+    cmd = [executable("formation-launch"), str(LINKS_PRESET), "--mode", "lockstep", "--duration", "3"]
+    with cpu_load(2):
+        code, log = run([*cmd, "--out", str(out), "--no-plots", "--quiet"], env)
+    assert code == 0, log
+    ours, theirs = np.load(out / "trajectory.npz"), expected.recorder.arrays()
+    for key in ("t", "p", "R", "v", "u", "e", "psi", "link_age"):
+        np.testing.assert_array_equal(ours[key], theirs[key], err_msg=key)
+    links = json.loads((out / "summary.json").read_text())["links"]
+    assert links == json.loads(json.dumps(expected.summary["links"]))
+    assert links["poses"]["lost"] > 0 and links["wrench"]["lost"] > 0  # the model was at work
+    analysis = tmp_path / "analysis"
+    code, log = run([executable("formation-analyze"), str(out / "bag"), "--out", str(analysis), "--no-plots"], env)
+    assert code == 0, log
+    assert json.loads((analysis / "summary.json").read_text())["links"] == links
+    assert "links: worst " in log
+
+
+def test_a_run_with_links_in_realtime_reports_them_and_the_real_latency(
+    ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    """The link preset in realtime (3 s): the simulator emulates the links on top of this host's network and
+    says both: the links' statistics and the latency it measured."""
+    out = tmp_path / "realtime"
+    cmd = [executable("formation-launch"), str(LINKS_PRESET), "--duration", "3", "--out", str(out)]
+    code, log = run([*cmd, "--no-plots", "--quiet", "--no-record"], ros_env)
+    assert code in (0, 1), log  # realtime on a loaded host: the funnels decide
+    links = json.loads((out / "summary.json").read_text())["links"]
+    assert links["poses"]["sent"] > 0 and links["real_latency_ms"]["samples"] > 0
+    assert "the real network under them" in log

@@ -226,13 +226,16 @@ def limit_wrench(out, max_force, max_torque):
 
 
 @formula
-def fault_wrench(i, lo, hi, reason, out, edge_out):
-    """The fault policy: zero wrench, level ERROR, margins −1 (unknown, treated as outside)."""
+def fault_wrench(i, lo, hi, reason, out, edge_out, start):
+    """The fault policy: zero wrench, level ERROR, margins −1 (unknown, treated as outside); before the
+    agent's first step its velocity funnel has not started (``start[i, T0]`` NaN): its velocity margins
+    are then +inf, nothing to judge (a link model's first sample may take a while to arrive)."""
+    margin_v = np.inf if np.isnan(start[i, T0]) else -1.0
     for c in range(6):
         out[i, U + c] = 0.0
         out[i, V_DES + c] = 0.0
         out[i, XI_V + c] = 0.0
-        out[i, MARGIN_V + c] = -1.0
+        out[i, MARGIN_V + c] = margin_v
     for k in range(lo, hi):
         for c in range(6):
             edge_out[k, c] = -1.0 if c == MARGIN_E or c == MARGIN_PSI else 0.0
@@ -451,5 +454,5 @@ class AgentController:
     def fault_output(self, t: float, message: str) -> ControlOutput:
         """Zero wrench with level ERROR (missing, stale or non-finite measurements)."""
         n = len(self.neighbours)
-        fault_wrench(0, 0, n, REASON_MISSING, self._out, self._edge_out)
+        fault_wrench(0, 0, n, REASON_MISSING, self._out, self._edge_out, self._start)
         return control_output(float(t), 0, 0, n, self._out, self._edge_out, message)

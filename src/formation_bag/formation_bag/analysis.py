@@ -47,7 +47,7 @@ from formation_bag import messages as m
 from formation_bag.dataset import RunData, Series, load_run
 from formation_bag.parsers import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_bag.rerun import AgentRerun, rerun_all
-from formation_msgs_py.bag import KEY_REPAIRED, KEY_RUN_STOPPED
+from formation_msgs_py.bag import KEY_LINKS, KEY_REPAIRED, KEY_RUN_STOPPED
 from formation_msgs_py.errors import BagError, FormationError
 from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
@@ -317,6 +317,19 @@ def run_stopped(custom_data: dict[str, str]) -> Incomplete | None:
     return Incomplete(code, reason)
 
 
+def recorded_links(custom_data: dict[str, str]) -> dict[str, Any] | None:
+    """The link model's statistics the simulator wrote into the bag (:data:`formation_msgs_py.bag.KEY_LINKS`:
+    counted at every control step, which a bag's messages cannot show), or None."""
+    text = custom_data.get(KEY_LINKS)
+    if not text:
+        return None
+    try:
+        links = json.loads(text)
+    except ValueError:
+        return None
+    return links if isinstance(links, dict) else None
+
+
 def analyze_run(
     run: RunData,
     *,
@@ -350,6 +363,7 @@ def analyze_run(
         incomplete = Incomplete(stopped.code, f"the run stopped: {stopped.reason}; {incomplete.reason}")
     bag_info = bag_report(run, settings, missing, replay, velocity_margins)
     bag_info["analysis_time"] = time.perf_counter() - started
+    recorder.links = recorded_links(run.custom_data)
     summary = recorder.summary(
         wall_time=run_wall_time(run),
         requested_duration=settings.requested_duration,

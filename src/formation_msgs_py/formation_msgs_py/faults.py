@@ -122,7 +122,8 @@ MEANINGS = {
     "step was not in yet (zero-order hold)",
     "zero_wrench": "realtime: the agent's last wrench was older than command_timeout and was replaced by zero",
     "late_tick": "realtime: a simulator tick ran more than half a control period after its wall-clock time",
-    "measurement": "a neighbour was out of sensing range: the agent had no relative pose of it",
+    "measurement": "the agent had no relative pose of a neighbour: out of sensing range or, with a link model, "
+    "none received yet, lost, or older than its measurement_timeout (docs/links.md)",
     "controller": "an error left its funnel between two control steps and the controller saturated "
     "(ERROR on /diagnostics)",
     "reset": "simulation time restarted (/clock and the measurements went back together, as a bag "

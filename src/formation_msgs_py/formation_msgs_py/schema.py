@@ -67,6 +67,8 @@ class Field:
     inline: bool = False
     #: the attribute's type in the built object where it is not the kind's (:data:`KIND_TYPES`)
     type: str = ""
+    #: a ``variant``'s key naming its variant
+    key: str = "model"
 
 
 # --- shared blocks ----------------------------------------------------------------------------
@@ -112,6 +114,91 @@ _FUNNEL_V = (
     Field("auto_offset", "float", 1.0, "offset added when rho_0 is auto", "m/s, rad/s", sign="positive"),
     Field("rho_inf", "float_or_vec6", 0.1, "steady width ρ_v∞ per channel", "m/s, rad/s", sign="positive"),
     Field("decay", "float_or_vec6", 0.2, "decay rate l_v per channel", "1/s", sign="positive"),
+)
+
+_JITTER = {
+    "none": (),
+    "uniform": (Field("max", "float", REQUIRED, "largest extra delay: uniform on [0, max]", "s", sign="nonnegative"),),
+    "exponential": (
+        Field("mean", "float", REQUIRED, "mean extra delay of the untruncated distribution", "s", sign="positive"),
+        Field("max", "float", REQUIRED, "the distribution is truncated to [0, max]", "s", sign="positive"),
+    ),
+}
+
+_LOSS = {
+    "none": (),
+    "independent": (Field("probability", "probability", REQUIRED, "each sample is lost with this probability"),),
+    "gilbert_elliott": (
+        Field("p_good_bad", "probability", REQUIRED, "after each sample, the probability of going from good to bad"),
+        Field("p_bad_good", "probability", REQUIRED, "after each sample, the probability of going from bad to good"),
+        Field("loss_good", "probability", 0.0, "loss probability in the good state"),
+        Field("loss_bad", "probability", 1.0, "loss probability in the bad state"),
+    ),
+}
+
+_LINK_DELAY = Field("delay", "float", 0.0, "constant latency of every sample", "s", sign="nonnegative")
+_LINK_LOSS = Field(
+    "loss",
+    "variant",
+    {"model": "none"},
+    "which samples are lost: `model` none | independent | gilbert_elliott (two states, bursts; starts good)",
+    variants=_LOSS,
+)
+
+#: One measurement stream from the simulator to an agent (docs/links.md).
+MEASUREMENT_LINK_FIELDS: tuple[Field, ...] = (
+    Field(
+        "rate",
+        "optional_float",
+        None,
+        "sensor rate: a sample every 1/rate s (at the first control step at or after it), held by the agent "
+        "between samples; null: every control step; at most simulation.control_rate",
+        "Hz",
+        sign="positive",
+        type="float | None",
+    ),
+    _LINK_DELAY,
+    Field(
+        "jitter",
+        "variant",
+        {"distribution": "none"},
+        "extra delay of each sample, never negative: `distribution` none | uniform | exponential; a sample "
+        "that arrives after a newer one is dropped (the newest wins)",
+        variants=_JITTER,
+        key="distribution",
+    ),
+    _LINK_LOSS,
+)
+
+#: An agent's wrench on its way to the plant.
+WRENCH_LINK_FIELDS: tuple[Field, ...] = (_LINK_DELAY, _LINK_LOSS)
+
+AGENT_LINK_FIELDS: tuple[Field, ...] = (
+    Field(
+        "poses",
+        "map",
+        {},
+        "the relative pose of each neighbour (an edge's `links` may set one end's)",
+        children=MEASUREMENT_LINK_FIELDS,
+        type="MeasurementLink",
+    ),
+    Field(
+        "velocity",
+        "map",
+        {},
+        "the agent's own velocity measurement",
+        children=MEASUREMENT_LINK_FIELDS,
+        type="MeasurementLink",
+    ),
+    Field(
+        "wrench",
+        "map",
+        {},
+        "the agent's wrench on its way to the plant, which applies the newest one it has received "
+        "(zero before the first, and once it is older than simulation.command_timeout)",
+        children=WRENCH_LINK_FIELDS,
+        type="WrenchLink",
+    ),
 )
 
 AGENT_FIELDS: tuple[Field, ...] = (
@@ -240,6 +327,15 @@ AGENT_FIELDS: tuple[Field, ...] = (
         ),
         inline=True,
     ),
+    Field(
+        "links",
+        "map",
+        {},
+        "how measurements reach this agent and its wrench the plant: sensor rate, delay, jitter, loss "
+        "(simulator only, seeded by simulation.seed; docs/links.md); none given: ideal links",
+        children=AGENT_LINK_FIELDS,
+        type="AgentLinks",
+    ),
 )
 
 EDGE_FIELDS: tuple[Field, ...] = (
@@ -279,6 +375,31 @@ EDGE_FIELDS: tuple[Field, ...] = (
             Field("decay", "float", 1.5, "decay rate l_ψ", "1/s", sign="positive", attr="decay_psi"),
         ),
         inline=True,
+    ),
+    Field(
+        "links",
+        "map",
+        {},
+        "the link of one end's measurement of the other, replacing that agent's `links.poses` for it",
+        type="EdgeLinks",
+        children=(
+            Field(
+                "tail",
+                "map",
+                None,
+                "the tail's measurement of the head (null: the tail's `links.poses`)",
+                children=MEASUREMENT_LINK_FIELDS,
+                type="MeasurementLink | None",
+            ),
+            Field(
+                "head",
+                "map",
+                None,
+                "the head's measurement of the tail (null: the head's `links.poses`)",
+                children=MEASUREMENT_LINK_FIELDS,
+                type="MeasurementLink | None",
+            ),
+        ),
     ),
 )
 
@@ -472,6 +593,11 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
         return _as_float(value, path, f.sign)
     if kind == "optional_float":
         return None if value is None else _as_float(value, path, f.sign)
+    if kind == "probability":
+        x = _as_float(value, path)
+        if not 0.0 <= x <= 1.0:
+            raise _fail(path, f"{short(value)} is not a probability in [0, 1]", value)
+        return x
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
             raise _fail(path, f"expected an integer, got {_type_name(value)} {short(value)}", value)
@@ -528,14 +654,15 @@ def _parse_value(f: Field, value: Any, path: str) -> Any:
     if kind == "map":
         return parse_mapping(value, f.children, path)
     if kind == "variant":
-        if not isinstance(value, Mapping) or "model" not in value:
-            raise _fail(path, f"expected a mapping with a 'model' key, got {short(value)}", value)
-        model = value["model"]
+        key = f.key
+        if not isinstance(value, Mapping) or key not in value:
+            raise _fail(path, f"expected a mapping with a '{key}' key, got {short(value)}", value)
+        model = value[key]
         if not isinstance(model, str) or model not in f.variants:  # a mapping or list is no model name
-            raise _fail(f"{path}.model", f"{short(model)} is not one of {', '.join(f.variants)}", model)
-        rest = {k: v for k, v in value.items() if k != "model"}
+            raise _fail(f"{path}.{key}", f"{short(model)} is not one of {', '.join(f.variants)}", model)
+        rest = {k: v for k, v in value.items() if k != key}
         out = parse_mapping(rest, f.variants[model], path)
-        out["model"] = model
+        out[key] = model
         return out
     raise AssertionError(f"schema kind {kind!r} has no parser")  # pragma: no cover
 
@@ -568,6 +695,8 @@ def parse_partial(node: Any, fields: tuple[Field, ...], path: str) -> tuple[Pars
         value = node[f.name] if f.name in node else f.default
         if value is REQUIRED:
             errors.append(_fail(where, "is required"))
+        elif f.kind == "map" and value is None and f.default is None:
+            out[f.name] = None  # an optional block, absent
         elif f.kind == "map":
             out[f.name], errs = parse_partial(value, f.children, where)
             errors.extend(errs)
@@ -601,6 +730,8 @@ def check_partial(node: Any, fields: tuple[Field, ...], path: str) -> list[Forma
         f = by_name.get(key)
         if f is None:
             errors.append(unknown_key(where, key, list(by_name)))
+        elif f.kind == "map" and value is None and f.default is None:
+            continue
         elif f.kind == "map":
             errors.extend(check_partial(value, f.children, where))
         else:
@@ -619,6 +750,7 @@ def check_partial(node: Any, fields: tuple[Field, ...], path: str) -> list[Forma
 KIND_TYPES: Mapping[str, str] = {
     "float": "float",
     "optional_float": "float",
+    "probability": "float",
     "int": "int",
     "bool": "bool",
     "str": "str",
@@ -695,13 +827,13 @@ def _rows(fields: tuple[Field, ...], prefix: str) -> list[str]:
     for f in fields:
         name = f"{prefix}{f.name}"
         if f.kind in ("map", "agents", "edges") and f.children:
-            default = "required" if f.default is REQUIRED else ""
+            default = "required" if f.default is REQUIRED else "null" if f.default is None else ""
             rows.append(f"| `{name}` | {f.kind} | {default} | {f.unit} | {f.doc} |")
             child_prefix = f"{name}[]." if f.kind in ("agents", "edges") else f"{name}."
             rows.extend(_rows(f.children, child_prefix))
             continue
         if f.kind == "variant":
-            default = f"model: {f.default['model']}"
+            default = f"{f.key}: {f.default[f.key]}"
             rows.append(f"| `{name}` | variant | {default} | {f.unit} | {f.doc} |")
             for model, params in f.variants.items():
                 for p in params:

@@ -32,8 +32,10 @@ from formation_msgs_py.rotations import (
 from formation_msgs_py.schema import (
     AGENT_FIELDS,
     EDGE_FIELDS,
+    MEASUREMENT_LINK_FIELDS,
     SIMULATION_FIELDS,
     TOP_FIELDS,
+    WRENCH_LINK_FIELDS,
     Field,
     Parsed,
     UnusableValueError,
@@ -91,10 +93,59 @@ class ControllerGains:
 
 @dataclass(frozen=True)
 class SignalModel:
-    """A disturbance or noise model: ``model`` and its parameters."""
+    """A model chosen by name and its parameters: a disturbance or noise model, a link's jitter
+    distribution or loss model."""
 
     model: str
     params: Mapping[str, Any]
+
+
+@documented(MEASUREMENT_LINK_FIELDS)
+@dataclass(frozen=True)
+class MeasurementLink:
+    """One measurement stream to an agent (docs/links.md); rate None: every control step."""
+
+    rate: float | None
+    delay: float
+    jitter: SignalModel
+    loss: SignalModel
+
+    @property
+    def ideal(self) -> bool:
+        """Every sample at every step, at once, none lost: the link of a file that gives none."""
+        return self.rate is None and self.delay == 0.0 and self.jitter.model == "none" and self.loss.model == "none"
+
+
+@documented(WRENCH_LINK_FIELDS)
+@dataclass(frozen=True)
+class WrenchLink:
+    """An agent's wrench on its way to the plant (docs/links.md)."""
+
+    delay: float
+    loss: SignalModel
+
+    @property
+    def ideal(self) -> bool:
+        return self.delay == 0.0 and self.loss.model == "none"
+
+
+@documented(block(AGENT_FIELDS, "links"))
+@dataclass(frozen=True)
+class AgentLinks:
+    """How measurements reach one agent and its wrench the plant."""
+
+    poses: MeasurementLink
+    velocity: MeasurementLink
+    wrench: WrenchLink
+
+
+@documented(block(EDGE_FIELDS, "links"))
+@dataclass(frozen=True)
+class EdgeLinks:
+    """An edge's own links of its ends' measurements (None: the observer's ``links.poses``)."""
+
+    tail: MeasurementLink | None
+    head: MeasurementLink | None
 
 
 @documented(block(AGENT_FIELDS, "dynamics"))
@@ -129,6 +180,7 @@ class AgentSpec:
     dynamics: Dynamics
     position_noise_std: float
     rotation_noise_std: float
+    links: AgentLinks
 
     @property
     def twist(self) -> np.ndarray:
@@ -154,6 +206,7 @@ class EdgeSpec:
     rho_psi_0: float
     rho_psi_inf: float
     decay_psi: float
+    links: EdgeLinks
 
     @property
     def c_col(self) -> float:
@@ -230,6 +283,20 @@ class FormationSpec:
     def agent_ids(self) -> tuple[str, ...]:
         return tuple(a.id for a in self.agents)
 
+    def pose_link(self, observer: str, target: str) -> MeasurementLink:
+        """The link of ``observer``'s measurement of its neighbour ``target``: the edge's, else the observer's."""
+        for e in self.edges:
+            if (e.tail, e.head) == (observer, target) and e.links.tail is not None:
+                return e.links.tail
+            if (e.head, e.tail) == (observer, target) and e.links.head is not None:
+                return e.links.head
+        return self.agent(observer).links.poses
+
+    @property
+    def has_links(self) -> bool:
+        """Whether any link is not ideal (no link model: every run as without one, bit for bit)."""
+        return links_modelled(self.agents, self.edges)
+
     def with_agent_gains(self, gains: Mapping[str, Mapping[str, float]]) -> FormationSpec:
         """A copy whose agents use other live gains: ``{agent id: {"delta"|"gamma": value}}`` (values
         checked by the caller, as an agent checks its parameters)."""
@@ -281,6 +348,18 @@ class SimulatorView:
     agents: tuple[AgentSpec, ...]
     edges: tuple[EdgeSpec, ...]
 
+    @property
+    def has_links(self) -> bool:
+        """Whether any link is not ideal (:attr:`FormationSpec.has_links`)."""
+        return links_modelled(self.agents, self.edges)
+
+
+def links_modelled(agents: Sequence[AgentSpec], edges: Sequence[EdgeSpec]) -> bool:
+    """Whether any of these agents' or edges' links is not ideal."""
+    own = (link for a in agents for link in (a.links.poses, a.links.velocity, a.links.wrench))
+    ends = (link for e in edges for link in (e.links.tail, e.links.head) if link is not None)
+    return not all(link.ideal for link in (*own, *ends))
+
 
 def agent_view(spec: FormationSpec, agent_id: str | int) -> AgentView:
     """The agent's view of a formation: nothing of the plant or of other agents' gains."""
@@ -327,7 +406,8 @@ def load_formation(path: str | Path, *, overrides: Mapping[str, Any] | None = No
 def _deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
     out = dict(base)
     for k, v in top.items():
-        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) and "model" not in v:
+        # a mapping that names its variant (a signal, a jitter distribution, a loss model) replaces
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) and not {"model", "distribution"} & set(v):
             out[k] = _deep_merge(out[k], v)
         else:
             out[k] = v
@@ -392,14 +472,15 @@ def formation_from_dict(document: Any, *, source: str = "<dict>", default_name: 
     raw_agents, raw_edges, lists_ok = _item_lists(document, errors)
     agents = _parse_items(raw_agents, "agents", AGENT_FIELDS, defaults["agent"], errors)
     edges = _parse_items(raw_edges, "edges", EDGE_FIELDS, defaults["edge"], errors)
+    link_checks = (partial(_check_agent_links, top),)
     for a in agents:
-        _check_item(a, _AGENT_CHECKS, errors)
+        _check_item(a, (*_AGENT_CHECKS, *link_checks), errors)
     by_id, ids_complete = _agent_ids(agents, errors)
     ids_complete = ids_complete and lists_ok and len(agents) == len(raw_agents)
     kept, dropped = _sensing_tree(edges, by_id, ids_complete, len(edges) == len(raw_edges), top, errors)
     ends = {k: _ends(edges[k], by_id) for k in kept}
     for k in kept:
-        _check_item(edges[k], _EDGE_CHECKS, errors, *ends[k])
+        _check_item(edges[k], (*_EDGE_CHECKS, partial(_check_edge_links, top)), errors, *ends[k])
     errors.raise_if_any()
 
     sim = top["simulation"]
@@ -778,6 +859,80 @@ def _check_inertia(a: Parsed, path: str) -> None:
         )
 
 
+def _jitter_max(jitter: Mapping[str, Any]) -> float:
+    """The largest extra delay of a jitter distribution [s]."""
+    return 0.0 if jitter["distribution"] == "none" else float(jitter["max"])
+
+
+def _link_errors(link: Mapping[str, Any] | None, sim: Parsed, path: str) -> list[FormationSpecError]:
+    """A measurement or wrench link against the run: no sensor faster than the control rate, every
+    sample able to arrive within the run, and the sampled controller (a link delivers at control steps).
+    A check that needs a value the file gets wrong is skipped (that value's error is reported)."""
+    if link is None:
+        return []
+    errs = []
+
+    def rate_check() -> None:
+        rate = link.get("rate")
+        if rate is not None and rate > sim["control_rate"]:
+            raise FormationSpecError(
+                f"{path}.rate",
+                f"{rate:g} Hz is faster than simulation.control_rate {sim['control_rate']:g} Hz "
+                "(a sensor is sampled at control steps)",
+                rate,
+            )
+
+    def delay_check() -> None:
+        extra = _jitter_max(link["jitter"]) if "jitter" in link else 0.0  # a wrench link has none
+        if link["delay"] + extra >= sim["duration"]:
+            raise FormationSpecError(
+                f"{path}.delay",
+                f"{link['delay']:g} s, with the jitter's largest extra delay {extra:g} s, is not below "
+                f"simulation.duration {sim['duration']:g} s: no sample would arrive",
+                link["delay"],
+            )
+
+    def mode_check() -> None:
+        ideal = link.get("rate") is None and link["delay"] == 0.0 and link["loss"]["model"] == "none"
+        ideal = ideal and ("jitter" not in link or link["jitter"]["distribution"] == "none")
+        if not ideal and sim["controller"] == "continuous":
+            raise FormationSpecError(
+                path,
+                "a link model delivers its samples at control steps: it needs simulation.controller: sampled "
+                "(continuous evaluates the law between them)",
+            )
+
+    for check in (rate_check, delay_check, mode_check):
+        try:
+            check()
+        except UnusableValueError:
+            continue
+        except FormationSpecError as exc:
+            errs.append(exc)
+    return errs
+
+
+def _check_links(sim: Parsed, links: Parsed, keys: tuple[str, ...], path: str) -> None:
+    """:func:`_link_errors` of each link in ``links`` (one whose values the file gets wrong is skipped:
+    those errors are reported already)."""
+    errs: list[FormationSpecError] = []
+    for key in keys:
+        try:
+            errs += _link_errors(links[key], sim, f"{path}.links.{key}")
+        except UnusableValueError:
+            continue
+    if errs:
+        raise one_error(errs)
+
+
+def _check_agent_links(top: Parsed, a: Parsed, path: str) -> None:
+    _check_links(top["simulation"], a["links"], ("poses", "velocity", "wrench"), path)
+
+
+def _check_edge_links(top: Parsed, e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    _check_links(top["simulation"], e["links"], ("tail", "head"), path)
+
+
 _AGENT_CHECKS: tuple[Callable[[Parsed, str], None], ...] = (
     _check_agent_orientation,
     _check_velocity_funnel,
@@ -903,8 +1058,9 @@ def _make_agent(index: int, a: Mapping[str, Any]) -> AgentSpec:
             "max_torque": limits["max_torque"],
         }
     )
-    signals = {k: SignalModel(d[k]["model"], {p: v for p, v in d[k].items() if p != "model"}) for k in _SIGNALS}
+    signals = {k: _signal(d[k]) for k in _SIGNALS}
     dyn = Dynamics(**{**d, "inertia": np.array(d["inertia"], dtype=np.float64), **signals})
+    links = a["links"]
     return AgentSpec(
         index=index,
         **{
@@ -913,8 +1069,27 @@ def _make_agent(index: int, a: Mapping[str, Any]) -> AgentSpec:
             "R_world_body": a["R_world_body"],
             "controller": gains,
             "dynamics": dyn,
+            "links": AgentLinks(
+                _stream(links["poses"]),
+                _stream(links["velocity"]),
+                WrenchLink(links["wrench"]["delay"], _signal(links["wrench"]["loss"])),
+            ),
         },
     )
+
+
+def _signal(parsed: Mapping[str, Any], key: str = "model") -> SignalModel:
+    return SignalModel(parsed[key], {p: v for p, v in parsed.items() if p != key})
+
+
+def _stream(parsed: Mapping[str, Any]) -> MeasurementLink:
+    return MeasurementLink(
+        parsed["rate"], parsed["delay"], _signal(parsed["jitter"], "distribution"), _signal(parsed["loss"])
+    )
+
+
+def _measurement_link(parsed: Mapping[str, Any] | None) -> MeasurementLink | None:
+    return None if parsed is None else _stream(parsed)
 
 
 def _make_edge(index: int, e: Parsed, tail: Parsed, head: Parsed) -> EdgeSpec:
@@ -925,5 +1100,6 @@ def _make_edge(index: int, e: Parsed, tail: Parsed, head: Parsed) -> EdgeSpec:
             "R_des": e["R_des"],
             "d_col": _d_col(e, tail, head),
             "d_con": _d_con(e, tail, head),
+            "links": EdgeLinks(_measurement_link(e["links"]["tail"]), _measurement_link(e["links"]["head"])),
         },
     )

@@ -10,6 +10,7 @@ CLOCK = "/clock"  # ROS fixes /clock at the root, whatever the namespace
 GROUND_TRUTH = "formation/ground_truth"
 MARKERS = "formation/markers"  # visualization_msgs/MarkerArray for viewers; no agent subscribes
 FUNNELS = "formation/funnels"  # std_msgs/Float64MultiArray: e, ψ and their bounds per edge, for plots
+LINKS = "formation/links"  # std_msgs/Float64MultiArray: each link's held sample's age [s], with a link model
 TF = "/tf"  # tf2_msgs/TFMessage world -> agent_<id>, where tf2_msgs is installed
 DIAGNOSTICS = "/diagnostics"  # the ROS convention: one global diagnostics topic
 WORLD_FRAME = "world"

@@ -17,6 +17,9 @@ KEY_REPAIRED = "repaired"
 #: custom_data key the simulator sets when its run stopped before its end: JSON {"exit_status", "reason"}
 #: (a process died, a wrong answer, an interruption); formation-analyze reports the same reason and status
 KEY_RUN_STOPPED = "run_stopped"
+#: custom_data key the simulator sets in a run with a link model: summary.json's ``links`` as JSON (its
+#: counts and ages are the simulator's, of every control step); formation-analyze reports them
+KEY_LINKS = "links"
 #: message types whose CDR starts with a stamp (std_msgs/Header or builtin_interfaces/Time): their log
 #: time in simulation time is that stamp; other types (markers, funnel values, /tf) take the latest one
 STAMPED_TYPES = frozenset(

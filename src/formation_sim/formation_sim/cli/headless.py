@@ -66,9 +66,8 @@ def build_parser() -> OptionParser:
         "formation-headless",
         "Run a formation's closed loop in one process (no ROS) and write OUT as docs/outputs.md: "
         "summary.json, trajectory.npz, errors.png, orientation_errors.png, inputs.png, velocity_errors.png, "
-        "clearance.png, foxglove_layout.json (not with --no-plots), animation.gif (with --animate). "
-        + EXIT_STATUS_HELP
-        + ".",
+        "clearance.png, link_ages.png (with a link model), foxglove_layout.json (not with --no-plots), "
+        "animation.gif (with --animate). " + EXIT_STATUS_HELP + ".",
     )
 
 

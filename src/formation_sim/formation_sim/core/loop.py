@@ -58,6 +58,15 @@ from formation_msgs_py.judge import (
 from formation_msgs_py.so3 import flat_rows, matrix_rows, vec3
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_msgs_py.wire import control_time, step_stamp_ns
+from formation_sim.core.links import (
+    LinkSet,
+    deliver_wrenches,
+    link_ages_into,
+    link_summary,
+    n_links,
+    no_links,
+    receive_measurements,
+)
 from formation_sim.core.measurement import Sensing, relative_poses
 from formation_sim.core.plant import (
     PlantParams,
@@ -102,6 +111,10 @@ class ClosedLoop(NamedTuple):
     u: np.ndarray  # (N, 6) scratch: the step's commanded wrenches (columns U of ``out``)
     noise: np.ndarray  # (draws, 2, n_links, 3) standard normal draws, or (1, 0, 0, 3) without noise
     cursor: np.ndarray  # (1,) int: next row of ``noise``
+    links_on: bool  # a link model (formation_sim.core.links): the step's measurements and wrenches through it
+    links: LinkSet
+    link_draws: np.ndarray  # (steps, n_links, 3) the links' uniforms of the chunk's steps
+    link_cursor: np.ndarray  # (1,) int: next row of ``link_draws``
 
 
 class Buffers(NamedTuple):
@@ -120,9 +133,10 @@ class Buffers(NamedTuple):
     psi: np.ndarray  # (C, K)
     rho_e: np.ndarray  # (C, K)
     rho_psi: np.ndarray  # (C, K)
+    link_age: np.ndarray  # (C, n_links) [s] each link's held sample's age (NaN: none), with a link model
 
 
-def new_buffers(rows: int, n_agents: int, n_ends: int, n_edges: int) -> Buffers:
+def new_buffers(rows: int, n_agents: int, n_ends: int, n_edges: int, n_links: int = 0) -> Buffers:
     return Buffers(
         np.zeros(rows),
         np.zeros((rows, n_agents, 3)),
@@ -133,7 +147,11 @@ def new_buffers(rows: int, n_agents: int, n_ends: int, n_edges: int) -> Buffers:
         np.zeros((rows, n_agents), dtype=np.int64),
         np.zeros((rows, n_agents), dtype=np.int64),
         np.zeros((rows, n_ends), dtype=np.bool_),
-        *(np.zeros((rows, n_edges)) for _ in range(4)),
+        np.zeros((rows, n_edges)),
+        np.zeros((rows, n_edges)),
+        np.zeros((rows, n_edges)),
+        np.zeros((rows, n_edges)),
+        np.zeros((rows, n_links)),
     )
 
 
@@ -239,9 +257,10 @@ def check_clearances(watch, t, p):
 
 
 @formula
-def sense_and_control(loop, t, t_control, p, R, v):
-    """The measurements at plant time t (consuming one noise draw) and every agent's answer at its
-    time ``t_control`` [s], into ``loop.out`` (and its wrenches into ``loop.u``)."""
+def sense_and_control(loop, k, t, t_control, p, R, v):
+    """The measurements of control step k at plant time t (consuming one noise draw), through the links if
+    any, and every agent's answer at its time ``t_control`` [s], into ``loop.out``; the wrenches the plant
+    applies (the answers, through the wrench links if any) into ``loop.u``."""
     if loop.noise.shape[1] == 0:
         draws = loop.noise[0]
     else:
@@ -249,6 +268,12 @@ def sense_and_control(loop, t, t_control, p, R, v):
         loop.cursor[0] += 1
     relative_poses(p, R, loop.sensing, draws, loop.p_rel, loop.q_rel, loop.R_rel, loop.in_range)
     measured_velocity_into(t, p, R, v, loop.plant.noise, loop.v_measured)
+    if loop.links_on:
+        uniforms = loop.link_draws[loop.link_cursor[0]]
+        loop.link_cursor[0] += 1
+        receive_measurements(
+            loop.links, k, uniforms, loop.p_rel, loop.q_rel, loop.R_rel, loop.in_range, loop.v_measured, loop.first_end
+        )
     team_step(
         t_control, loop.p_rel, loop.R_rel, loop.in_range, loop.v_measured,
         loop.first_end, loop.agents, loop.ends, loop.start, loop.out, loop.edge_out,
@@ -256,19 +281,21 @@ def sense_and_control(loop, t, t_control, p, R, v):
     for i in range(loop.u.shape[0]):
         for c in range(6):
             loop.u[i, c] = loop.out[i, U + c]
+    if loop.links_on:
+        deliver_wrenches(loop.links, k, uniforms, loop.u, loop.u)
 
 
 @formula
 def continuous_step(loop, t, p, R, v, h, work):
     """One RKMK4 step (as :func:`formation_sim.core.plant.rkmk4_step`) with the controller at every stage."""
-    sense_and_control(loop, t, t, p, R, v)
+    sense_and_control(loop, -1, t, t, p, R, v)  # no links in continuous mode (the file refuses them)
     saturate_into(loop.u, loop.plant, work.u)
     body_rates(t, p, R, v, work.u, loop.plant, work.p_dot[0], work.v_dot[0])
     body_chart_rates(v, work)
     for k in range(3):
         c = h if k == 2 else 0.5 * h
         rkmk4_stage(c, p, R, v, k, work)
-        sense_and_control(loop, t + c, t + c, work.p, work.R, work.v)
+        sense_and_control(loop, -1, t + c, t + c, work.p, work.R, work.v)
         saturate_into(loop.u, loop.plant, work.u)
         body_rates(t + c, work.p, work.R, work.v, work.u, loop.plant, work.p_dot[k + 1], work.v_dot[k + 1])
         chart_rates(k + 1, work)
@@ -307,11 +334,14 @@ def record_step(buf, n, t, p, R, v, out, in_range):
 
 
 @formula
-def control_step(loop, watch, buf, n, t_plant, t, p, R, v, first_outside):
-    """Step n of a chunk at its time t [s] (the plant's ``t_plant``): measurements, controllers, the
-    sample recorded and every funnel checked; returns the chunk's first step outside a funnel so far (−1: none)."""
-    sense_and_control(loop, t_plant, t, p, R, v)
+def control_step(loop, watch, buf, n, k, t_plant, t, p, R, v, first_outside):
+    """Step n of a chunk, control step k, at its time t [s] (the plant's ``t_plant``): measurements,
+    controllers, the sample recorded and every funnel checked; returns the chunk's first step outside a
+    funnel so far (−1: none)."""
+    sense_and_control(loop, k, t_plant, t, p, R, v)
     record_step(buf, n, t, p, R, v, loop.out, loop.in_range)
+    if loop.links_on:
+        link_ages_into(loop.links, k, buf.link_age[n])
     if check_step(watch, buf, n, t, p, R, loop.out) and first_outside < 0:
         return n
     return first_outside
@@ -329,7 +359,7 @@ def run_sampled(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate, t_
     first_outside = -1
     for n in range(k_stop - k0):
         t = (k0 + n) / control_rate
-        first_outside = control_step(loop, watch, buf, n, t, t_control[n], p, R, v, first_outside)
+        first_outside = control_step(loop, watch, buf, n, k0 + n, t, t_control[n], p, R, v, first_outside)
         if k0 + n == k_last or (stop and first_outside >= 0):
             return n + 1, EVENT_NONE, first_outside
         for s in range(substeps):
@@ -346,7 +376,7 @@ def run_continuous(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate,
     first_outside = -1
     for n in range(k_stop - k0):
         t = (k0 + n) / control_rate
-        first_outside = control_step(loop, watch, buf, n, t, t, p, R, v, first_outside)
+        first_outside = control_step(loop, watch, buf, n, k0 + n, t, t, p, R, v, first_outside)
         if k0 + n == k_last or (stop and first_outside >= 0):
             return n + 1, EVENT_NONE, first_outside
         for s in range(substeps):
@@ -382,6 +412,10 @@ def closed_loop(spec: FormationSpec, sim: Simulation) -> ClosedLoop:
         np.zeros((n, 6)),
         sim.sensors.draw_noise(1),
         np.zeros(1, dtype=np.int64),
+        sim.links is not None,
+        sim.links if sim.links is not None else no_links(),
+        np.zeros((1, n_links(sim.links) if sim.links is not None else 0, 3)),
+        np.zeros(1, dtype=np.int64),
     )
 
 
@@ -412,7 +446,7 @@ def first_step(spec: FormationSpec) -> np.ndarray:
     step 0, without physics (the velocity funnels as the agents set them)."""
     compile_in_two_processes(spec)
     sim = Simulation(simulator_view(spec), warm_up=False)
-    loop = closed_loop(spec, sim)
+    loop = closed_loop(spec, sim)._replace(links_on=False)  # the funnels as set on the sensors' first values
     n, n_ends = loop.agents.shape[0], loop.ends.shape[0]
     buf = new_buffers(1, n, n_ends, len(spec.edges))
     s = sim.state
@@ -492,7 +526,7 @@ def run_closed_loop(
     # about 8 MB of buffers per chunk, and progress at least every 2000 steps
     chunk = chunk or int(np.clip(8e6 / (len(ids) * 8 * 36), 100, 2000))
     neighbours = [ie.neighbour for a in ids for ie in agent_view(spec, a).edges]
-    buf = new_buffers(chunk, len(ids), len(neighbours), len(spec.edges))
+    buf = new_buffers(chunk, len(ids), len(neighbours), len(spec.edges), n_links(loop.links) if loop.links_on else 0)
     watch = new_watch(spec, recorder.judge)
     if substeps is None:  # physics steps per control period
         substeps = continuous_substeps(spec, sim.substeps) if continuous else sim.substeps
@@ -507,6 +541,8 @@ def run_closed_loop(
     while k <= n_steps:
         loop = _refill_noise(loop, sim, chunk * draws_per_step)
         k_stop = min(k + chunk, n_steps + 1)
+        if loop.links_on:  # exactly the chunk's steps: the stream as a step-by-step simulator draws it
+            loop = loop._replace(link_draws=sim.draw_link_uniforms(k_stop - k), link_cursor=np.zeros(1, dtype=np.int64))
         rate = float(sim_spec.control_rate)
         done, event, j = run_chunk(
             loop, watch, p, R, v, work, k, k_stop, n_steps, rate, chunk_control_times(k, k_stop, rate),
@@ -517,9 +553,12 @@ def run_closed_loop(
             violation = recorder.judge.violation_at(float(buf.t[j]), buf.p[j], buf.R[j], buf.margin_v[j])
         rows = slice(0, done)
         edges = EdgeSample(buf.e[rows], buf.psi[rows], buf.rho_e[rows], buf.rho_psi[rows])
+        start = recorder.judge.samples
         recorder.add_checked(
             buf.t[rows], buf.p[rows], buf.R[rows], buf.v[rows], buf.u[rows], edges, watch.checked, violation
         )
+        if loop.links_on:
+            recorder.add_link_ages(buf.link_age[rows], start)
         for j in np.flatnonzero(buf.level[:done].max(axis=1) == ERROR):  # the fault policy's record
             t = float(buf.t[j])
             missing, errors = step_faults(loop.first_end, neighbours, buf.in_range[j], buf.level[j], buf.reason[j])
@@ -536,4 +575,6 @@ def run_closed_loop(
         if progress is not None and now - last_report > 1.0:
             progress(k / sim_spec.control_rate, k / sim_spec.control_rate / (now - started), recorder.worst_margin())
             last_report = now
+    if loop.links_on:
+        recorder.links = link_summary(loop.links, sim.view)
     return time.perf_counter() - started, incomplete

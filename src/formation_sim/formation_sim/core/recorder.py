@@ -53,6 +53,8 @@ class RunRecorder:
     mode: str = "headless"
     control_rate: float = 0.0
     _rows: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    #: summary.json's ``links`` (formation_sim.core.links.link_summary), set by a run with a link model
+    links: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         self.judge = Judge(self.spec)
@@ -158,6 +160,12 @@ class RunRecorder:
         for key, arr in (("e", edges.e), ("psi", edges.psi), ("rho_e", edges.rho_e), ("rho_psi", edges.rho_psi)):
             self._rows[key].extend(arr[rows])
 
+    def add_link_ages(self, ages: np.ndarray, start: int) -> None:
+        """Every link's held sample's age (T, n_links) [s] at samples start … start + T − 1 (a link model's
+        runs), kept at the trajectory's samples as ``link_age``."""
+        rows = np.flatnonzero((start + np.arange(len(ages))) % self.record_every == 0)
+        self._rows.setdefault("link_age", []).extend(np.array(ages[rows], dtype=np.float64))
+
     def update_velocity(self, t: float, margin_v: np.ndarray) -> None:
         """Velocity margins (N,6) known at t between samples (:meth:`Judge.update_velocity`), after those queued."""
         self.flush()
@@ -196,7 +204,13 @@ class RunRecorder:
     def arrays(self) -> dict[str, np.ndarray]:
         """The decimated trajectory (docs/outputs.md)."""
         self.flush()
-        return {k: np.array(v) for k, v in self._rows.items()}
+        out = {k: np.array(v) for k, v in self._rows.items()}
+        if "link_age" in out and len(out["link_age"]) != len(out["t"]):  # a run stopped between the two
+            ages = np.full((len(out["t"]), out["link_age"].shape[1]), np.nan)
+            n = min(len(ages), len(out["link_age"]))
+            ages[:n] = out["link_age"][:n]
+            out["link_age"] = ages
+        return out
 
     def outcome(
         self, requested_duration: float | None, incomplete: Incomplete | None = None, untrusted: str | None = None
@@ -244,6 +258,7 @@ class RunRecorder:
             "worst_margin": j.worst_margin(),
             "faults": self.faults.as_dict(),
             "clearance": j.clearance(),
+            "links": self.links,
             "edges": {
                 name: {
                     "min_margin_e": j.min_margin_e[k],

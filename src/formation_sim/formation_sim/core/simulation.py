@@ -15,6 +15,17 @@ import numpy as np
 
 from formation_msgs_py.spec import SimulatorView
 from formation_msgs_py.wire import control_time, step_stamp_ns
+from formation_sim.core.links import (
+    LinkSet,
+    deliver_step,
+    draw_rows,
+    first_ends,
+    link_ages,
+    link_stream,
+    n_links,
+    new_link_set,
+    receive_step,
+)
 from formation_sim.core.measurement import Ends, MeasurementModel, RelativePoses, relative_poses
 from formation_sim.core.plant import Plant, PlantState
 
@@ -96,8 +107,24 @@ class Simulation:
         self.state: PlantState = self.plant.initial_state(view)
         self.step_index = 0
         self.agent_ids = tuple(a.id for a in view.agents)
+        #: the link model (formation_sim.core.links), None without one: every sample at once
+        self.links: LinkSet | None = None
+        #: the ages of :meth:`link_ages` at the step :meth:`advance` integrated last
+        self.closed_step_link_ages = np.zeros(0)
+        if view.has_links:
+            self.links = new_link_set(view)
+            self._link_rng = link_stream(seed_seq)
+            self._first_end = first_ends(view)
+            self._link_uniforms = np.zeros((0, n_links(self.links), 3))
+            self._applied = np.zeros((len(view.agents), 6))
         if warm_up:
             self._warm_up()
+
+    def draw_link_uniforms(self, steps: int) -> np.ndarray:
+        """The links' uniforms of the next ``steps`` control steps (the run core draws a chunk at a time;
+        :meth:`sense` one step at a time, from the same stream)."""
+        assert self.links is not None
+        return draw_rows(self._link_rng, steps, self.links)
 
     def _warm_up(self) -> None:
         """Load (or compile) the kernels now, not at the first step a realtime clock is running for.
@@ -122,15 +149,40 @@ class Simulation:
         return self.step_index / self.control_rate
 
     def sense(self) -> Measurements:
+        """The current step's measurements as the agents receive them: through the links, if any (the
+        newest sample each agent holds; a pose or velocity too old or never received is missing)."""
         s = self.state
         p_rel, q_rel, R_rel, in_range = self.sensors.measure(s.p, s.R)
         v = self.plant.measured_velocity(self.plant_time, s)
+        if self.links is not None:
+            self._link_uniforms = self.draw_link_uniforms(1)[0]
+            receive_step(self.links, self.step_index, self._link_uniforms, p_rel, q_rel, R_rel, in_range, v,
+                         self._first_end)  # fmt: skip
         ns = step_stamp_ns(self.step_index, self.control_rate)
         ends = self.sensors.ends
         return Measurements(control_time(ns), self.step_index, ns, p_rel, q_rel, R_rel, in_range, v, ends)
 
+    def deliver(self, wrench: np.ndarray) -> np.ndarray:
+        """The wrenches (N,6) the plant applies at the current step, given the agents' answers ``wrench``:
+        the answers themselves, or what the wrench links deliver (after :meth:`sense` of the same step;
+        once per step: :meth:`advance` calls it, the last step of a run calls it alone)."""
+        if self.links is None:
+            return wrench
+        commanded = np.ascontiguousarray(wrench, dtype=np.float64)
+        deliver_step(self.links, self.step_index, self._link_uniforms, commanded, self._applied)
+        return self._applied
+
+    def link_ages(self) -> np.ndarray:
+        """(n_links,) every link's held sample's age [s] at the current step (NaN: none yet), after its
+        deliveries (:meth:`sense`, :meth:`deliver`); empty without a link model."""
+        return np.zeros(0) if self.links is None else link_ages(self.links, self.step_index)
+
     def advance(self, wrench: np.ndarray) -> None:
-        """Integrate one control period with ``wrench`` (N,6) held (zero-order hold)."""
+        """Integrate one control period with the agents' answers ``wrench`` (N,6) held (zero-order hold),
+        through the wrench links if any (:meth:`deliver`)."""
+        wrench = self.deliver(wrench)
+        if self.links is not None:
+            self.closed_step_link_ages = self.link_ages()
         t0 = self.plant_time
         for i in range(self.substeps):
             self.state = self.plant.step(t0 + i * self.h, self.state, wrench, self.h)

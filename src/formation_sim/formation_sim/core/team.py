@@ -55,7 +55,7 @@ def team_step(t, p_rel, R_rel, in_range, v_measured, first_end, agents, ends, st
         if measured:
             agent_step(t, i, lo, hi, p_rel, R_rel, v_measured[i], agents, ends, start, out, edge_out)
         else:
-            fault_wrench(i, lo, hi, REASON_MISSING, out, edge_out)
+            fault_wrench(i, lo, hi, REASON_MISSING, out, edge_out, start)
 
 
 def load_team_step() -> None:
@@ -173,7 +173,7 @@ class AgentTeam:
         ``agents`` replaces the gains of every agent (a trial of other gains)."""
         lo, hi = self._ends_of[i]
         if not all(meas.in_range[lo:hi]):
-            fault_wrench(i, lo, hi, REASON_MISSING, self.out, self.edge_out)
+            fault_wrench(i, lo, hi, REASON_MISSING, self.out, self.edge_out, self.start)
             return
         self._step[i](
             meas.t, i, lo, hi, meas.p_rel, meas.R_rel, meas.velocities[i],

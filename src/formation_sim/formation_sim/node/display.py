@@ -18,6 +18,7 @@ Nothing here is read by an agent (docs/topics.md).
 from __future__ import annotations
 
 import importlib
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -30,8 +31,9 @@ from visualization_msgs.msg import Marker, MarkerArray
 from formation_msgs_py import topics
 from formation_msgs_py.options import RunOptions
 from formation_msgs_py.ros import conversions, parameters, qos
-from formation_msgs_py.spec import FormationSpec
+from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_msgs_py.wire import clock_bytes
+from formation_sim.core.links import CHANNELS, link_names
 from formation_sim.views.display_wire import FUNNEL_FIELDS, FunnelsWire, MarkerArrayWire
 from formation_sim.views.live_view import LiveView, display_topics
 from formation_sim.views.markers import FormationScene, Shape
@@ -81,6 +83,14 @@ class DisplayPublisher:
         self.frames = [topics.agent_frame(a) for a in spec.agent_ids]
         self.markers_pub = node.create_publisher(MarkerArray, topics.MARKERS, qos.DISPLAY)
         self.funnels_pub = node.create_publisher(Float64MultiArray, topics.FUNNELS, qos.DISPLAY)
+        # with a link model: every link's age, rows "channel:link" (formation_sim.core.links.link_names)
+        self.links_wire: FunnelsWire | None = None
+        self.links_pub: Any = None
+        if spec.has_links:
+            names = link_names(simulator_view(spec))
+            labels = [f"{channel}:{name}" for channel in CHANNELS for name in names[channel]]
+            self.links_wire = FunnelsWire(labels, ("age",), rows="link")
+            self.links_pub = node.create_publisher(Float64MultiArray, topics.LINKS, qos.DISPLAY)
         tf_class = _tf_message_class()
         self.tf_class = tf_class
         self.tf_pub = None if tf_class is None else node.create_publisher(tf_class, topics.TF, qos.DISPLAY)
@@ -90,7 +100,8 @@ class DisplayPublisher:
         self.live = live
         self.last_ns = 0  # of the last display instant: the live view's log time of /diagnostics
         if live is not None:
-            live.open(display_topics(self.markers_pub.topic_name, self.funnels_pub.topic_name))
+            links = None if self.links_pub is None else self.links_pub.topic_name
+            live.open(display_topics(self.markers_pub.topic_name, self.funnels_pub.topic_name, links))
             self.diagnostics_sub = node.create_subscription(
                 DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, qos.DIAGNOSTICS, raw=True
             )
@@ -104,6 +115,16 @@ class DisplayPublisher:
 
     def due(self, t: float) -> bool:
         return self.rate > 0.0 and t >= self.next_t - 1e-12
+
+    def publish_link_ages(self, t: float, ages: np.ndarray) -> None:
+        """``/formation/links``: every link's held sample's age [s] (NaN: none yet) at simulation time t [s],
+        a display instant (:meth:`due`)."""
+        if self.links_wire is None or self.links_pub is None:
+            return
+        data = self.links_wire.encode(ages[:, None])
+        self.links_pub.publish(data)
+        if self.live is not None:
+            self.live.send(self.links_pub.topic_name, data, round(t * conversions.NS_PER_S))
 
     def publish(self, t: float, p: np.ndarray, R: np.ndarray, u: np.ndarray | None) -> None:
         """Publish the scene at simulation time t [s] if a display instant is due."""

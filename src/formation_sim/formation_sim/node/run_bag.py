@@ -35,7 +35,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from formation_msgs_py.bag import KEY_RUN_STOPPED, STAMPED_TYPES
+from formation_msgs_py.bag import KEY_LINKS, KEY_RUN_STOPPED, STAMPED_TYPES
 from formation_msgs_py.bag.writer import McapFileWriter, SegmentedBagWriter
 from formation_msgs_py.errors import BagError, BagExistsError
 from formation_msgs_py.wire import stamp_of
@@ -201,12 +201,15 @@ class RunBag:
             "writer": "simulator",
         }
 
-    def close(self, stopped: tuple[int, str] | None = None) -> dict[str, Any]:
-        """Close the bag with its counts in custom_data, and why the run stopped before its end if it did
-        (``stopped``: exit status, reason; :data:`formation_msgs_py.bag.KEY_RUN_STOPPED`); the run
-        summary's ``recorder`` entry."""
+    def close(self, stopped: tuple[int, str] | None = None, links: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Close the bag with its counts in custom_data, why the run stopped before its end if it did
+        (``stopped``: exit status, reason; :data:`formation_msgs_py.bag.KEY_RUN_STOPPED`) and its
+        link model's statistics (:data:`formation_msgs_py.bag.KEY_LINKS`); the run summary's
+        ``recorder`` entry."""
         counts = self.counts()
         self.writer.custom_data["recorder_counts"] = json.dumps(counts, sort_keys=True)
+        if links is not None:
+            self.writer.custom_data[KEY_LINKS] = json.dumps(links, sort_keys=True)
         if stopped is not None:
             self.writer.custom_data[KEY_RUN_STOPPED] = json.dumps({"exit_status": stopped[0], "reason": stopped[1]})
         if self.first_wall is not None:

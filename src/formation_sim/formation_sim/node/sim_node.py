@@ -78,6 +78,7 @@ from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 from formation_msgs_py.wire import step_stamp_ns
 from formation_sim.core import wrench_checks
+from formation_sim.core.links import link_summary
 from formation_sim.core.measurement import measurement_ends
 from formation_sim.core.preflight import Prepared
 from formation_sim.core.recorder import RunRecorder
@@ -523,7 +524,10 @@ class Runner:
         if k % self.gt_every == 0:
             self.node.publish_ground_truth(ns, self.sim)
         if self.node.display is not None:  # markers at the display rate, with the latest wrenches
-            self.node.display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.wrenches.value))
+            display = self.node.display
+            if display.due(t) and self.sim.links is not None:
+                display.publish_link_ages(t, self.sim.link_ages())
+            display.publish(t, self.sim.state.p, self.sim.state.R, np.array(self.node.wrenches.value))
 
     def advance(self, u: np.ndarray) -> None:
         """Integrate one control period (raises RunStoppedError, agents named, if the state blew up,
@@ -586,8 +590,13 @@ class Runner:
             u = np.array(node.wrenches.value)
             rec.set_inputs(u, margin_v)
             if final:
+                if sim.links is not None:  # the last answers go onto the links too (the run core's count)
+                    sim.deliver(u)
+                    rec.add_link_ages(sim.link_ages()[None], k)
                 break
             self.advance(u)
+            if sim.links is not None:
+                rec.add_link_ages(sim.closed_step_link_ages[None], k)
             if k & 63 == 0:
                 self.progress(sim.t)
 
@@ -631,6 +640,8 @@ class Runner:
                 except RunStoppedError:
                     self._close_step(done, u, faults, late_tick)
                     raise
+                if sim.links is not None:
+                    rec.add_link_ages(sim.closed_step_link_ages[None], k - 1)
             if late_tick:
                 rec.fault(sim.t, "late_tick", "simulator", f"{lag * 1e3:.1f} ms late")
             if budget.exceeded(lag):
@@ -660,6 +671,9 @@ class Runner:
             pmeas, pstate, pmargin, _ = prev
             rec.add(pmeas.t, pstate.p, pstate.R, pstate.v, None, pmargin)
             rec.set_inputs(u)
+            if sim.links is not None:
+                sim.deliver(u)
+                rec.add_link_ages(sim.link_ages()[None], pmeas.step)
 
     def _close_step(
         self, step: tuple[Measurements, Any, np.ndarray, list], u: np.ndarray, faults: list, late_tick: bool
@@ -703,6 +717,11 @@ class Runner:
         # the step each agent last answered (None: never): the launcher dates an agent's death by it
         stamps = self.node.wrenches.stamp
         info["last_answer_t"] = {a: stamps[i] / NS if stamps[i] >= 0 else None for i, a in enumerate(self.node.ids)}
+        if self.sim.links is not None:
+            links = link_summary(self.sim.links, self.sim.view)
+            if self.args.mode == "realtime":  # what the real network added, under the emulated links
+                links["real_latency_ms"] = info.get("latency_ms")
+            self.recorder.links = links
         info.update(extra)
         return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)
 
@@ -831,7 +850,9 @@ class SimProcess:
         bag = self.bag
         if bag is not None:
             stopped = None if incomplete is None else (int(incomplete.code), incomplete.reason)
-            self.extra["recorder"] = bag.close(stopped)
+            sim = None if self.runner is None else self.runner.sim
+            links = None if sim is None or sim.links is None else link_summary(sim.links, sim.view)
+            self.extra["recorder"] = bag.close(stopped, links)
             if bag.failed is not None and incomplete is None:
                 print(f"formation-sim: ERROR: {bag.failed}", file=sys.stderr, flush=True)
                 incomplete = Incomplete(ExitCode.INCOMPLETE, bag.failed)

@@ -204,11 +204,11 @@ FUNNEL_FIELDS = ("e", "e_lower", "e_upper", "psi", "rho_psi")
 class FunnelsWire:
     """``/formation/funnels`` (std_msgs/Float64MultiArray): K edges × the given fields, as CDR bytes."""
 
-    def __init__(self, edge_names: Sequence[str], fields: Sequence[str]) -> None:
+    def __init__(self, edge_names: Sequence[str], fields: Sequence[str], rows: str = "edge") -> None:
         k, m = len(edge_names), len(fields)
         cdr = CdrTemplate()
         cdr.u32(2)  # layout.dim
-        for label, size, stride in (("edge " + ",".join(edge_names), k, m * k), (",".join(fields), m, m)):
+        for label, size, stride in ((f"{rows} " + ",".join(edge_names), k, m * k), (",".join(fields), m, m)):
             cdr.string(label)
             cdr.u32(size)
             cdr.u32(stride)

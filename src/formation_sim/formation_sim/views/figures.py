@@ -20,7 +20,10 @@ figure (every panel draws the same kinds of line):
   differs by the noise;
 - ``clearance.png``: per agent, its clearance to the nearest other body (the distance between
   centres minus both radii [m], every body, neighbour or not: the judge's
-  :class:`formation_msgs_py.judge.Pairs`), with contact (clearance ≤ 0) shaded.
+  :class:`formation_msgs_py.judge.Pairs`), with contact (clearance ≤ 0) shaded;
+- ``link_ages.png`` (runs with a link model only): the age [ms] of the sample each link's receiver
+  holds, per channel (relative poses, velocities, wrenches), with the age past which it is missing
+  (the agents' ``measurement_timeout``, the plant's ``command_timeout``).
 
 Arrays as in trajectory.npz (agents and edges in file order).
 """
@@ -40,8 +43,9 @@ from formation_msgs_py import funnels
 from formation_msgs_py.judge import Pairs
 from formation_msgs_py.spec import FormationSpec, agent_view
 
-#: the files :func:`plot_run` writes, in order
+#: the files :func:`plot_run` writes, in order, and with a link model :data:`LINK_FIGURE` after them
 FIGURES = ("errors.png", "orientation_errors.png", "inputs.png", "velocity_errors.png", "clearance.png")
+LINK_FIGURE = "link_ages.png"
 VELOCITY_LABELS = ("$v_x$", "$v_y$", "$v_z$", r"$\omega_x$", r"$\omega_y$", r"$\omega_z$")
 COMPONENT_COLOURS = ("C0", "C1", "C2")
 ZOOM_FROM = 0.5  # the insets show the second half of the run, over which they sit
@@ -163,13 +167,47 @@ def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], 
 
 
 def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> list[Path]:
-    return [
+    paths = [
         _distance_errors(plt, out_dir, spec, arrays, caption),
         _orientation_errors(plt, out_dir, spec, arrays, caption),
         _inputs(plt, out_dir, spec, arrays, caption),
         _velocity_errors(plt, out_dir, spec, arrays, caption),
         _clearance(plt, out_dir, spec, arrays, caption),
     ]
+    if "link_age" in arrays and arrays["link_age"].size:
+        paths.append(_link_ages(plt, out_dir, spec, arrays, caption))
+    return paths
+
+
+def _link_ages(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
+    from formation_msgs_py.spec import simulator_view
+    from formation_sim.core.links import CHANNELS, link_names
+
+    t, ages = arrays["t"], arrays["link_age"] * 1e3
+    names = link_names(simulator_view(spec))
+    timeouts = {
+        "poses": max(a.controller.measurement_timeout for a in spec.agents),
+        "velocity": max(a.controller.measurement_timeout for a in spec.agents),
+        "wrench": spec.simulation.command_timeout,
+    }
+    fig, axes = _grid(plt, 3, 1, 9.0, 2.4, caption, top=0.75)
+    first = 0
+    for row, channel in enumerate(CHANNELS):
+        ax = axes[row][0]
+        for j, name in enumerate(names[channel]):
+            ax.plot(t, ages[:, first + j], lw=0.9, label=name, color=f"C{j % 10}", drawstyle="steps-post")
+        first += len(names[channel])
+        ax.axhline(timeouts[channel] * 1e3, color="#c62828", lw=0.8, ls="--")
+        ax.set_ylabel("age [ms]")
+        what = {"poses": "relative poses (observer->neighbour)", "velocity": "velocities", "wrench": "wrenches"}
+        ax.set_title(f"{what[channel]}: age of the sample held (dashed: missing beyond)", fontsize=10)
+        ax.grid(alpha=0.3)
+        if len(names[channel]) <= 12:
+            ax.legend(fontsize=7, ncol=6, loc="upper right")
+    axes[-1][0].set_xlabel("t [s]")
+    path = _save(fig, out_dir / LINK_FIGURE)
+    plt.close(fig)
+    return path
 
 
 UPPER: dict[str, Any] = {"color": "C3", "ls": "--", "lw": 1.0}

@@ -1,5 +1,6 @@
 """The Foxglove layout of a formation: a 3D view of ``/formation/markers`` beside plots of every edge's
-e and ψ in their funnels (``/formation/funnels``) and the agents' ``/diagnostics``.
+e and ψ in their funnels (``/formation/funnels``), with a link model the age of each link's held
+sample (``/formation/links``), and the agents' ``/diagnostics``.
 
 Made from the formation (no ROS), so that every run can leave the layout of its own formation in
 OUT (``foxglove_layout.json``); ``foxglove/formation_layout.json`` is the paper scenario's. A plot
@@ -127,6 +128,7 @@ def foxglove_layout(spec: FormationSpec) -> dict[str, Any]:
             "Plot!distance": _plot(f"distance errors e_k [m²] in their funnels (/{topics.FUNNELS})", distance),
             "Plot!orientation": _plot(f"orientation errors ψ_k [-] under ρ_ψ (/{topics.FUNNELS})", orientation),
             "DiagnosticSummary!agents": {"topicToRender": topics.DIAGNOSTICS},
+            **({"Plot!links": _link_ages_plot(spec)} if spec.has_links else {}),
         },
         "globalVariables": {},
         "userNodes": {},
@@ -140,7 +142,11 @@ def foxglove_layout(spec: FormationSpec) -> dict[str, Any]:
                 "second": {
                     "direction": "column",
                     "first": "Plot!orientation",
-                    "second": "DiagnosticSummary!agents",
+                    "second": (
+                        {"direction": "row", "first": "Plot!links", "second": "DiagnosticSummary!agents"}
+                        if spec.has_links
+                        else "DiagnosticSummary!agents"
+                    ),
                     "splitPercentage": 65,
                 },
                 "splitPercentage": 45,
@@ -148,6 +154,27 @@ def foxglove_layout(spec: FormationSpec) -> dict[str, Any]:
             "splitPercentage": 55,
         },
     }
+
+
+def _link_ages_plot(spec: FormationSpec) -> dict[str, Any]:
+    """Every link's held sample's age [s] (``/formation/links``, one value per link)."""
+    from formation_msgs_py.spec import simulator_view
+    from formation_sim.core.links import CHANNELS, link_names
+
+    names = link_names(simulator_view(spec))
+    labels = [f"{channel} {name}" for channel in CHANNELS for name in names[channel]]
+    lines = [
+        {
+            "value": f"/{topics.LINKS}.data[{j}]",
+            "enabled": True,
+            "timestampMethod": "receiveTime",
+            "label": label,
+            "color": EDGE_COLOURS[j % len(EDGE_COLOURS)],
+            "lineSize": 1.0,
+        }
+        for j, label in enumerate(labels)
+    ]
+    return _plot(f"age of each link's held sample [s] (/{topics.LINKS})", lines)
 
 
 def layout_text(spec: FormationSpec) -> str:

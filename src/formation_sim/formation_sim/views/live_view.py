@@ -59,15 +59,16 @@ def message_definition(msgtype: str) -> str:
     return text
 
 
-def display_topics(markers: str = "/" + topics.MARKERS, funnels: str = "/" + topics.FUNNELS) -> dict[str, str]:
-    """The live view's topics and their ROS 2 types: markers, funnels (names as resolved by the
-    node), ``/diagnostics`` and ``/clock``."""
-    return {
-        markers: MARKER_ARRAY,
-        funnels: FLOAT64_MULTI_ARRAY,
-        topics.DIAGNOSTICS: DIAGNOSTIC_ARRAY,
-        topics.CLOCK: CLOCK,
-    }
+def display_topics(
+    markers: str = "/" + topics.MARKERS, funnels: str = "/" + topics.FUNNELS, links: str | None = None
+) -> dict[str, str]:
+    """The live view's topics and their ROS 2 types: markers, funnels, the link ages with a link
+    model (names as resolved by the node), ``/diagnostics`` and ``/clock``."""
+    out = {markers: MARKER_ARRAY, funnels: FLOAT64_MULTI_ARRAY}
+    if links is not None:
+        out[links] = FLOAT64_MULTI_ARRAY
+    out.update({topics.DIAGNOSTICS: DIAGNOSTIC_ARRAY, topics.CLOCK: CLOCK})
+    return out
 
 
 class LiveView:

@@ -127,9 +127,44 @@ def format_summary(summary: dict[str, Any]) -> str:
     for aid, s in summary["agents"].items():
         lines.append(f"  {aid:<8} {s['peak_force']:>14.4g}   {s['peak_torque']:>17.4g}   {_f(s['min_margin_v']):>12}")
     lines.extend(clearance_lines(summary.get("clearance")))
+    lines.extend(link_lines(summary.get("links")))
     lines.extend(fault_lines(summary.get("faults") or {}))
     lines.extend(fault_meanings(summary.get("faults") or {}))
     return "\n".join(lines)
+
+
+def _ms(seconds: float | None) -> str:
+    return "-" if seconds is None else f"{seconds * 1e3:.3g} ms"
+
+
+def link_lines(links: dict[str, Any] | None) -> list[str]:
+    """Per channel of a link model: samples sent, lost, and the held samples' ages; the worst link."""
+    if not links:
+        return []
+    lines = []
+    for channel in ("poses", "velocity", "wrench"):
+        c = links.get(channel)
+        if not c:
+            continue
+        age = c["age"]
+        lost = 0.0 if c["loss_rate"] is None else 100.0 * c["loss_rate"]
+        lines.append(
+            f"  links: {channel}: {c['sent']} samples sent, {lost:.3g} % lost; age median {_ms(age['median'])}, "
+            f"99th percentile {_ms(age['p99'])}, max {_ms(age['max'])}"
+        )
+    real = links.get("real_latency_ms")
+    if real and real.get("samples"):
+        lines.append(
+            f"  links: the real network under them (realtime, publish to answer): median {real['p50']:.3g} ms, "
+            f"99th percentile {real['p99']:.3g} ms, max {real['max']:.3g} ms"
+        )
+    worst = links.get("worst")
+    if worst:
+        lines.append(
+            f"  links: worst {worst['channel']} {worst['link']}: 99th percentile age {_ms(worst['age_p99'])}, "
+            f"{100.0 * worst['loss_rate']:.3g} % lost"
+        )
+    return lines
 
 
 def contact_note(summary: dict[str, Any]) -> str:

@@ -182,9 +182,17 @@ def test_every_declared_key_is_read_and_no_other(tmp_path, paper_path) -> None:
     """A file with every declared key (the preset plus a duration) loads with each value; one more key
     at the top or in vary is refused."""
     doc = yaml.safe_load((REPO / "config" / "campaigns" / "paper_random_plants.yaml").read_text(encoding="utf-8"))
-    doc.update(formation="paper.yaml", duration=0.5)
+    links = {
+        "apply_to": ["poses", "wrench"],
+        "delay": [0.0, 0.001],
+        "loss": [0.0],
+        "jitter": [0.0],
+        "sensor_rate": [None],
+    }
+    doc.update(formation="paper.yaml", duration=0.5, links=links, gains={"delta": [0.1], "gamma": [15.0, 10.0]})
     declared = {k.name: {c.name for c in k.children} for k in campaign.CAMPAIGN_KEYS}
     assert set(doc) == set(declared) and set(doc["vary"]) == declared["vary"]
+    assert set(doc["links"]) == declared["links"] and set(doc["gains"]) == declared["gains"]
     c = load_campaign(write_campaign(tmp_path, paper_path, doc))
     assert (c.samples, c.seed, c.control_rates, c.duration) == (100, 2026, (1000.0, 2000.0, 5000.0, 10000.0), 0.5)
     assert c.vary == {
@@ -194,6 +202,10 @@ def test_every_declared_key_is_read_and_no_other(tmp_path, paper_path) -> None:
         "noise_amplitude": (0.0, 0.1),
         "initial_rotation": 0.05,
     }
+    assert c.links == {
+        "apply_to": ("poses", "wrench"), "delay": (0.0, 0.001), "loss": (0.0,), "jitter": (0.0,), "sensor_rate": (None,)
+    }  # fmt: skip
+    assert c.gains == {"delta": (0.1,), "gamma": (15.0, 10.0)} and len(c.conditions()) == 4
     for extra in ({"extra": 1}, {"vary": {**doc["vary"], "extra": [0, 1]}}):
         with pytest.raises(campaign.CampaignError, match="extra: unknown key"):
             load_campaign(write_campaign(tmp_path, paper_path, {**doc, **extra}))
@@ -218,3 +230,48 @@ def test_docs_name_every_column_of_runs_csv() -> None:
     doc = (REPO / "docs" / "campaigns.md").read_text(encoding="utf-8")
     names = [*campaign.COLUMNS, "runs.jsonl", "runs.csv", "summary.json", "pass_rate.png", "worst_margin.png"]
     assert [name for name in names if f"`{name}`" not in doc] == []
+
+
+def test_a_link_grid_gives_a_pass_rate_per_condition_and_the_largest_delay_and_loss(tmp_path, paper_path) -> None:
+    """links: delay × loss crossed with the rate: a row per sample, rate and condition (its values named), a
+    pass rate per condition, the largest delay and loss at which the runs pass, link_pass_rate.png; a
+    rerun resumes by condition too (nothing left to do)."""
+    doc = {**SMALL, "control_rates": [10000], "links": {"delay": [0.0, 0.0005], "loss": [0.0, 0.5]}}
+    c = load_campaign(write_campaign(tmp_path, paper_path, doc))
+    out = tmp_path / "out"
+    summary = run_campaign(c, out, workers=1, quiet=True)
+    rows = (out / "runs.csv").read_text().splitlines()
+    assert rows[0].split(",")[:8] == ["sample", "control_rate", *campaign.CONDITIONS]
+    assert len(rows) == 1 + 2 * 4
+    cells = {(x["link_delay"], x["link_loss"]): x for x in summary["per_condition"]}
+    assert set(cells) == {(0.0, 0.0), (0.0, 0.5), (0.0005, 0.0), (0.0005, 0.5)}
+    assert all(x["runs"] == 2 for x in cells.values())
+    # 30 ms of the paper: too short for half a millisecond or half the samples lost to show (the
+    # rule of the largest delay and loss when a cell fails: the test below)
+    assert all(x["pass_rate"] == 1.0 for x in cells.values())
+    (tol,) = summary["tolerance"]
+    assert (tol["largest_delay"], tol["largest_loss"]) == (0.0005, 0.5)
+    assert (out / "link_pass_rate.png").stat().st_size > 5_000
+    assert json.loads((out / "summary.json").read_text())["tolerance"] == summary["tolerance"]
+    assert campaign.tasks(c) and all(t.key in campaign._finished(out / "runs.jsonl") for t in campaign.tasks(c))
+
+
+def test_a_sensor_faster_than_a_control_rate_is_refused(tmp_path, paper_path) -> None:
+    doc = {**SMALL, "links": {"sensor_rate": [None, 1e6]}}
+    with pytest.raises(campaign.CampaignError, match=r"links\.sensor_rate\[1\]: .* faster than the control rate"):
+        load_campaign(write_campaign(tmp_path, paper_path, doc))
+
+
+def test_the_largest_delay_is_the_last_of_an_unbroken_run_of_passes() -> None:
+    """A cell under 95 % ends the run: a pass at a larger delay after it does not count."""
+
+    def cell(delay: float, loss: float, rate: float) -> dict:
+        return {"control_rate": 1000.0, "link_delay": delay, "link_loss": loss, "link_jitter": 0.0,
+                "sensor_rate": None, "delta": None, "gamma": None, "pass_rate": rate}  # fmt: skip
+
+    cells = [cell(0.0, 0.0, 1.0), cell(0.001, 0.0, 0.96), cell(0.002, 0.0, 0.5), cell(0.005, 0.0, 1.0)]
+    cells += [cell(0.0, 0.01, 0.97), cell(0.0, 0.05, 0.2)]
+    (tol,) = campaign.tolerance(cells)
+    assert (tol["largest_delay"], tol["largest_loss"]) == (0.001, 0.01)
+    (none,) = campaign.tolerance([cell(0.0, 0.0, 0.9), cell(0.001, 0.0, 1.0)])
+    assert none["largest_delay"] is None

@@ -105,3 +105,25 @@ def test_console_script_and_schema(paper_path) -> None:
         [str(exe), str(paper_path), "--control-rate", "1000", "--quiet"], capture_output=True, text=True
     )
     assert res.returncode == 1
+
+
+def test_a_link_model_is_reported_and_one_whose_samples_are_never_used_is_unsafe(paper_doc, tmp_path, capsys) -> None:
+    """Each link's largest age with none lost against its receiver's time-out, the losses in a row that make a
+    measurement too old (at 2 % independent loss, 10 samples of 0.1 ms: 0.02^… per sample), and the note that
+    only a campaign tells the margin; poses 0.2 s late, past the 0.1 s time-out, make the file unsafe."""
+    paper_doc["defaults"]["agent"]["links"] = {
+        "poses": {"delay": 0.0001, "loss": {"model": "independent", "probability": 0.02}}
+    }
+    path = tmp_path / "links.yaml"
+    path.write_text(yaml.safe_dump(paper_doc))
+    assert check.main([str(path)]) == 0
+    out = capsys.readouterr().out
+    # worst age 1 step (0.1 ms); time-out 0.1 s = 1000 steps: 1000 losses in a row to miss it
+    assert re.search(r"poses 1->2 +0\.1 +100 +1000 +0\.02 independent", out), out
+    assert "only a campaign can tell" in out
+    paper_doc["agents"][2]["links"] = {"poses": {"delay": 0.2}}
+    path.write_text(yaml.safe_dump(paper_doc))
+    assert check.main([str(path), "--quiet"]) == 1
+    assert (
+        "link poses 3->1: its samples are 200 ms old with none lost, older than the 100 ms" in capsys.readouterr().err
+    )

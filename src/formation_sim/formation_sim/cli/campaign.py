@@ -46,9 +46,13 @@ from formation_msgs_py.schema import REQUIRED
 if TYPE_CHECKING:  # numpy, the loader of formations and the cores: imported where used, not for --help
     from formation_msgs_py.spec import FormationSpec, SignalModel
 
+#: the conditions a campaign may cross with the control rate: a link model's values (``links``) and
+#: gains (``gains``); each run's row names its own (empty where the campaign does not set one)
+CONDITIONS = ("link_delay", "link_loss", "link_jitter", "sensor_rate", "delta", "gamma")
 COLUMNS = (
     "sample",
     "control_rate",
+    *CONDITIONS,
     "seed",
     "verdict",
     "violation_t",
@@ -82,11 +86,28 @@ class Campaign:
     control_rates: tuple[float, ...]
     duration: float | None
     vary: Mapping[str, Any]
+    #: the link grid (``apply_to``, ``delay``, ``loss``, ``jitter``, ``sensor_rate``), empty: the file's links
+    links: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    #: the gains grid (``delta``, ``gamma``: tuples, None: the file's)
+    gains: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    def conditions(self) -> list[tuple[Any, ...]]:
+        """Every combination of the grids, in :data:`CONDITIONS` order (None: the file's value)."""
+        links, gains = self.links, self.gains
+        out = []
+        for delay in links.get("delay") or (None,):
+            for loss in links.get("loss") or (None,):
+                for jitter in links.get("jitter") or (None,):
+                    for rate in links.get("sensor_rate") or (None,):
+                        for delta in gains.get("delta") or (None,):
+                            for gamma in gains.get("gamma") or (None,):
+                                out.append((delay, loss, jitter, rate, delta, gamma))
+        return out
 
 
 @dataclass(frozen=True)
 class Task:
-    """One headless run: sample ``sample`` of the campaign at ``control_rate``."""
+    """One headless run: sample ``sample`` of the campaign at ``control_rate`` under ``condition``."""
 
     formation: str
     sample: int
@@ -95,10 +116,19 @@ class Task:
     vary: Mapping[str, Any]
     entropy: int
     spawn_key: tuple[int, ...]
+    #: values of :data:`CONDITIONS` (None: the file's)
+    condition: tuple[Any, ...] = (None,) * len(CONDITIONS)
+    #: the channels the link values apply to
+    apply_to: tuple[str, ...] = ()
 
     @property
-    def key(self) -> tuple[int, float]:
-        return self.sample, self.control_rate
+    def key(self) -> tuple[Any, ...]:
+        return (self.sample, self.control_rate, *self.condition)
+
+
+def row_key(row: Mapping[str, Any]) -> tuple[Any, ...]:
+    """The :attr:`Task.key` of a finished run's row."""
+    return (row["sample"], row["control_rate"], *(row.get(c) for c in CONDITIONS))
 
 
 # --- the campaign file ---------------------------------------------------------------------------
@@ -168,6 +198,55 @@ def _angle(field: str, value: Any, base: Path) -> float:
     if not 0 <= angle < math.pi:
         raise CampaignError(field, f"expected an angle in [0, pi) [rad], got {value!r}")
     return angle
+
+
+def _grid(field: str, value: Any, *, low: float = 0.0, high: float = math.inf, none: bool = False) -> tuple:
+    """A non-empty list of numbers in [low, high] (``none``: null allowed, the file's value)."""
+    if not isinstance(value, list) or not value:
+        raise CampaignError(field, f"expected a non-empty list, got {value!r}")
+    out: list[float | None] = []
+    for k, x in enumerate(value):
+        if x is None and none:
+            out.append(None)
+            continue
+        x = float(_number(f"{field}[{k}]", x))
+        if not low <= x <= high:
+            raise CampaignError(f"{field}[{k}]", f"expected a value in [{low:g}, {high:g}], got {x!r}")
+        out.append(x)
+    return tuple(out)
+
+
+def _seconds_grid(field: str, value: Any, base: Path) -> tuple:
+    return _grid(field, value)
+
+
+def _probability_grid(field: str, value: Any, base: Path) -> tuple:
+    return _grid(field, value, high=1.0)
+
+
+def _rate_grid(field: str, value: Any, base: Path) -> tuple:
+    out = _grid(field, value, none=True)
+    for k, x in enumerate(out):
+        if x is not None and x <= 0:
+            raise CampaignError(f"{field}[{k}]", f"expected a rate > 0 [Hz] or null, got {x!r}")
+    return out
+
+
+def _gain_grid(field: str, value: Any, base: Path) -> tuple:
+    out = _grid(field, value)
+    for k, x in enumerate(out):
+        if x <= 0:
+            raise CampaignError(f"{field}[{k}]", f"expected a gain > 0, got {x!r}")
+    return out
+
+
+LINK_CHANNELS = ("poses", "velocity", "wrench")
+
+
+def _channels(field: str, value: Any, base: Path) -> tuple[str, ...]:
+    if not isinstance(value, list) or not value or any(v not in LINK_CHANNELS for v in value):
+        raise CampaignError(field, f"expected a non-empty list of {', '.join(LINK_CHANNELS)}, got {value!r}")
+    return tuple(dict.fromkeys(value))
 
 
 @dataclass(frozen=True)
@@ -271,6 +350,61 @@ CAMPAIGN_KEYS: tuple[Key, ...] = (
             ),
         ),
     ),
+    Key(
+        "links",
+        "mapping",
+        {},
+        "",
+        "a grid of link models ([links.md](links.md)) crossed with the control rates: every sample runs under "
+        "every combination of the lists below, each value set on every agent's links of `apply_to` (an "
+        "edge's own link of those channels is dropped); left out: the formation file's links",
+        children=(
+            Key(
+                "apply_to",
+                "non-empty list of poses, velocity, wrench",
+                ["poses"],
+                "",
+                "the channels the values set (`sensor_rate` and `jitter` do not apply to `wrench`)",
+                _channels,
+            ),
+            Key("delay", "non-empty list of numbers ≥ 0", [0.0], "s", "the links' constant latency", _seconds_grid),
+            Key(
+                "loss",
+                "non-empty list of numbers in [0, 1]",
+                [0.0],
+                "",
+                "each sample lost independently with this probability",
+                _probability_grid,
+            ),
+            Key(
+                "jitter",
+                "non-empty list of numbers ≥ 0",
+                [0.0],
+                "s",
+                "extra delay of each sample, uniform on [0, jitter]",
+                _seconds_grid,
+            ),
+            Key(
+                "sensor_rate",
+                "non-empty list of numbers > 0 or null",
+                [None],
+                "Hz",
+                "sensor rate (sample and hold); null: every control step; at most every control rate",
+                _rate_grid,
+            ),
+        ),
+    ),
+    Key(
+        "gains",
+        "mapping",
+        {},
+        "",
+        "gains crossed with the rest: every agent's δ and γ set to each value; left out: the file's",
+        children=(
+            Key("delta", "non-empty list of numbers > 0", None, "", "δ of every agent", _gain_grid),
+            Key("gamma", "non-empty list of numbers > 0", None, "", "γ of every agent", _gain_grid),
+        ),
+    ),
 )
 
 
@@ -302,8 +436,20 @@ def parse_campaign(document: Any, base: Path) -> Campaign:
     relative paths start from."""
     if not isinstance(document, Mapping):
         raise CampaignError("<top>", f"a campaign file is a mapping, got {type(document).__name__}")
+    given_links = "links" in document and document["links"] is not None
     parsed = _parse_keys(document, CAMPAIGN_KEYS, "", base)
     parsed["vary"] = {k: v for k, v in parsed["vary"].items() if v is not None}  # only what varies
+    links = parsed["links"]
+    if given_links:
+        links = {k: tuple(v) if isinstance(v, list) else v for k, v in links.items()}
+        for k, rate in enumerate(links["sensor_rate"]):
+            if rate is not None and rate > min(parsed["control_rates"]):
+                raise CampaignError(
+                    f"links.sensor_rate[{k}]",
+                    f"{rate:g} Hz is faster than the control rate {min(parsed['control_rates']):g} Hz",
+                )
+    parsed["links"] = links if given_links else {}
+    parsed["gains"] = {k: v for k, v in parsed["gains"].items() if v is not None}
     return Campaign(**parsed)
 
 
@@ -347,20 +493,24 @@ def tasks(campaign: Campaign) -> list[Task]:
     entropy = root.entropy
     assert isinstance(entropy, int)  # the campaign's seed
     out = []
+    apply_to = tuple(campaign.links.get("apply_to", ()))
     for child in root.spawn(campaign.samples):
         i = child.spawn_key[-1]
-        for rate in campaign.control_rates:
-            out.append(
-                Task(
-                    str(campaign.formation),
-                    i,
-                    rate,
-                    campaign.duration,
-                    campaign.vary,
-                    entropy,
-                    tuple(child.spawn_key),
+        for condition in campaign.conditions():
+            for rate in campaign.control_rates:
+                out.append(
+                    Task(
+                        str(campaign.formation),
+                        i,
+                        rate,
+                        campaign.duration,
+                        campaign.vary,
+                        entropy,
+                        tuple(child.spawn_key),
+                        condition,
+                        apply_to,
+                    )
                 )
-            )
     return out
 
 
@@ -403,12 +553,44 @@ def sample_spec(task: Task) -> FormationSpec:
         dyn = dataclasses.replace(d, mass=mass, inertia=inertia, disturbance=dist, velocity_noise=noise)
         agents.append(dataclasses.replace(a, dynamics=dyn, R_world_body=R))
     spec = dataclasses.replace(spec, agents=tuple(agents))
+    spec = _with_condition(spec, task.condition, task.apply_to)
     physics = task.control_rate * max(1, round(spec.simulation.physics_rate / task.control_rate))
     changes: dict[str, Any] = {"control_rate": task.control_rate, "physics_rate": physics}
     changes["record_rate"] = min(spec.simulation.record_rate, task.control_rate)
     if task.duration is not None:
         changes["duration"] = task.duration
+    if task.apply_to:  # a link grid: each sample its own losses and jitter (and noise), the same at every condition
+        changes["seed"] = spec.simulation.seed + task.sample
     return spec.with_simulation(**changes)
+
+
+def _with_condition(spec: FormationSpec, condition: tuple[Any, ...], apply_to: tuple[str, ...]) -> FormationSpec:
+    """``spec`` with a run's link values on every agent's links of ``apply_to`` and its gains."""
+    from formation_msgs_py.spec import EdgeLinks, MeasurementLink, SignalModel, WrenchLink
+
+    delay, loss, jitter, sensor_rate, delta, gamma = condition
+    agents = []
+    for a in spec.agents:
+        c = a.controller
+        controller = dataclasses.replace(
+            c, delta=c.delta if delta is None else delta, gamma=c.gamma if gamma is None else gamma
+        )
+        links = a.links
+        if delay is not None:
+            loss_model = SignalModel("independent", {"probability": loss}) if loss else SignalModel("none", {})
+            spread = SignalModel("uniform", {"max": jitter}) if jitter else SignalModel("none", {})
+            measured = MeasurementLink(sensor_rate, delay, spread, loss_model)
+            links = dataclasses.replace(
+                links,
+                poses=measured if "poses" in apply_to else links.poses,
+                velocity=measured if "velocity" in apply_to else links.velocity,
+                wrench=WrenchLink(delay, loss_model) if "wrench" in apply_to else links.wrench,
+            )
+        agents.append(dataclasses.replace(a, controller=controller, links=links))
+    edges = spec.edges
+    if delay is not None and "poses" in apply_to:
+        edges = tuple(dataclasses.replace(e, links=EdgeLinks(None, None)) for e in spec.edges)
+    return dataclasses.replace(spec, agents=tuple(agents), edges=edges)
 
 
 def run_task(task: Task) -> dict[str, Any]:
@@ -427,6 +609,7 @@ def run_task(task: Task) -> dict[str, Any]:
     return {
         "sample": task.sample,
         "control_rate": task.control_rate,
+        **dict(zip(CONDITIONS, task.condition)),
         "seed": f"{task.entropy}:{'/'.join(map(str, task.spawn_key))}",
         "verdict": summary["verdict"],  # PASS, FAIL or INCOMPLETE
         "violation_t": fv.get("t"),
@@ -445,7 +628,7 @@ def run_task(task: Task) -> dict[str, Any]:
 # --- running many ------------------------------------------------------------------------------
 
 
-def _finished(log: Path) -> dict[tuple[int, float], dict[str, Any]]:
+def _finished(log: Path) -> dict[tuple[Any, ...], dict[str, Any]]:
     """Rows of an earlier (interrupted) campaign in ``log``; a torn last line is ignored."""
     rows = {}
     if log.exists():
@@ -454,7 +637,7 @@ def _finished(log: Path) -> dict[tuple[int, float], dict[str, Any]]:
                 row = json.loads(line)
             except json.JSONDecodeError:
                 continue
-            rows[(row["sample"], row["control_rate"])] = row
+            rows[row_key(row)] = row
     return rows
 
 
@@ -533,7 +716,7 @@ def summarise(rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
                 if k
             },
         }
-    return {
+    out: dict[str, Any] = {
         "formation": str(campaign.formation),
         "samples": campaign.samples,
         "seed": campaign.seed,
@@ -541,11 +724,78 @@ def summarise(rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
         "duration": campaign.duration,
         "per_control_rate": per_rate,
     }
+    if campaign.links or campaign.gains:
+        out["links"] = {k: list(v) if isinstance(v, tuple) else v for k, v in campaign.links.items()}
+        out["gains"] = {k: list(v) for k, v in campaign.gains.items()}
+        out["per_condition"] = per_condition(rows, campaign)
+        out["tolerance"] = tolerance(out["per_condition"])
+    return out
+
+
+#: a pass rate at least this is what ``tolerance`` calls holding
+HOLDS = 0.95
+
+
+def _largest(group: list[dict[str, Any]], axis: str, fixed: str) -> float | None:
+    """The largest value of ``axis`` up to which every cell passes :data:`HOLDS` (``fixed`` at its least)."""
+    least = min((c[fixed] for c in group if c[fixed] is not None), default=None)
+    line = sorted((c for c in group if c[fixed] == least), key=lambda c: c[axis] or 0.0)
+    best = None
+    for c in line:
+        if (c["pass_rate"] or 0.0) < HOLDS:
+            break
+        best = c[axis]
+    return best
+
+
+def per_condition(rows: list[dict[str, Any]], campaign: Campaign) -> list[dict[str, Any]]:
+    """Pass rate and its 95 % interval of every condition of the grids at every control rate."""
+    out = []
+    for condition in campaign.conditions():
+        for rate in campaign.control_rates:
+            sel = [r for r in rows if r["control_rate"] == rate and tuple(r.get(c) for c in CONDITIONS) == condition]
+            passes = sum(r["verdict"] == "PASS" for r in sel)
+            lo, hi = wilson(passes, len(sel))
+            out.append(
+                {
+                    "control_rate": rate,
+                    **dict(zip(CONDITIONS, condition)),
+                    "runs": len(sel),
+                    "passes": passes,
+                    "pass_rate": passes / len(sel) if sel else None,
+                    "pass_rate_ci95": [lo, hi],
+                }
+            )
+    return out
+
+
+def tolerance(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per group of conditions that differ only in delay and loss: the largest delay at which at least
+    :data:`HOLDS` of the runs pass at every delay up to it (at the grid's smallest loss), and the
+    largest loss likewise (at the smallest delay); None where even the smallest fails."""
+    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    for c in cells:
+        key = (c["control_rate"], c["link_jitter"], c["sensor_rate"], c["delta"], c["gamma"])
+        groups.setdefault(key, []).append(c)
+    out = []
+    for (rate, jitter, sensor, delta, gamma), group in groups.items():
+        out.append(
+            {
+                "control_rate": rate,
+                "link_jitter": jitter,
+                "sensor_rate": sensor,
+                "delta": delta,
+                "gamma": gamma,
+                "largest_delay": _largest(group, "link_delay", "link_loss"),
+                "largest_loss": _largest(group, "link_loss", "link_delay"),
+            }
+        )
+    return out
 
 
 def write_results(out: Path, rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
     """runs.csv, summary.json and the figures, each written atomically."""
-    rows = sorted(rows, key=lambda r: (r["sample"], r["control_rate"]))
+    rows = sorted(rows, key=lambda r: tuple(-1.0 if v is None else v for v in row_key(r)))
     tmp = out / "runs.csv.tmp"
     with tmp.open("w", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=COLUMNS)
@@ -557,6 +807,8 @@ def write_results(out: Path, rows: list[dict[str, Any]], campaign: Campaign) -> 
     tmp.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     tmp.replace(out / "summary.json")
     plot_campaign(out, rows, summary)
+    if "per_condition" in summary:
+        plot_links(out, summary)
     return summary
 
 
@@ -606,6 +858,52 @@ def plot_campaign(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]
     plt.close(fig)
 
 
+def plot_links(out: Path, summary: dict[str, Any]) -> None:
+    """link_pass_rate.png: per group of the other conditions (at most 6), the pass rate of every delay and
+    loss of the grid, a cell per pair (the number in it), coloured from red (0) to green (1)."""
+    import matplotlib
+    import numpy as np
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cells = summary["per_condition"]
+    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    for c in cells:
+        groups.setdefault((c["control_rate"], c["link_jitter"], c["sensor_rate"], c["delta"], c["gamma"]), []).append(c)
+    shown = list(groups.items())[:6]
+    cols = min(3, len(shown))
+    rows_n = math.ceil(len(shown) / cols)
+    fig, axes = plt.subplots(rows_n, cols, figsize=(4.6 * cols, 3.6 * rows_n), squeeze=False)
+    for ax, ((rate, jitter, sensor, delta, gamma), group) in zip(axes.flat, shown):
+        delays = sorted({c["link_delay"] or 0.0 for c in group})
+        losses = sorted({c["link_loss"] or 0.0 for c in group})
+        grid = np.full((len(losses), len(delays)), np.nan)
+        for c in group:
+            grid[losses.index(c["link_loss"] or 0.0), delays.index(c["link_delay"] or 0.0)] = c["pass_rate"]
+        ax.imshow(grid, origin="lower", cmap="RdYlGn", vmin=0.0, vmax=1.0, aspect="auto")
+        for (y, x), value in np.ndenumerate(grid):
+            ax.text(x, y, "-" if np.isnan(value) else f"{value:.2f}", ha="center", va="center", fontsize=7)
+        ax.set_xticks(range(len(delays)), [f"{d * 1e3:g}" for d in delays], fontsize=7)
+        ax.set_yticks(range(len(losses)), [f"{p * 100:g}" for p in losses], fontsize=7)
+        ax.set_xlabel("delay [ms]")
+        ax.set_ylabel("loss [%]")
+        extra = [f"{rate:g} Hz"]
+        extra += [f"jitter {jitter * 1e3:g} ms"] if jitter else []
+        extra += [f"sensor {sensor:g} Hz"] if sensor else []
+        extra += [f"δ {delta:g}"] if delta else []
+        extra += [f"γ {gamma:g}"] if gamma else []
+        ax.set_title(", ".join(extra), fontsize=9)
+    for ax in list(axes.flat)[len(shown) :]:
+        ax.axis("off")
+    fig.suptitle(f"{Path(summary['formation']).name}: pass rate per delay and loss", fontsize=10)
+    fig.tight_layout()
+    tmp = out / "link_pass_rate.tmp.png"
+    fig.savefig(tmp, dpi=110)
+    tmp.replace(out / "link_pass_rate.png")
+    plt.close(fig)
+
+
 def run_campaign(
     campaign: Campaign, out: Path, *, workers: int = 1, scheduler: str | None = None, quiet: bool = False
 ) -> dict[str, Any]:
@@ -620,6 +918,35 @@ def run_campaign(
     wanted = {t.key for t in tasks(campaign)}
     rows = [r for k, r in _finished(log).items() if k in wanted]
     return write_results(out, rows, campaign)
+
+
+def condition_table(summary: dict[str, Any]) -> str:
+    """The pass rates of a grid campaign as text, one line per condition, then the tolerances."""
+
+    def fmt(value: Any, scale: float = 1.0, unit: str = "") -> str:
+        return "file" if value is None else f"{value * scale:g}{unit}"
+
+    def sensor(value: float | None) -> str:
+        if value is None:  # a grid's null: every control step; no grid: the file's
+            return "each step" if summary.get("links") else "file"
+        return f"{value:g} Hz"
+
+    lines = ["  rate [Hz]  delay     loss   jitter    sensor   delta  gamma   pass    95 % interval"]
+    for c in summary["per_condition"]:
+        lo, hi = c["pass_rate_ci95"]
+        lines.append(
+            f"  {c['control_rate']:>9g}  {fmt(c['link_delay'], 1e3, ' ms'):>8}  {fmt(c['link_loss'], 100, ' %'):>6}  "
+            f"{fmt(c['link_jitter'], 1e3, ' ms'):>7}  {sensor(c['sensor_rate']):>8}  {fmt(c['delta']):>5}  "
+            f"{fmt(c['gamma']):>5}  {c['passes']:>3}/{c['runs']:<3}  {lo:.2f}-{hi:.2f}"
+        )
+    for t in summary["tolerance"]:
+        delay = "none" if t["largest_delay"] is None else f"{t['largest_delay'] * 1e3:g} ms"
+        loss = "none" if t["largest_loss"] is None else f"{t['largest_loss'] * 100:g} %"
+        lines.append(
+            f"  holds (≥ {HOLDS:.0%} pass) at {t['control_rate']:g} Hz, jitter {fmt(t['link_jitter'], 1e3, ' ms')}, "
+            f"sensor {sensor(t['sensor_rate'])}: largest delay {delay}, largest loss {loss}"
+        )
+    return "\n".join(lines)
 
 
 # --- command line ------------------------------------------------------------------------------
@@ -707,9 +1034,12 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # the runs finished are in runs.jsonl: a rerun resumes
         print(f"\nformation-campaign: could not write {out}: {exc}; run again to resume", file=sys.stderr)
         return ExitCode.INCOMPLETE
-    for rate, s in summary["per_control_rate"].items():
-        lo, hi = s["pass_rate_ci95"]
-        print(f"  {rate:>8} Hz: {s['passes']}/{s['runs']} pass ({lo:.2f}-{hi:.2f} at 95 %)")
+    if "per_condition" in summary:
+        print(condition_table(summary))
+    else:
+        for rate, s in summary["per_control_rate"].items():
+            lo, hi = s["pass_rate_ci95"]
+            print(f"  {rate:>8} Hz: {s['passes']}/{s['runs']} pass ({lo:.2f}-{hi:.2f} at 95 %)")
     print(f"outputs in {out}/")
     return 0
 

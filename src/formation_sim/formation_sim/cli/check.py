@@ -90,7 +90,68 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
                 f"its velocity loop needs by t={sim.duration:g} s (from t={n.insufficient_from:.2f} s)"
             )
         lines.append(f"  {n.agent_id:<8} {n.at_start:>11.0f}   {n.at_end:>11.0f}   {verdict:<7}   {n.physics_step:.3g}")
+    if spec.has_links:
+        lines += link_report(spec, unsafe)
     return lines, unsafe
+
+
+def link_report(spec: FormationSpec, unsafe: list[str]) -> list[str]:
+    """What the file's link model costs, where a bound is known: each link's largest age without a loss
+    against its receiver's time-out (a sample older than that is never used), and how many losses in a
+    row make a measurement too old (and how likely one sample starts such a run); the margin it costs is
+    bounded nowhere in the paper's analysis, which assumes every measurement at once."""
+    import math
+
+    from formation_msgs_py.spec import simulator_view
+    from formation_sim.core.links import (
+        CHANNELS,
+        P_BAD_GOOD,
+        P_LOSS,
+        P_LOSS_GOOD,
+        P_RATIO,
+        P_TIMEOUT,
+        link_names,
+        longest_delay_steps,
+        new_link_set,
+    )
+
+    view = simulator_view(spec)
+    links = new_link_set(view)
+    names = link_names(view)
+    rate = spec.simulation.control_rate
+    lines = [
+        "links (docs/links.md): largest age of a sample with none lost, against the receiver's time-out",
+        "  link            worst age [ms]   time-out [ms]   losses in a row to miss it   loss",
+    ]
+    for channel, ch in zip(CHANNELS, links[:3]):
+        for i, name in enumerate(names[channel]):
+            prm = ch.params[i]
+            period = 1 if prm[P_RATIO] >= 1.0 else math.ceil(1.0 / prm[P_RATIO] - 1e-9)  # steps between samples
+            worst = longest_delay_steps(prm[None, :], rate) + period - 1
+            timeout = int(prm[P_TIMEOUT])
+            loss_model = int(prm[P_LOSS])
+            if worst > timeout:
+                unsafe.append(
+                    f"link {channel} {name}: its samples are {worst / rate * 1e3:.3g} ms old with none lost, older "
+                    f"than the {timeout / rate * 1e3:.3g} ms its receiver uses: they are never used"
+                )
+            misses = max(0, math.ceil((timeout - worst + 1) / period)) if worst <= timeout else 0
+            if loss_model == 0:
+                loss = "none"
+            elif loss_model == 1:
+                loss = f"{prm[P_LOSS_GOOD]:.3g} independent: {prm[P_LOSS_GOOD] ** max(misses, 1):.2g} per sample"
+            else:
+                mean = 1 / prm[P_BAD_GOOD] if prm[P_BAD_GOOD] > 0 else math.inf
+                loss = f"bursts, mean length {mean:.3g} samples"
+            lines.append(
+                f"  {channel + ' ' + name:<15} {worst / rate * 1e3:>14.3g}   {timeout / rate * 1e3:>13.3g}   "
+                f"{misses:>26}   {loss}"
+            )
+    lines.append(
+        "  what a link model costs in margin is bounded nowhere in the paper's analysis (every measurement at "
+        "once): only a campaign can tell (formation-campaign with links:, docs/campaigns.md)"
+    )
+    return lines
 
 
 def build_parser() -> OptionParser:

@@ -15,9 +15,11 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
-from collections.abc import Iterator
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,9 +30,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bin_helpers import executable
 from studio_server import serving
+from subprotocol_shim import renaming
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"
+CONTACT_LINKS = Path(__file__).resolve().parent / "data" / "contact_links_3agents.yaml"
 INSTALL = "tests/viewer/install.sh"
 DURATION_S = 0.5
 #: the simulator's display rate [Hz of simulated time] (its default marker_rate): the funnels' sample rate
@@ -114,32 +118,22 @@ def _keep(png: bytes, name: str) -> None:
     image.save(Path(target) / name, optimize=True)
 
 
-@pytest.fixture(scope="module")
-def viewed(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -> Iterator[Viewed]:
-    """A 0.5 s lockstep paper run, opened in Foxglove Studio with its layout imported."""
+def _studio(
+    mounts: dict[str, Path],
+    query: str,
+    layout_file: Path,
+    panel_keys: tuple[str, ...],
+    loaded: Callable[[Any], None],
+    screenshot: str,
+) -> Viewed:
+    """Foxglove Studio opened on ``query`` (its deep link to a data source), ``loaded(page)`` waited for, the
+    layout in ``layout_file`` imported through its Import button, then the page and a screenshot."""
     from PIL import Image
     from playwright.sync_api import sync_playwright
 
-    out = tmp_path_factory.mktemp("viewer_run")
-    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    env.pop("ROS_STATIC_PEERS", None)
-    run = subprocess.run(
-        [executable("formation-launch"), str(PAPER), "--duration", str(DURATION_S), "--out", str(out / "run")],
-        capture_output=True,
-        text=True,
-        timeout=900,
-        env=env,
-        start_new_session=True,
-    )
-    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
-    layout = json.loads((out / "run" / "foxglove_layout.json").read_text())
-    mounts = {
-        "/react": MODULES / "react",
-        "/react-dom": MODULES / "react-dom",
-        "/studio": STUDIO,
-        "/run": out / "run",
-    }
+    layout = json.loads(layout_file.read_text())
     console: list[str] = []
+    mounts = {"/react": MODULES / "react", "/react-dom": MODULES / "react-dom", "/studio": STUDIO, **mounts}
     with serving(mounts) as base, sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path=chromium(), args=CHROMIUM_ARGS)
         try:
@@ -148,33 +142,28 @@ def viewed(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -> Iter
             page.on("console", lambda message: console.append(f"{message.type}: {message.text}"))
             page.on("pageerror", lambda error: console.append(f"pageerror: {error}"))
             page.add_init_script(FILE_PICKER_THROUGH_INPUT)
-            # Studio's deep link for a file behind a URL (its remote-file source reads it by byte ranges)
-            page.goto(f"{base}/?ds=remote-file&ds.url={base}/run/view.mcap")
-            page.get_by_text("END TIME").wait_for()
-            page.get_by_text(re.compile(r"^\d+\.\d{9}$")).nth(1).wait_for()
+            page.goto(f"{base}/?{query.format(base=base)}")
+            loaded(page)
             source_text = page.inner_text("body")
             # the Layouts tab of the left sidebar, then its Import button
             page.locator('[role=tab][data-sidebar-key="layouts"]').click()
             with page.expect_file_chooser() as chooser:
                 page.get_by_label("Import layout").click()
-            chooser.value.set_files(str(out / "run" / "foxglove_layout.json"))
+            chooser.value.set_files(str(layout_file))
             page.get_by_text(layout["configById"]["Plot!distance"]["title"]).wait_for()
             page.locator('[role=tab][data-sidebar-key="layouts"]').click()  # close the sidebar: room for the panels
             dismiss = page.get_by_label("Dismiss")
             if dismiss.count():
                 dismiss.first.click()  # the 3D panel's "Open settings" hint would cover the scene
-            panels = {
-                key: page.locator(f'[data-testid="panel-mouseenter-container {key}"]')
-                for key in ("3D!formation", "Plot!distance", "Plot!orientation")
-            }
+            panels = {key: page.locator(f'[data-testid="panel-mouseenter-container {key}"]') for key in panel_keys}
             page.wait_for_timeout(15_000)  # plots load their blocks and the 3D scene draws its frames
             png = page.screenshot()
-            _keep(png, "foxglove_formation.png")
+            _keep(png, screenshot)
             boxes = {key: _box(panel.locator("canvas").first) for key, panel in panels.items()}
             page_text = page.inner_text("body")
         finally:
             browser.close()
-    yield Viewed(
+    return Viewed(
         layout=layout,
         source_text=source_text,
         page_text=page_text,
@@ -182,6 +171,102 @@ def viewed(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -> Iter
         screenshot=np.asarray(Image.open(io.BytesIO(png)).convert("RGB")),
         boxes=boxes,
     )
+
+
+def _file_loaded(page: Any) -> None:
+    """The Data source sidebar shows the file's end time."""
+    page.get_by_text("END TIME").wait_for()
+    page.get_by_text(re.compile(r"^\d+\.\d{9}$")).nth(1).wait_for()
+
+
+def _launch(formation: Path, out: Path, ros_domain_id: int, *options: str) -> None:
+    """formation-launch of ``formation`` into ``out``, which must end with exit 0."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env.pop("ROS_STATIC_PEERS", None)
+    run = subprocess.run(
+        [executable("formation-launch"), str(formation), *options, "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env=env,
+        start_new_session=True,
+    )
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+
+
+FILE_QUERY = "ds=remote-file&ds.url={base}/run/view.mcap"  # Studio's deep link to a file behind a URL
+
+
+@pytest.fixture(scope="module")
+def viewed(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -> Viewed:
+    """A 0.5 s lockstep paper run, opened in Foxglove Studio with its layout imported."""
+    run = tmp_path_factory.mktemp("viewer_run") / "run"
+    _launch(PAPER, run, ros_domain_id, "--duration", str(DURATION_S))
+    keys = ("3D!formation", "Plot!distance", "Plot!orientation")
+    return _studio(
+        {"/run": run}, FILE_QUERY, run / "foxglove_layout.json", keys, _file_loaded, "foxglove_formation.png"
+    )
+
+
+LINK_KEYS = ("3D!formation", "Plot!links")
+
+
+@pytest.fixture(scope="module")
+def viewed_links(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -> Viewed:
+    """A 2 s lockstep run of two non-neighbours in contact over delayed and lossy links, its view.mcap in
+    Foxglove Studio with its layout imported."""
+    run = tmp_path_factory.mktemp("viewer_links") / "run"
+    _launch(CONTACT_LINKS, run, ros_domain_id)
+    return _studio({"/run": run}, FILE_QUERY, run / "foxglove_layout.json", LINK_KEYS, _file_loaded, "links_view.png")
+
+
+@pytest.fixture(scope="module")
+def viewed_live(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -> Viewed:
+    """The same formation in a realtime run with --foxglove, Studio connected to it live (through the
+    subprotocol relay) with the formation's layout imported; the run stopped (by its PID) once seen."""
+    from formation_msgs_py.spec import load_formation
+    from formation_sim.views.foxglove_layout import write_layout
+
+    tmp = tmp_path_factory.mktemp("viewer_live")
+    layout_file = write_layout(tmp, load_formation(CONTACT_LINKS))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env.pop("ROS_STATIC_PEERS", None)
+    # long enough for Studio to load, connect and draw; stopped once the screenshot is taken
+    cmd = [executable("formation-launch"), str(CONTACT_LINKS), "--mode", "realtime", "--duration", "600"]
+    cmd += ["--no-record", "--no-plots", "--foxglove", "127.0.0.1:0", "--out", str(tmp / "run")]
+    log = tmp / "launch.log"
+    with open(log, "wb") as f:
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    try:
+        url = _live_url(log, proc)
+        with renaming(url) as relay:
+
+            def connected(page: Any) -> None:
+                page.get_by_text(relay).first.wait_for()  # the data source sidebar names the connection
+
+            return _studio(
+                {}, f"ds=foxglove-websocket&ds.url={relay}", layout_file, LINK_KEYS, connected, "links_live.png"
+            )
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def _live_url(log: Path, proc: subprocess.Popen) -> str:
+    """The live view's address, as the run prints it (port 0: the server picked one)."""
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        found = re.search(r"live view on (ws://127\.0\.0\.1:\d+)", log.read_text(errors="replace"))
+        if found:
+            return found.group(1)
+        assert proc.poll() is None, log.read_text(errors="replace")[-3000:]
+        time.sleep(0.5)
+    raise AssertionError("no live view address in 300 s: " + log.read_text(errors="replace")[-3000:])
 
 
 def _crop(viewed: Viewed, key: str) -> np.ndarray:
@@ -248,3 +333,41 @@ def test_plots_have_data_across_the_run(viewed: Viewed, panel: str) -> None:
     assert largest_gap <= 1.5 * period_px, (panel, largest_gap, period_px)
     for path in config["paths"]:
         assert path["label"] in viewed.page_text, (panel, path["label"])
+
+
+def _contact_pixels(viewed: Viewed) -> int:
+    """Pixels of the 3D panel in the contact spheres' red (markers.CONTACT_COLOUR, half transparent over
+    the scene or a body): red well above green and blue, darker than the axes' full red."""
+    scene = _crop(viewed, "3D!formation")
+    r, g, b = scene[..., 0], scene[..., 1], scene[..., 2]
+    return int(((r - g > 60) & (r - b > 40) & (r < 215) & (r > 120)).sum())
+
+
+@pytest.mark.parametrize("source", ["viewed_links", "viewed_live"])
+def test_link_ages_are_plotted(request: pytest.FixtureRequest, source: str) -> None:
+    """The plot of /formation/links draws the links' ages, from view.mcap over the whole run and live over
+    what the viewer received, and names every link."""
+    viewed: Viewed = request.getfixturevalue(source)
+    config = viewed.layout["configById"]["Plot!links"]
+    plot = _crop(viewed, "Plot!links")
+    drawn = np.zeros(plot.shape[:2], bool)
+    for colour in {path["color"] for path in config["paths"]}:
+        drawn |= _near(plot, _hex(colour), 40)
+    columns = np.flatnonzero(drawn.any(axis=0))
+    assert columns.size, f"{source}: no link age drawn"
+    span = (columns[-1] - columns[0]) / plot.shape[1]
+    # a file: the whole run on the x axis (as the funnel plots); live: from the first message received,
+    # which a slow page may receive late, on an axis from 0
+    assert span >= (0.5 if source == "viewed_links" else 0.1), (source, span)
+    for path in config["paths"]:
+        assert path["label"] in viewed.page_text, (source, path["label"])
+
+
+@pytest.mark.parametrize("source", ["viewed_links", "viewed_live"])
+def test_a_contact_is_drawn(request: pytest.FixtureRequest, source: str, viewed: Viewed) -> None:
+    """Agents 1 and 3 touch from the start to the end: the 3D panel shows their contact spheres (red, half
+    transparent), from view.mcap and live; the paper run, whose bodies never touch, shows none."""
+    shown, paper = _contact_pixels(request.getfixturevalue(source)), _contact_pixels(viewed)
+    # two spheres of the bodies' radius: about 4000 pixels at this viewport and camera; without them a
+    # few tens (the anti-aliased edges of the red body axes)
+    assert shown >= 1000 and paper <= 300, (shown, paper)

@@ -136,24 +136,26 @@ def foxglove_layout(spec: FormationSpec) -> dict[str, Any]:
         "layout": {
             "direction": "row",
             "first": "3D!formation",
-            "second": {
-                "direction": "column",
-                "first": "Plot!distance",
-                "second": {
-                    "direction": "column",
-                    "first": "Plot!orientation",
-                    "second": (
-                        {"direction": "row", "first": "Plot!links", "second": "DiagnosticSummary!agents"}
-                        if spec.has_links
-                        else "DiagnosticSummary!agents"
-                    ),
-                    "splitPercentage": 65,
-                },
-                "splitPercentage": 45,
-            },
+            "second": _right_column(spec.has_links),
             "splitPercentage": 55,
         },
     }
+
+
+def _right_column(links: bool) -> dict[str, Any]:
+    """The plots above the diagnostics; with a link model the link ages get a row of their own, as wide
+    as the funnels' (beside the diagnostics its legend leaves the lines no room)."""
+    if not links:
+        below = {"direction": "column", "first": "Plot!orientation", "second": "DiagnosticSummary!agents"}
+        return {
+            "direction": "column",
+            "first": "Plot!distance",
+            "second": {**below, "splitPercentage": 65},
+            "splitPercentage": 45,
+        }
+    tail = {"direction": "column", "first": "Plot!links", "second": "DiagnosticSummary!agents", "splitPercentage": 70}
+    below = {"direction": "column", "first": "Plot!orientation", "second": tail, "splitPercentage": 40}
+    return {"direction": "column", "first": "Plot!distance", "second": below, "splitPercentage": 33}
 
 
 def _link_ages_plot(spec: FormationSpec) -> dict[str, Any]:

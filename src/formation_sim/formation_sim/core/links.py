@@ -245,9 +245,17 @@ def receive_step(links, k, uniforms, p_rel, q_rel, R_rel, in_range, v_measured, 
 
 
 @kernel
-def deliver_step(links, k, uniforms, commanded, applied):
-    """:func:`deliver_wrenches` from Python."""
+def deliver_step(links, k, uniforms, commanded, applied, ages):
+    """:func:`deliver_wrenches` from Python, and every link's age after it into ``ages`` (n_links,) [s]
+    (one call: each call from Python unpacks every array of the links)."""
     deliver_wrenches(links, k, uniforms, commanded, applied)
+    link_ages_into(links, k, ages)
+
+
+@kernel
+def ages_step(links, k, out):
+    """:func:`link_ages_into` from Python."""
+    link_ages_into(links, k, out)
 
 
 # --- building ---------------------------------------------------------------------------------
@@ -453,5 +461,5 @@ def link_summary(links: LinkSet, view: SimulatorView) -> dict[str, object]:
 def link_ages(links: LinkSet, k: int) -> np.ndarray:
     """(n_links,) every link's held sample's age at step k [s] (NaN: none yet), from Python."""
     out = np.zeros(n_links(links))
-    link_ages_into(links, k, out)
+    ages_step(links, k, out)
     return out

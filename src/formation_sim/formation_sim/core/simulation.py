@@ -117,6 +117,7 @@ class Simulation:
             self._first_end = first_ends(view)
             self._link_uniforms = np.zeros((0, n_links(self.links), 3))
             self._applied = np.zeros((len(view.agents), 6))
+            self._ages = np.zeros(n_links(self.links))
         if warm_up:
             self._warm_up()
 
@@ -169,7 +170,7 @@ class Simulation:
         if self.links is None:
             return wrench
         commanded = np.ascontiguousarray(wrench, dtype=np.float64)
-        deliver_step(self.links, self.step_index, self._link_uniforms, commanded, self._applied)
+        deliver_step(self.links, self.step_index, self._link_uniforms, commanded, self._applied, self._ages)
         return self._applied
 
     def link_ages(self) -> np.ndarray:
@@ -182,7 +183,7 @@ class Simulation:
         through the wrench links if any (:meth:`deliver`)."""
         wrench = self.deliver(wrench)
         if self.links is not None:
-            self.closed_step_link_ages = self.link_ages()
+            self.closed_step_link_ages = self._ages.copy()
         t0 = self.plant_time
         for i in range(self.substeps):
             self.state = self.plant.step(t0 + i * self.h, self.state, wrench, self.h)

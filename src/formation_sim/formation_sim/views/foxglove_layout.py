@@ -146,14 +146,23 @@ def _right_column(links: bool) -> dict[str, Any]:
     """The plots above the diagnostics; with a link model the link ages get a row of their own, as wide
     as the funnels' (beside the diagnostics its legend leaves the lines no room)."""
     if not links:
-        below = {"direction": "column", "first": "Plot!orientation", "second": "DiagnosticSummary!agents"}
+        below: dict[str, Any] = {
+            "direction": "column",
+            "first": "Plot!orientation",
+            "second": "DiagnosticSummary!agents",
+        }
         return {
             "direction": "column",
             "first": "Plot!distance",
             "second": {**below, "splitPercentage": 65},
             "splitPercentage": 45,
         }
-    tail = {"direction": "column", "first": "Plot!links", "second": "DiagnosticSummary!agents", "splitPercentage": 70}
+    tail: dict[str, Any] = {
+        "direction": "column",
+        "first": "Plot!links",
+        "second": "DiagnosticSummary!agents",
+        "splitPercentage": 70,
+    }
     below = {"direction": "column", "first": "Plot!orientation", "second": tail, "splitPercentage": 40}
     return {"direction": "column", "first": "Plot!distance", "second": below, "splitPercentage": 33}
 

@@ -115,7 +115,10 @@ loop = closed_loop(spec, sim)
 loop = loop._replace(noise=sim.sensors.draw_noise(20001), cursor=np.zeros(1, dtype=np.int64))
 p, R, v = sim.state.p.copy(), sim.state.R.copy(), sim.state.v.copy()
 N = len(p)
-sense_and_control(loop, 0.0, p, R, v)
+import inspect
+# a step index first where the loop steps links (the trees since then), else only the times
+step_first = "k" in inspect.signature(sense_and_control).parameters
+sense_and_control(loop, *((0,) if step_first else ()), 0.0, 0.0, p, R, v)
 work, watch = new_workspace(N), new_watch(spec, Judge(spec))
 buf = new_buffers(2000, N, len(loop.ends), len(spec.edges))
 J = numba.njit(_nrt=False)
@@ -142,7 +145,7 @@ def rk(n, l, p, R, v, work):
 @J
 def meas(n, l, p, R, v):
     for k in range(n):
-        relative_poses(p, R, l.sensing, l.noise[k], l.p_rel, l.R_rel, l.in_range)
+        relative_poses(p, R, l.sensing, l.noise[k], l.p_rel, l.q_rel, l.R_rel, l.in_range)
         measured_velocity_into(0.1 + 1e-9 * k, p, R, v, l.plant.noise, l.v_measured)
 
 @J
@@ -267,8 +270,11 @@ def probe(code: str, *args: str, src: Path | None = None, **extra: str) -> dict:
 
 def side(name: str, src: Path | None, tmp: Path, duration: float, show) -> None:
     """Every figure of one side: the current tree (``src`` None) or an archived ``before`` tree."""
-    kernels = KERNEL_PROBE if src is None else BEFORE_KERNEL_PROBE
-    show(f"{name}: kernels in a compiled loop [us per call]", probe(kernels, PAPER, src=src))
+    try:
+        kernels = probe(KERNEL_PROBE, PAPER, src=src)
+    except SyntaxError:  # an older tree: its kernels' older signatures (the probe printed no dict)
+        kernels = probe(BEFORE_KERNEL_PROBE, PAPER, src=src)
+    show(f"{name}: kernels in a compiled loop [us per call]", kernels)
     show(f"{name}: agent process, interpreted", probe(AGENT_PROBE, PAPER, src=src, NUMBA_DISABLE_JIT="1"))
     show(f"{name}: agent process, compiled (cache warm)", probe(AGENT_PROBE, PAPER, src=src, NUMBA_DISABLE_JIT="0"))
     if src is None:

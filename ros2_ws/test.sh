@@ -6,7 +6,8 @@
 #
 # After the whole suite, the tests marked `numeric` (controller, judge, witness, golden runs) run
 # again under a second numeric configuration that stands for another CPU (tests/numeric_config.py:
-# numpy without its SIMD dispatch, numba for a generic CPU). About 20 minutes on two cores.
+# numpy without its SIMD dispatch, numba for a generic CPU). Without arguments, the mutation check
+# follows (tests/mutants.py: each mutant must fail a test of its folder). About 20 minutes on two cores.
 #
 # ROS tests pick their own ROS_DOMAIN_ID and keep discovery on this host
 # (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST); see tests/README.md.
@@ -31,4 +32,8 @@ second=0
 env "${SECOND[@]}" .venv/bin/python -m pytest tests -m numeric -p no:cacheprovider "$@" || second=$?
 # pytest's 5: no test selected (e.g. -k names only non-numeric tests)
 if [ "$second" -ne 0 ] && [ "$second" -ne 5 ] && [ "$status" -eq 0 ]; then status=$second; fi
+if [ "$#" -eq 0 ]; then  # the whole suite: the mutation check too (tests/mutants.py, seconds)
+    echo "test: mutation check (tests/mutants.py)" >&2
+    .venv/bin/python tests/mutants.py || { [ "$status" -ne 0 ] || status=1; }
+fi
 exit "$status"

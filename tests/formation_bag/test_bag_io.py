@@ -99,6 +99,37 @@ def test_segments_by_size(tmp_path: Path) -> None:
         assert len(b.segments) > 3 and b.message_count == 80
 
 
+def test_mutant_bag_end_time_off_by_one__the_last_log_time_exactly(tmp_path: Path) -> None:
+    """Bag.end_time is the log time of the last message itself [ns] (rosbags' end_time is one past it), in
+    a bag with metadata and in one recovered without it."""
+    _write(tmp_path / "bag", "mcap", 30)
+    last = START + 29 * 10_000_000 + 1000  # the last velocity message, 1 µs after its clock
+    with Bag(tmp_path / "bag") as b:
+        assert (b.start_time, b.end_time) == (START, last)
+    (tmp_path / "bag" / "metadata.yaml").unlink()
+    with Bag(tmp_path / "bag") as b:
+        assert b.recovered and (b.start_time, b.end_time) == (START, last)
+
+
+def test_mutant_segments_sorted_by_name__eleven_and_more_segments_in_time_order(tmp_path: Path) -> None:
+    """A recording of 12 segments read without its metadata.yaml (a killed recorder's): the segments in
+    number order (bag_2 before bag_10, not by name), every message in log-time order, and repair writes
+    them in that order."""
+    bag = tmp_path / "bag"
+    payloads = _write(bag, "mcap", 120)  # 10 ms apart, a segment every 0.1 s: 12 segments
+    (bag / "metadata.yaml").unlink()
+    names = [f"bag_{i}.mcap" for i in range(12)]
+    with Bag(bag) as b:
+        assert b.recovered and [f.name for f in b.segments] == names
+        got = list(b.messages(["/agent_1/velocity"]))
+        assert [bytes(x.data) for x in got] == payloads
+        times = [x.log_time for x in b.messages()]
+        assert times == sorted(times) and len(times) == 240
+    repair(bag)
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["relative_file_paths"] == names
+
+
 def test_refuses_to_overwrite(tmp_path: Path) -> None:
     """An existing path is never overwritten, and the error names it."""
     (tmp_path / "bag").mkdir()

@@ -3,6 +3,7 @@ only, never Fast DDS's shared memory; LOCALHOST carried out by the loopback prof
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -107,6 +108,8 @@ def test_shell_lines_turn_one_environment_into_the_other() -> None:
 def test_the_transports_command_prints_what_network_sh_evaluates() -> None:
     cmd = [sys.executable, "-m", "formation_sim.launch.dds_env", "transports"]
     env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "PATH": "/usr/bin:/bin"}
+    if "PYTHONPATH" in os.environ:  # the sources this test imports (a mutation check's copy), not the installed
+        env["PYTHONPATH"] = os.environ["PYTHONPATH"]
     lines = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=60, check=True).stdout
     script = lines + '\necho "$ROS_AUTOMATIC_DISCOVERY_RANGE|$FASTRTPS_DEFAULT_PROFILES_FILE"'
     shown = subprocess.run(["sh", "-c", script], capture_output=True, text=True, env=env, timeout=30)

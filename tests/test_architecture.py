@@ -1,7 +1,10 @@
 """The import graph of src/: no circles, imports pointing one way, ROS only in the nodes.
 
-Every module under ``src/`` is parsed (not imported); each absolute ``formation_*`` import is an
-edge, function-level (lazy) imports included: a lazy import still ties two modules together. The
+Every module under ``src/`` is parsed (not imported); each ``formation_*`` import is an edge:
+absolute or relative (``from . import x`` resolved against the module's package), by ``importlib``
+(``import_module`` or ``__import__`` of a literal name), function-level (lazy) imports included: a
+lazy import still ties two modules together. A module name computed at run time is refused unless
+:data:`DYNAMIC_IMPORTS` says what it can load. The
 layers: ``formation_sim.cli`` -> ``launch`` | ``node`` -> ``core`` -> ``formation_msgs_py``; ``views``
 serve the runners and the analysis; ROS (rclpy, message packages) only in the nodes.
 """
@@ -46,6 +49,17 @@ FORBIDDEN = (
 )
 
 
+#: Modules that import a name computed at run time, and what it can be: these edges join the graph.
+DYNAMIC_IMPORTS = {
+    # msg_class: the message module (``<pkg>.msg``) of a recorded topic's type (docs/topics.md)
+    "formation_bag.record_node": tuple(
+        f"{pkg}.msg"
+        for pkg in ("geometry_msgs", "std_msgs", "rosgraph_msgs", "diagnostic_msgs", "visualization_msgs", "tf2_msgs")
+    ),
+}
+_IMPORT_CALLS = {"import_module", "__import__"}
+
+
 @dataclass(frozen=True)
 class Import:
     """One ``import`` statement of a module: what it names, where, and whether at module level."""
@@ -72,10 +86,35 @@ def _modules() -> dict[str, Path]:
     return out
 
 
-def _imports(module: str, path: Path) -> list[Import]:
-    """Every absolute import in ``path``: ``from a.b import c`` names ``a.b.c`` and ``a.b`` (the graph keeps
-    those that are modules); ``top_level`` is False inside a function (a lazy import)."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+def _package(module: str, path: Path) -> str:
+    """The package a relative import of ``module`` starts from (the module itself for an ``__init__``)."""
+    return module if path.name == "__init__.py" else module.rpartition(".")[0]
+
+
+def _relative(module: str, path: Path, node: ast.ImportFrom) -> str:
+    """The absolute name of ``from <dots><name> import …`` in ``module``."""
+    base = _package(module, path)
+    for _ in range(node.level - 1):
+        base = base.rpartition(".")[0]
+    return f"{base}.{node.module}" if node.module else base
+
+
+def _called_name(call: ast.Call) -> str | None:
+    """``import_module`` / ``__import__`` (bare or as an attribute), else None."""
+    f = call.func
+    name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
+    return name if name in _IMPORT_CALLS else None
+
+
+DYNAMIC = "<computed at run time>"
+
+
+def _imports(module: str, path: Path, source: str | None = None) -> list[Import]:
+    """Every import in ``path`` (or in ``source``, as if it were that file's): ``from a.b import c`` names
+    ``a.b.c`` and ``a.b`` (the graph keeps those that are modules), relative ones resolved,
+    ``importlib.import_module("a.b")`` names ``a.b`` and one with a computed name :data:`DYNAMIC`;
+    ``top_level`` is False inside a function (a lazy import)."""
+    tree = ast.parse(path.read_text(encoding="utf-8") if source is None else source, str(path))
     out: list[Import] = []
 
     def walk(node: ast.AST, in_function: bool) -> None:
@@ -83,12 +122,19 @@ def _imports(module: str, path: Path) -> list[Import]:
             names: list[str] = []
             if isinstance(child, ast.Import):
                 names = [alias.name for alias in child.names]
-            elif isinstance(child, ast.ImportFrom) and child.level == 0 and child.module:
-                names = [f"{child.module}.{alias.name}" for alias in child.names] + [child.module]
+            elif isinstance(child, ast.ImportFrom):
+                base = _relative(module, path, child) if child.level else child.module or ""
+                names = [f"{base}.{alias.name}" for alias in child.names] + [base]
+            elif isinstance(child, ast.Call) and _called_name(child) and child.args:
+                arg = child.args[0]
+                literal = isinstance(arg, ast.Constant) and isinstance(arg.value, str)
+                names = [arg.value if literal else DYNAMIC]  # type: ignore[union-attr]
             out.extend(Import(module, name, child.lineno, not in_function) for name in names)
             walk(child, in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
 
     walk(tree, False)
+    for target in DYNAMIC_IMPORTS.get(module, ()):
+        out.append(Import(module, target, 0, False))
     return out
 
 
@@ -102,6 +148,8 @@ def _graph() -> tuple[dict[str, list[Import]], dict[str, list[Import]]]:
     for module, path in modules.items():
         seen: set[tuple[str, int]] = set()
         for imp in _imports(module, path):
+            if imp.target == DYNAMIC:
+                continue
             top_name = imp.target.split(".")[0]
             if top_name in _ROS_TOP or top_name.endswith("_msgs"):
                 ros[module].append(imp)
@@ -133,6 +181,30 @@ def test_graph_is_read() -> None:
     assert any(e.target.split(".")[0] == "rclpy" for e in ros["formation_sim.node.sim_node"])
     lazy = [e for imports in edges.values() for e in imports if not e.top_level]
     assert lazy, "function-level imports are part of the graph"
+
+
+def test_relative_and_importlib_imports_are_read() -> None:
+    """The parser resolves ``from . import x``, ``from ..a import b`` and ``importlib.import_module("a.b")``
+    (an import the graph did not see would pass every rule)."""
+    source = (
+        "from . import sibling\nfrom ..other import thing\nimport importlib\n"
+        "def f():\n    importlib.import_module('formation_x.lazy')\n    return __import__(name)\n"
+    )
+    path = SRC / "formation_x" / "formation_x" / "pkg" / "mod.py"
+    got = [(i.target, i.top_level) for i in _imports("formation_x.pkg.mod", path, source)]
+    assert ("formation_x.pkg.sibling", True) in got and ("formation_x.other.thing", True) in got
+    assert ("formation_x.lazy", False) in got and (DYNAMIC, False) in got
+
+
+def test_every_computed_import_is_declared() -> None:
+    """A module that imports a name computed at run time is in DYNAMIC_IMPORTS, which says what it loads
+    (the graph cannot read it); and every declared one still does."""
+    modules = _modules()
+    dynamic = {m for m, path in modules.items() if any(i.target == DYNAMIC for i in _imports(m, path))}
+    assert dynamic == set(DYNAMIC_IMPORTS), (
+        f"computed imports not declared: {sorted(dynamic - set(DYNAMIC_IMPORTS))}; "
+        f"declared but gone: {sorted(set(DYNAMIC_IMPORTS) - dynamic)}"
+    )
 
 
 def test_no_import_circles() -> None:

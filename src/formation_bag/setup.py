@@ -29,10 +29,10 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "formation-record = formation_bag.parsers:record",
-            "formation-replay = formation_bag.parsers:replay",
-            "formation-analyze = formation_bag.parsers:analyze",
-            "formation-rerun = formation_bag.parsers:rerun",
+            "formation-record = formation_bag.entry_points:record",
+            "formation-replay = formation_bag.entry_points:replay",
+            "formation-analyze = formation_bag.entry_points:analyze",
+            "formation-rerun = formation_bag.entry_points:rerun",
             "formation-bag = formation_bag.cli:main",
         ],
     },

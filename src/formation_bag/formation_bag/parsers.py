@@ -1,22 +1,14 @@
-"""The command lines of formation-record, -replay, -analyze and -rerun, parsed before the heavy imports.
-
-Each console script enters here: ``--help`` and a bad option end before rclpy, rosbags, numpy or
-the cores are imported (``--help`` answers in a fraction of a second; tests/test_entry_points.py),
-a bad ``--formation`` file before rclpy, rosbags or numba; then the command's module runs (it
-parses the same arguments again, microseconds, and loads the file again, milliseconds).
-"""
+"""The command lines of formation-record, -replay, -analyze and -rerun (their console scripts,
+:mod:`formation_bag.entry_points`, parse them before the heavy imports; each command's module parses
+them again)."""
 
 from __future__ import annotations
 
 import argparse
-import importlib
-import sys
-from collections.abc import Callable
 from pathlib import Path
 
 from formation_msgs_py import options
 from formation_msgs_py.bag import STORAGE_NAMES
-from formation_msgs_py.errors import FormationError
 from formation_msgs_py.options import byte_count
 from formation_msgs_py.outcome import EXIT_STATUS_HELP
 
@@ -205,27 +197,3 @@ def rerun_parser() -> argparse.ArgumentParser:
         help="write into an existing non-empty --out directory, removing an earlier re-run's outputs first",
     )
     return p
-
-
-def _front(parser: Callable[[], argparse.ArgumentParser], module: str) -> Callable[[list[str] | None], int]:
-    def main(argv: list[str] | None = None) -> int:
-        p = parser()
-        args = p.parse_args(argv)  # exits here on --help or a bad option
-        if getattr(args, "formation", None) is not None:  # a bad file: exit 2 before rclpy, rosbags, numba
-            from formation_msgs_py.spec import load_formation
-
-            try:
-                load_formation(args.formation)
-            except FormationError as exc:
-                print(f"{p.prog}: {exc}", file=sys.stderr)
-                return 2
-        return importlib.import_module(module).main(argv)
-
-    main.__doc__ = f"Entry point: {parser.__name__}'s arguments and --formation file, then {module}.main."
-    return main
-
-
-record = _front(record_parser, "formation_bag.record_node")
-replay = _front(replay_parser, "formation_bag.replay_node")
-analyze = _front(analyze_parser, "formation_bag.analysis")
-rerun = _front(rerun_parser, "formation_bag.rerun")

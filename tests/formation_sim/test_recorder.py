@@ -163,6 +163,31 @@ def test_settle_time_is_the_entry_into_the_steady_band(spec: FormationSpec) -> N
     assert j.min_margin_psi[3] == pytest.approx(expected, abs=1e-9)  # acos then cos, as above
 
 
+def test_settle_times_of_a_stack_are_the_settle_rule_folded_per_sample(spec: FormationSpec) -> None:
+    """Judge's settle times after stacks of samples (split anywhere) equal :func:`settle` applied sample by
+    sample: one rule (the compiled loop's) in both forms. Seeded random inside/outside sequences."""
+    from formation_msgs_py.judge import settle
+
+    rng = np.random.default_rng(3)
+    K = len(spec.edges)
+    for _ in range(200):
+        n = int(rng.integers(1, 30))
+        t = np.arange(n) * 0.1
+        inside = rng.random((n, K)) < 0.7
+        j = Judge(spec)
+        e = np.where(inside, 0.5 * (j.band_lo + j.band_hi), j.band_hi + 1.0)  # (n, K): in or out of the band
+        psi = np.zeros((n, K))
+        cuts = sorted(rng.choice(np.arange(1, n), size=min(n - 1, 3), replace=False).tolist()) if n > 1 else []
+        for part in np.split(np.arange(n), cuts):
+            j._settle(t[part], e[part], psi[part])
+        for k in range(K):
+            folded = np.nan
+            for a, b in zip(t, inside[:, k]):
+                folded = settle(folded, float(a), bool(b))
+            assert j.settle_e[k] == (None if np.isnan(folded) else folded), (k, inside[:, k])
+            assert j.settle_psi[k] == 0.0  # ψ inside from the first sample
+
+
 def test_velocity_channel_and_edge_first_at_one_sample(spec: FormationSpec) -> None:
     """Agent 4's wy margin ≤ 0 at 0.1 s: velocity, agent 4, wy; an edge violated at the same sample wins."""
     p, R = trajectory(spec)

@@ -348,17 +348,22 @@ class Judge:
             self.first_violation = Violation(float(t), "velocity", self.spec.agents[i].id, channel)
 
     def _settle(self, t: np.ndarray, e: np.ndarray, psi: np.ndarray) -> None:
-        """The settle times after samples at t (T,): :func:`settle` over a stack, per edge."""
+        """The settle times after samples at t (T,): :func:`settle` folded over the stack, per edge. Only two
+        samples can change the fold's result: the last one outside the band (it resets the time) and the
+        first inside after it (it sets it); :func:`settle` is applied to those."""
         inside_e, inside_psi = in_steady_band(e, psi, self.band_lo, self.band_hi, self.band_psi)
         for settled, inside in ((self.settle_e, inside_e), (self.settle_psi, inside_psi)):
             for k in range(inside.shape[1]):
+                prior = settled[k]
+                s: float = np.nan if prior is None else prior
                 out = np.flatnonzero(~inside[:, k])
-                if out.size == 0:
-                    settled[k] = float(t[0]) if settled[k] is None else settled[k]
-                elif out[-1] == len(t) - 1:
-                    settled[k] = None
-                else:
-                    settled[k] = float(t[out[-1] + 1])
+                first_inside = 0
+                if out.size:
+                    s = settle(s, float(t[out[-1]]), False)
+                    first_inside = int(out[-1]) + 1
+                if first_inside < len(t):
+                    s = settle(s, float(t[first_inside]), True)
+                settled[k] = None if np.isnan(s) else float(s)
 
     def clearance(self) -> dict[str, Any]:
         """summary.json ``clearance``: the smallest clearance of any pair of bodies [m], which pair and when,

@@ -28,7 +28,6 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.clock import JumpThreshold, TimeJump
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
@@ -60,6 +59,7 @@ from formation_msgs_py.publisher_watch import (
 )
 from formation_msgs_py.ros import conversions, parameters, qos, stopping
 from formation_msgs_py.ros.graph_watch import GraphWatch
+from formation_msgs_py.ros.rclpy_internals import RCLError, now_ns_reader
 from formation_msgs_py.spec import AgentView, agent_view, load_formation
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 from formation_msgs_py.wire import NS_PER_S
@@ -158,10 +158,9 @@ class AgentNode(Node):
             post_callback=self._on_jump,
         )
         self._use_sim_time = bool(self.get_parameter("use_sim_time").value)
-        # sim time for the input check of every message: Clock.now() builds a Time object (~3 µs),
-        # its handle reads the same clock for ~0.7 µs. Without sim time stamps are not judged (0).
-        handle = self._ros_clock.handle
-        self._clock_ns = (lambda: handle.get_now().nanoseconds) if self._use_sim_time else (lambda: 0)
+        # sim time for the input check of every message (through the clock's handle: rclpy_internals).
+        # Without sim time stamps are not judged (0).
+        self._clock_ns = now_ns_reader(self._ros_clock) if self._use_sim_time else (lambda: 0)
         self._next_diag = time.monotonic() + self.diag_period
         self.get_logger().info(
             f"agent {view.agent_id}: neighbours {', '.join(view.neighbours)}; "

@@ -41,7 +41,6 @@ from typing import Any
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -56,6 +55,7 @@ from formation_msgs_py.errors import BagError, BagTopicError, FormationSpecError
 from formation_msgs_py.faults import write_json
 from formation_msgs_py.outcome import ExitCode, guarded
 from formation_msgs_py.ros import qos as fqos
+from formation_msgs_py.ros.rclpy_internals import RCLError, SubscriptionWaitSet, pointer, raw_taker
 from formation_msgs_py.spec import load_formation
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 
@@ -296,20 +296,16 @@ class Recorder(Node):
                 version = self.active_version
                 n_active = len(self._active)
                 if n_active:
-                    wait_set = _rclpy.WaitSet(n_active, 0, 0, 0, 0, 0, context.handle)
-                by_pointer = {sub.handle.pointer: entry for entry in self._active for sub in (entry[1],)}
+                    wait_set = SubscriptionWaitSet(n_active, context)
+                by_pointer = {pointer(entry[1]): entry for entry in self._active}
             if n_active and wait_set is not None:
-                wait_set.clear_entities()
-                for _, sub, _, _ in self._active:
-                    wait_set.add_subscription(sub.handle)
                 try:
-                    wait_set.wait(100_000_000)
-                except _rclpy.RCLError:
+                    ready = wait_set.wait((sub for _, sub, _, _ in self._active), 100_000_000)
+                except RCLError:
                     if not context.ok():
                         break  # interrupted while waiting
                     raise
-
-                for ptr in wait_set.get_ready_entities("subscription"):
+                for ptr in ready:
                     self._take_all(*by_pointer[ptr])
             else:
                 time.sleep(0.1)  # nothing to record yet: discovery below
@@ -339,7 +335,7 @@ class Recorder(Node):
 
     def _take_all(self, name: str, sub: Any, cls: Any, every: int) -> int:
         """Take and write every queued message of one subscription; returns how many."""
-        take = sub.handle.take_message
+        take = raw_taker(sub)
         received, seq, write = self.received, self.seq, self.writer.write
         sim_time = self.sim_log_time
         step_topic = name in self.step_topics and self.first_step_stamp is None

@@ -148,6 +148,15 @@ def kernel(fn: F) -> F:
     return dispatcher
 
 
+def kernel_cached(dispatcher: Any) -> bool:
+    """Whether numba's cache holds an index of ``dispatcher``'s kernel for the sources as they are now
+    (numba's private ``_cache._cache_file._index_path``: tests/formation_msgs_py/test_compiled.py checks
+    it); False interpreted."""
+    if INTERPRETED:
+        return False
+    return Path(dispatcher._cache._cache_file._index_path).exists()
+
+
 _numba = None
 
 #: Modules numba imports that no kernel needs, together a few tenths of a second of every compiled

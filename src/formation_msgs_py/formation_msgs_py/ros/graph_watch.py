@@ -20,12 +20,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.subscription import Subscription
 
 from formation_msgs_py.publisher_watch import Intruder, PublisherInfo, PublisherWatch, describe
+from formation_msgs_py.ros.rclpy_internals import RCLError
 
 #: Graph poll period [wall s]: an intruder is reported within this plus the discovery latency.
 POLL_PERIOD = 0.2

@@ -25,7 +25,6 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -42,7 +41,7 @@ from formation_agent.controller import (
     new_outputs,
 )
 from formation_msgs_py import funnels
-from formation_msgs_py.compiled import INTERPRETED, formula, kernel
+from formation_msgs_py.compiled import INTERPRETED, formula, kernel, kernel_cached
 from formation_msgs_py.judge import (
     CheckedSteps,
     EdgeSample,
@@ -427,8 +426,7 @@ def compile_in_two_processes(spec: FormationSpec) -> None:
     compiler lock rules out threads). No-op when the cache has run_sampled, or interpreted; if the
     second process fails, this one compiles team_step itself when it needs it.
     """
-    # run_sampled is a numba dispatcher, typed as the function it compiles (compiled.kernel)
-    if INTERPRETED or Path(run_sampled._cache._cache_file._index_path).exists():  # type: ignore[attr-defined]
+    if INTERPRETED or kernel_cached(run_sampled):
         return
     helper = subprocess.Popen(
         [sys.executable, "-c", "from formation_sim.core.team import load_team_step; load_team_step()"],

@@ -54,7 +54,6 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterEvent, ParameterType
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
@@ -74,6 +73,7 @@ from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
 from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py.ros import conversions, qos, stopping
 from formation_msgs_py.ros.graph_watch import GraphWatch
+from formation_msgs_py.ros.rclpy_internals import RCLError
 from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
 from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
 from formation_msgs_py.wire import step_stamp_ns

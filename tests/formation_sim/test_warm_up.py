@@ -19,7 +19,7 @@ from formation_sim.core.team import AgentTeam
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"
 
-#: A fresh process (its dispatchers know no signature yet) builds what sim_node.Runner builds
+#: A fresh process (its dispatchers know no signature yet) builds what formation_sim.node.runner.Runner builds
 #: before discovery, then steps as run_lockstep does and lists the kernels that compiled then.
 STEPS_AFTER_CONSTRUCTION = r"""
 import json, sys

@@ -43,7 +43,7 @@ if TYPE_CHECKING:
 #: of 20 agents at 100 Hz used 59-69 % of two cores and missed 2-10 % of the ticks (BENCHMARKS.md,
 #: "What two cores hold"); the 5-agent preset at 100 Hz, well under half, kept 99-100 %.
 UTILISATION = 0.5
-#: the simulator's /clock rate in realtime [Hz of sim time] (formation_sim.node.sim_node.REALTIME_CLOCK_RATE)
+#: the simulator's /clock rate in realtime [Hz of sim time] (formation_sim.node.runner.REALTIME_CLOCK_RATE)
 REALTIME_CLOCK_RATE = 10.0
 #: the display rate of markers, funnels and /tf [Hz of sim time] (formation-launch --marker-rate default)
 MARKER_RATE = 30.0

@@ -1,12 +1,18 @@
-"""Opt-in: a short lockstep run opened in a real viewer. Foxglove Studio 1.48 (the prebuilt web app of
-the npm package @foxglove/studio-base) runs in headless Chromium, reads the run's view.mcap over HTTP
-byte ranges from 127.0.0.1, imports the run's foxglove_layout.json through its own Import button, and
-the page and a screenshot are checked: the whole run on the timeline, the agents' markers drawn, no
-transform-tree message, both funnel plots with data across the run and legends naming each line.
+"""Opt-in: short runs opened in a real viewer. Foxglove Studio 1.48 (the prebuilt web app of the npm
+package @foxglove/studio-base) runs in headless Chromium and imports each run's layout through its own
+Import button; the page and a screenshot are checked.
+
+- A 0.5 s lockstep paper run's view.mcap, read over HTTP byte ranges from 127.0.0.1: the whole run on
+  the timeline, the agents' markers drawn, no transform-tree message, both funnel plots with data
+  across the run and legends naming each line.
+- Two non-neighbours in contact over delayed and lossy links (data/contact_links_3agents.yaml), from
+  its lockstep view.mcap and live from a realtime run's ``--foxglove`` server (through
+  subprotocol_shim.py: Studio 1.x offers only the protocol's older name): every link's age plotted and
+  named, the contact spheres drawn (and none in the paper run).
 
 Install what it needs with tests/viewer/install.sh, then
 ``FORMATION_VIEWER_CHECK=1 .venv/bin/python -m pytest tests/viewer -q``. ``FORMATION_VIEWER_SCREENSHOTS=DIR``
-also keeps the screenshots in DIR (docs/img holds two of them)."""
+also keeps the screenshots in DIR (docs/img holds three of them)."""
 
 from __future__ import annotations
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from formation_msgs_py.compiled import formula
+from formation_msgs_py.so3 import matmul3, matrix_rows, vec3
 
 
 @formula
@@ -90,3 +91,32 @@ def margin_psi(xi_psi):
 def margin_v(xi_v):
     """Velocity margin 1 − |ξ_v| per channel."""
     return 1.0 - np.abs(xi_v)
+
+
+@formula
+def edge_errors(p_tail, p_head, R_tail, R_head, d2, R_des):
+    """(e_k [m²], ψ_k) of edge k from world poses, the errors its funnels bound: e = ‖p_head − p_tail‖² − d_k,des² and
+    ψ = ½ tr(I − R_desᵀ R_headᵀ R_tail) = ½(3 − Σ (R_head R_des)∘R_tail), d2 = d_k,des² [m²].
+
+    Vectors are 3-tuples and matrices row tuples (:func:`formation_msgs_py.so3.vec3`,
+    :func:`formation_msgs_py.so3.matrix_rows`) of floats, or of numpy arrays (elementwise).
+    """
+    d = (p_head[0] - p_tail[0], p_head[1] - p_tail[1], p_head[2] - p_tail[2])
+    e = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - d2
+    A = matmul3(R_head, R_des)
+    trace = 0.0
+    for a in range(3):
+        for b in range(3):
+            trace += A[a][b] * R_tail[a][b]
+    return e, 0.5 * (3.0 - trace)
+
+
+def edge_errors_from_arrays(
+    p_tail: np.ndarray, p_head: np.ndarray, R_tail: np.ndarray, R_head: np.ndarray, d_des: float, R_des: np.ndarray
+) -> tuple[float, float]:
+    """(e [m²], ψ) of one edge from arrays: positions (3,) and R_world_body (3,3) of its tail and head,
+    its desired distance [m] and relative rotation (:func:`edge_errors`)."""
+    e, psi = edge_errors(
+        vec3(p_tail), vec3(p_head), matrix_rows(R_tail), matrix_rows(R_head), d_des**2, matrix_rows(R_des)
+    )
+    return float(e), float(psi)

@@ -1,9 +1,11 @@
 """The judge of a run: e_k, ψ_k and their funnel margins from world poses, the first violation, settle
 times and the worst margin (docs/outputs.md).
 
-The funnel rule and the formulas of e, ψ and their margins live here once, as
-:func:`formation_msgs_py.compiled.formula` functions: :func:`edge_errors`, :func:`edge_margins`,
-:func:`outside` (the rule), :func:`in_steady_band` and :func:`settle`. The run core compiles them
+The funnel rule and the formulas of the margins live here once, as
+:func:`formation_msgs_py.compiled.formula` functions: :func:`edge_margins`, :func:`outside` (the
+rule), :func:`in_steady_band` and :func:`settle`; e and ψ from world poses are
+:func:`formation_msgs_py.funnels.edge_errors` (also what a formation file's checks and formation-check
+compute at t = 0). The run core compiles them
 into its loop (formation_sim.core.loop, on floats); :class:`Judge` calls the same functions on
 numpy arrays, where they work elementwise with the same operations in the same order.
 
@@ -32,31 +34,13 @@ import numpy as np
 
 from formation_msgs_py import funnels
 from formation_msgs_py.compiled import formula
-from formation_msgs_py.so3 import matmul3
+from formation_msgs_py.funnels import edge_errors
 from formation_msgs_py.spec import FormationSpec
 
 VELOCITY_CHANNELS = ("vx", "vy", "vz", "wx", "wy", "wz")
 #: Violation kinds that name an edge; ``velocity`` names an agent, ``contact`` a pair of agents.
 EDGE_KINDS = ("distance", "orientation")
 CONTACT = "contact"
-
-
-@formula
-def edge_errors(p_tail, p_head, R_tail, R_head, d2, R_des):
-    """(e_k [m²], ψ_k) of edge k from world poses: e = ‖p_head − p_tail‖² − d_k,des² and
-    ψ = ½ tr(I − R_desᵀ R_headᵀ R_tail) = ½(3 − Σ (R_head R_des)∘R_tail), d2 = d_k,des² [m²].
-
-    Vectors are 3-tuples and matrices row tuples (:func:`formation_msgs_py.so3.vec3`,
-    :func:`formation_msgs_py.so3.matrix_rows`) of floats, or of numpy arrays (elementwise).
-    """
-    d = (p_head[0] - p_tail[0], p_head[1] - p_tail[1], p_head[2] - p_tail[2])
-    e = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - d2
-    A = matmul3(R_head, R_des)
-    trace = 0.0
-    for a in range(3):
-        for b in range(3):
-            trace += A[a][b] * R_tail[a][b]
-    return e, 0.5 * (3.0 - trace)
 
 
 @formula

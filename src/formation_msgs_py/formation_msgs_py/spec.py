@@ -993,8 +993,12 @@ def _check_rho_psi_0(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
 
 
 def _check_psi_0(e: Parsed, tail: Parsed, head: Parsed, path: str) -> None:
+    from formation_msgs_py import funnels
+
     R_des = e["R_des"]  # set by _check_edge_orientation, which runs first
-    psi0 = 0.5 * float(np.trace(np.eye(3) - R_des.T @ head["R_world_body"].T @ tail["R_world_body"]))
+    _, psi0 = funnels.edge_errors_from_arrays(
+        tail["position"], head["position"], tail["R_world_body"], head["R_world_body"], e["distance"], R_des
+    )
     of = e["orientation_funnel"]
     if psi0 >= of["rho_0"]:
         raise FormationSpecError(

@@ -37,6 +37,7 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
     """(lines of the readable summary, list of reasons the file is unsafe)."""
     import numpy as np
 
+    from formation_msgs_py import funnels
     from formation_sim.core.loop import initial_rho_v0
     from formation_sim.core.rates import rate_needs
 
@@ -65,11 +66,13 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
     lines.append("  edge      d_col  d_des  d_con   d(0)     e(0)   margin_e  psi(0)  rho_psi0  margin_psi")
     by_id = {a.id: a for a in spec.agents}
     for e in spec.edges:
-        d0 = float(np.linalg.norm(by_id[e.head].position - by_id[e.tail].position))
-        e0 = d0**2 - e.d_des**2
-        m_e = min(1 + e0 / e.c_col, 1 - e0 / e.c_con)
-        psi0 = 0.5 * float(np.trace(np.eye(3) - e.R_des.T @ by_id[e.head].R_world_body.T @ by_id[e.tail].R_world_body))
-        m_psi = 1 - psi0 / e.rho_psi_0
+        tail, head = by_id[e.tail], by_id[e.head]
+        d0 = float(np.linalg.norm(head.position - tail.position))
+        e0, psi0 = funnels.edge_errors_from_arrays(
+            tail.position, head.position, tail.R_world_body, head.R_world_body, e.d_des, e.R_des
+        )
+        m_e = float(funnels.margin_e(e0, e.c_col, e.c_con))  # ρ_e(0) = 1: ξ_e(0) = e(0)
+        m_psi = float(funnels.margin_psi(psi0 / e.rho_psi_0))
         lines.append(
             f"  {e.name:<8} {e.d_col:>6.3g} {e.d_des:>6.3g} {e.d_con:>6.3g} {d0:>6.3f} {e0:>8.3f} {m_e:>10.3f} "
             f"{psi0:>7.4f} {e.rho_psi_0:>9.3g} {m_psi:>11.3f}"

@@ -204,7 +204,7 @@ def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
 @formula
 def check_step(watch, buf, n, t, p, R, out):
     """The funnels at step n of the chunk on ground truth (e, ψ, ρ into ``buf``); True if one is left
-    (the judge's formulas and rule: :func:`formation_msgs_py.judge.edge_errors`, ``edge_margins``, ``outside``)."""
+    (the judge's formulas and rule: :func:`formation_msgs_py.funnels.edge_errors`, ``edge_margins``, ``outside``)."""
     c = watch.checked
     left = False
     for k in range(watch.pairs.shape[0]):

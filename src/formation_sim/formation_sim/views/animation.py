@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from formation_msgs_py import funnels
 from formation_msgs_py.spec import FormationSpec
 from formation_sim.views.markers import (
     ARROW,
@@ -51,9 +52,8 @@ def edge_margins(spec: FormationSpec, arrays: dict[str, np.ndarray]) -> np.ndarr
     """(T,K) worst of the distance and orientation margins of every edge, from the trajectory arrays."""
     c_col = np.array([e.c_col for e in spec.edges])
     c_con = np.array([e.c_con for e in spec.edges])
-    xi_e = arrays["e"] / arrays["rho_e"]
-    m_e = np.minimum(1.0 + xi_e / c_col, 1.0 - xi_e / c_con)
-    m_psi = 1.0 - arrays["psi"] / arrays["rho_psi"]
+    m_e = funnels.margin_e(arrays["e"] / arrays["rho_e"], c_col, c_con)
+    m_psi = funnels.margin_psi(arrays["psi"] / arrays["rho_psi"])
     return np.minimum(m_e, m_psi)
 
 

@@ -29,6 +29,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import JumpThreshold, TimeJump
+from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
@@ -97,7 +98,7 @@ def _root(name: str) -> str:
 class AgentNode(Node):
     """Thin ROS wrapper around :class:`StepSynchroniser` for one agent."""
 
-    def __init__(self, agent_id: str, context=None) -> None:
+    def __init__(self, agent_id: str, context: Context | None = None) -> None:
         super().__init__(NODE_NAME, namespace="/" + topics.agent_frame(agent_id), context=context)
         declare = parameters.declare
         declare(self, "agent_id", agent_id, "the agent's id in the formation file", read_only=True, any_type=True)
@@ -339,7 +340,7 @@ def _cli_sets(args: Sequence[str], name: str) -> bool:
     return any(a.startswith(f"{name}:=") for a in args)
 
 
-def resolve_agent_id(argv: Sequence[str], context) -> str:
+def resolve_agent_id(argv: Sequence[str], context: Context | None) -> str:
     """The agent id: ``-p agent_id:=ID`` on the command line, else the ``agent_id`` parameter a
     parameters file gives the node (``/**`` or its own section; a ``-r __ns:=/agent_<ID>`` remap
     selects the per-agent section), else the ``<ID>`` of such a namespace remap."""

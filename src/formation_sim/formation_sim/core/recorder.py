@@ -151,7 +151,16 @@ class RunRecorder:
         self.peak_torque[:] = checked.peak_torque
         self._keep(start, t, p, R, v, u, edges)
 
-    def _keep(self, start: int, t, p, R, v, u, edges: EdgeSample) -> None:
+    def _keep(
+        self,
+        start: int,
+        t: np.ndarray,
+        p: np.ndarray,
+        R: np.ndarray,
+        v: np.ndarray,
+        u: np.ndarray,
+        edges: EdgeSample,
+    ) -> None:
         """The decimated trajectory: every ``record_every``-th sample, counted from the run's first."""
         n = len(edges.e)
         rows = np.flatnonzero((start + np.arange(n)) % self.record_every == 0)

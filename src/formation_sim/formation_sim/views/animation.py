@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -34,6 +34,7 @@ from formation_sim.views.markers import (
     TEXT_VIEW_FACING,
     TORQUE_COLOUR,
     FormationScene,
+    Rgba,
     Shape,
     margin_colour,
 )
@@ -60,7 +61,7 @@ def edge_margins(spec: FormationSpec, arrays: dict[str, np.ndarray]) -> np.ndarr
 class SceneArtists:
     """matplotlib 3D artists for the shapes of a scene, created once and moved every frame."""
 
-    def __init__(self, ax) -> None:
+    def __init__(self, ax: Any) -> None:  # a 3D Axes: mpl_toolkits.mplot3d ships no types
         self.ax = ax
         self.artists: dict[tuple[str, int], list] = {}
 
@@ -155,8 +156,9 @@ class RunFigure:
         """The legend of the 3D scene, below both panels."""
         from matplotlib.lines import Line2D
 
-        def line(colour, label: str, **style) -> Line2D:
-            return Line2D([], [], color=colour[:3] if isinstance(colour, tuple) else colour, label=label, **style)
+        def line(colour: str | Rgba, label: str, **style: Any) -> Line2D:
+            rgb = colour if isinstance(colour, str) else (colour[0], colour[1], colour[2])
+            return Line2D([], [], color=rgb, label=label, **style)
 
         handles = [
             *(line(margin_colour(m), f"edge, margin {m:g}", lw=3) for m in (1.0, 0.5, 0.0)),

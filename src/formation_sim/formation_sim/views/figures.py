@@ -32,16 +32,22 @@ from __future__ import annotations
 
 import math
 import textwrap
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from formation_agent.controller import AgentController
 from formation_msgs_py import funnels
 from formation_msgs_py.judge import Pairs
-from formation_msgs_py.spec import FormationSpec, agent_view
+from formation_msgs_py.spec import EdgeSpec, FormationSpec, agent_view
+
+if TYPE_CHECKING:  # matplotlib is imported when figures are drawn, not with this module
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 #: the files :func:`plot_run` writes, in order, and with a link model :data:`LINK_FIGURE` after them
 FIGURES = ("errors.png", "orientation_errors.png", "inputs.png", "velocity_errors.png", "clearance.png")
@@ -65,12 +71,22 @@ class Caption:
     colour: str
 
 
-def _caption_height(fig) -> float:
+def _caption_height(fig: Figure) -> float:
     """Inches the caption (the figure's suptitle, wrapped) takes at the top of ``fig``."""
     return CAPTION_GAP + CAPTION_LINE * (fig.get_suptitle().count("\n") + 1)
 
 
-def _grid(plt, rows: int, cols: int, width: float, height: float, caption: Caption, *, top: float = 0.35, **kwargs):
+def _grid(
+    plt: ModuleType,
+    rows: int,
+    cols: int,
+    width: float,
+    height: float,
+    caption: Caption,
+    *,
+    top: float = 0.35,
+    **kwargs: Any,
+) -> tuple[Figure, Any]:
     """``plt.subplots`` of rows x cols panels, each cell ``width`` x ``height`` inches, with fixed margins,
     and ``caption`` above them, wrapped to the figure's width.
 
@@ -101,7 +117,7 @@ def _grid(plt, rows: int, cols: int, width: float, height: float, caption: Capti
 
 
 def _panels(
-    plt,
+    plt: ModuleType,
     n: int,
     caption: Caption,
     *,
@@ -110,7 +126,7 @@ def _panels(
     width: float = 4.2,
     height: float = 3.0,
     top: float = 0.35,
-):
+) -> tuple[Figure, list[list[Axes]]]:
     """A grid of n cells (at most ``max_cols`` per row), each a column of ``stacked`` panels sharing t;
     returns the figure and, per cell, its list of panels."""
     cols = min(n, max_cols)
@@ -123,7 +139,7 @@ def _panels(
     return fig, cells
 
 
-def _zoom(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> None:
+def _zoom(ax: Axes, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> None:
     """The second half of the run (where the steady band is) in its own panel, y-limits fitted to it."""
     sel = t >= t[0] + ZOOM_FROM * (t[-1] - t[0]) if len(t) else np.zeros(0, dtype=bool)
     if np.count_nonzero(sel) < 2:
@@ -138,14 +154,14 @@ def _zoom(ax, t: np.ndarray, series: list[tuple[np.ndarray, dict]]) -> None:
     ax.grid(alpha=0.3)
 
 
-def _figure_legend(fig, handles: list, ncol: int) -> None:
+def _figure_legend(fig: Figure, handles: list, ncol: int) -> None:
     """One legend for the whole figure, under the caption and above the panels: every panel draws the
     same kinds of line."""
     y = 1 - _caption_height(fig) / fig.get_figheight()
     fig.legend(handles=handles, loc="upper center", ncol=ncol, fontsize=9, frameon=False, bbox_to_anchor=(0.5, y))
 
 
-def _save(fig, path: Path) -> Path:
+def _save(fig: Figure, path: Path) -> Path:
     # the caption also as the PNG's text: a viewer or a script reads the verdict without the pixels
     fig.savefig(path, dpi=110, metadata={"Description": " ".join(fig.get_suptitle().split("\n"))})
     return path
@@ -166,7 +182,9 @@ def plot_run(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], 
         return _plot_all(plt, out_dir, spec, arrays, caption)
 
 
-def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> list[Path]:
+def _plot_all(
+    plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
+) -> list[Path]:
     paths = [
         _distance_errors(plt, out_dir, spec, arrays, caption),
         _orientation_errors(plt, out_dir, spec, arrays, caption),
@@ -179,7 +197,9 @@ def _plot_all(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndar
     return paths
 
 
-def _link_ages(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
+def _link_ages(
+    plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
+) -> Path:
     from formation_msgs_py.spec import simulator_view
     from formation_sim.core.links import CHANNELS, link_names
 
@@ -218,8 +238,15 @@ EDGE_CELL: dict[str, Any] = {"stacked": 2, "max_cols": 2, "width": 4.4, "height"
 
 
 def _edge_figure(
-    plt, spec: FormationSpec, t: np.ndarray, per_edge, title: str, ylabel: str, legend: list, caption: Caption
-):
+    plt: ModuleType,
+    spec: FormationSpec,
+    t: np.ndarray,
+    per_edge: Callable[[int, EdgeSpec], list],
+    title: str,
+    ylabel: str,
+    legend: list,
+    caption: Caption,
+) -> Figure:
     """A 2-column grid with one cell per edge; ``per_edge(k)`` gives the cell's (y, style) series."""
     fig, cells = _panels(plt, len(spec.edges), caption, **EDGE_CELL)
     for k, (e, (ax, ax_zoom)) in enumerate(zip(spec.edges, cells)):
@@ -237,10 +264,12 @@ def _edge_figure(
     return fig
 
 
-def _distance_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
+def _distance_errors(
+    plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
+) -> Path:
     from matplotlib.lines import Line2D
 
-    def per_edge(k: int, e) -> list:
+    def per_edge(k: int, e: EdgeSpec) -> list:
         rho = arrays["rho_e"][:, k]
         return [(arrays["e"][:, k], ERROR), (e.c_con * rho, UPPER), (-e.c_col * rho, LOWER)]
 
@@ -256,11 +285,11 @@ def _distance_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, 
 
 
 def _orientation_errors(
-    plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
+    plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
 ) -> Path:
     from matplotlib.lines import Line2D
 
-    def per_edge(k: int, e) -> list:
+    def per_edge(k: int, e: EdgeSpec) -> list:
         return [(arrays["psi"][:, k], ERROR), (arrays["rho_psi"][:, k], UPPER)]
 
     legend = [
@@ -274,7 +303,9 @@ def _orientation_errors(
     return path
 
 
-def _inputs(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
+def _inputs(
+    plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
+) -> Path:
     from matplotlib.lines import Line2D
 
     t, u = arrays["t"], arrays["u"]
@@ -297,7 +328,9 @@ def _inputs(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarra
     return path
 
 
-def _velocity_errors(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
+def _velocity_errors(
+    plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
+) -> Path:
     from matplotlib.lines import Line2D
 
     t = arrays["t"]
@@ -341,7 +374,9 @@ def nearest_clearances(spec: FormationSpec, p: np.ndarray) -> np.ndarray:
     return nearest
 
 
-def _clearance(plt, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption) -> Path:
+def _clearance(
+    plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
+) -> Path:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 

@@ -36,6 +36,8 @@ from formation_sim.node.stepping import (
 )
 from formation_sim.node.witness import AgentReport
 
+#: wall seconds after which an agent's unanswered parameter request is sent again
+PARAMETER_ASK_AGAIN_S = 2.0
 #: default /clock rate in realtime [Hz]: the agents' measurement-age checks need no more
 REALTIME_CLOCK_RATE = 10.0
 
@@ -141,10 +143,15 @@ class Runner:
         services did not answer by ``deadline`` (monotonic s)."""
         node, names = self.node, [CODE_FORM_PARAMETER, PLATFORM_PARAMETER, *LIVE_GAINS]
         asked: dict[int, Any] = {}
+        asked_at: dict[int, float] = {}
         while len(asked) < len(node.ids) or not all(f.done() for f in asked.values()):
+            now = time.monotonic()
             for i, client in enumerate(node.parameter_clients):
-                if i not in asked and client.services_are_ready():
-                    asked[i] = client.get_parameters(names)
+                # a service is "ready" once its request topic matched; its response may still be lost
+                # while the reply's own writer and reader match: a request unanswered is asked again
+                stale = i in asked and not asked[i].done() and now - asked_at[i] > PARAMETER_ASK_AGAIN_S
+                if (i not in asked or stale) and client.services_are_ready():
+                    asked[i], asked_at[i] = client.get_parameters(names), now
             if time.monotonic() > deadline:
                 missing = [a for i, a in enumerate(node.ids) if i not in asked or not asked[i].done()]
                 raise ParticipantMissingError(

@@ -88,3 +88,15 @@ def cpu_load(n: int) -> Iterator[list[subprocess.Popen]]:
         for p in procs:
             p.kill()
             p.wait()
+
+
+def stop_group(proc: subprocess.Popen, grace: float = 60.0) -> None:
+    """Stop the process group a test started (``start_new_session``) by its PID: SIGINT, then SIGKILL
+    after ``grace`` s."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGINT)
+    try:
+        proc.wait(timeout=grace)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import signal
 import socket
 import subprocess
 from pathlib import Path
 
 from live_client import wait_and_receive
+from process_hygiene import stop_group
 from ros_helpers import PAPER, executable
 
 from formation_msgs_py import topics
@@ -41,13 +40,7 @@ def test_lockstep_run_serves_markers_of_every_agent(ros_env: dict[str, str], tmp
             f"ws://127.0.0.1:{port}", [MARKERS, topics.DIAGNOSTICS], alive=lambda: proc.poll() is None, timeout=240.0
         )
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        stop_group(proc)
     text = log.read_text(errors="replace")
     assert f"live view on ws://127.0.0.1:{port}" in text, text[-3000:]
     assert got.channels[MARKERS]["schemaName"] == MARKER_ARRAY

@@ -21,7 +21,6 @@ import json
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -35,6 +34,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bin_helpers import executable
+from process_hygiene import stop_group
 from studio_server import serving
 from subprotocol_shim import renaming
 
@@ -254,13 +254,7 @@ def viewed_live(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) ->
                 {}, f"ds=foxglove-websocket&ds.url={relay}", layout_file, LINK_KEYS, connected, "links_live.png"
             )
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        stop_group(proc)
 
 
 def _live_url(log: Path, proc: subprocess.Popen) -> str:

@@ -151,6 +151,10 @@ class RunRecorder:
         self.peak_torque[:] = checked.peak_torque
         self._keep(start, t, p, R, v, u, edges)
 
+    def _recorded_rows(self, start: int, n: int) -> np.ndarray:
+        """Which of n samples from the run's sample ``start`` on the trajectory keeps: every ``record_every``-th."""
+        return np.flatnonzero((start + np.arange(n)) % self.record_every == 0)
+
     def _keep(
         self,
         start: int,
@@ -162,8 +166,7 @@ class RunRecorder:
         edges: EdgeSample,
     ) -> None:
         """The decimated trajectory: every ``record_every``-th sample, counted from the run's first."""
-        n = len(edges.e)
-        rows = np.flatnonzero((start + np.arange(n)) % self.record_every == 0)
+        rows = self._recorded_rows(start, len(edges.e))
         for key, arr in (("t", t), ("p", p), ("R", R), ("v", v), ("u", u)):
             self._rows[key].extend(np.array(arr[rows], dtype=np.float64))
         for key, arr in (("e", edges.e), ("psi", edges.psi), ("rho_e", edges.rho_e), ("rho_psi", edges.rho_psi)):
@@ -172,7 +175,7 @@ class RunRecorder:
     def add_link_ages(self, ages: np.ndarray, start: int) -> None:
         """Every link's held sample's age (T, n_links) [s] at samples start … start + T − 1 (a link model's
         runs), kept at the trajectory's samples as ``link_age``."""
-        rows = np.flatnonzero((start + np.arange(len(ages))) % self.record_every == 0)
+        rows = self._recorded_rows(start, len(ages))
         self._rows.setdefault("link_age", []).extend(np.array(ages[rows], dtype=np.float64))
 
     def update_velocity(self, t: float, margin_v: np.ndarray) -> None:

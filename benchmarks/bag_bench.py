@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bag_bench.py [--duration 5.0] [--skip-ros] [--results FILE]
 
 1. writer: SegmentedBagWriter, pre-serialized PoseStamped messages, mcap and sqlite3 (msgs/s);
-2. the paper run (config/paper_5agents.yaml, 10 kHz) written as a lockstep bag by formation_bag.synth
+2. the paper run (config/paper_5agents.yaml, 10 kHz) written as a lockstep bag by tests/formation_bag/synth.py
    for ``--duration`` s, then the analysis (load + re-run + funnel check + ages), the interop check,
    and a check that the analysis reproduces the run's own summary;
 3. recorder (ROS): formation-record fed by a publisher that sends pre-serialized messages as fast
@@ -27,14 +27,16 @@ import time
 from pathlib import Path
 
 from formation_bag import messages as m
-from formation_bag.analysis import analyze_run, message_ages
 from formation_bag.dataset import load_run
-from formation_bag.interop import check_bag
-from formation_bag.synth import write_run_bag
-from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.spec import load_formation
+from formation_bag.interop_check import check_bag
+from formation_bag.writer import SegmentedBagWriter
+from formation_core.spec import load_formation
+from formation_sim.offline.analysis import analyze_run, message_ages
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests" / "formation_bag"))  # the test fixture that writes lockstep bags
+from synth import write_run_bag  # noqa: E402
+
 PAPER = ROOT / "config" / "paper_5agents.yaml"
 VENV_BIN = ROOT / ".venv" / "bin"
 

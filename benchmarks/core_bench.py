@@ -40,7 +40,7 @@ PY = sys.executable
 #: agent 3 of the paper (3 edges) and its measurements at t = 0, after its first compute
 AGENT_SETUP = r"""
 from formation_agent.controller import AgentController
-from formation_msgs_py.spec import agent_view, load_formation
+from formation_core.spec import agent_view, load_formation
 spec = load_formation(sys.argv[1])
 ctrl = AgentController(agent_view(spec, "3"))
 p = np.array([a.position for a in spec.agents]); R = np.array([a.R_world_body for a in spec.agents])
@@ -70,7 +70,7 @@ print({"start_s": round(start, 2), "compute_us": round(per_call, 1), "rss_mb": r
 
 HEADLESS_PROBE = r"""
 import sys, time
-from formation_msgs_py.spec import load_formation
+from formation_core.spec import load_formation
 from formation_sim.cli.headless import run_headless
 spec = load_formation(sys.argv[1], overrides={"duration": float(sys.argv[2])})
 mode = sys.argv[3]
@@ -101,12 +101,12 @@ KERNEL_PROBE = (
     BEST_US
     + r"""
 import sys, time, numba, numpy as np
-from formation_msgs_py.spec import load_formation, simulator_view
+from formation_core.spec import load_formation, simulator_view
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.loop import closed_loop, new_buffers, new_watch, record_step, check_step, sense_and_control
 from formation_sim.core.measurement import relative_poses
 from formation_sim.core.plant import measured_velocity_into, new_workspace, rkmk4_step
-from formation_msgs_py.judge import Judge
+from formation_sim.core.judge import Judge
 from formation_sim.core.team import team_step
 from formation_agent.controller import U, agent_step
 spec = load_formation(sys.argv[1])
@@ -169,7 +169,7 @@ BEFORE_KERNEL_PROBE = (
     BEST_US
     + r"""
 import sys, time, numba, numpy as np
-from formation_msgs_py.spec import load_formation, simulator_view
+from formation_core.spec import load_formation, simulator_view
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.loop import closed_loop, sense_and_control
 from formation_sim.core.measurement import relative_poses

@@ -20,8 +20,8 @@ import numpy as np
 from rclpy.serialization import serialize_message
 from visualization_msgs.msg import MarkerArray
 
+from formation_core.spec import load_formation, simulator_view
 from formation_msgs_py import topics
-from formation_msgs_py.spec import load_formation, simulator_view
 from formation_sim.core.simulation import Simulation
 from formation_sim.node.display import FUNNEL_FIELDS, marker_message
 from formation_sim.views.display_wire import FunnelsWire, MarkerArrayWire

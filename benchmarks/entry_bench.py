@@ -87,7 +87,7 @@ def main() -> None:
             row(f"`ros2_ws/run.sh` {what}", [str(REPO / "ros2_ws" / "run.sh"), str(bad), "--out", out], 2)
     for preset in ("paper_5agents", "realtime_50agents_50hz"):
         path = REPO / "config" / f"{preset}.yaml"
-        code = f"from formation_msgs_py.spec import load_formation; load_formation({str(path)!r})"
+        code = f"from formation_core.spec import load_formation; load_formation({str(path)!r})"
         row(f"import + `load_formation` {preset}", [str(BIN / "python"), "-c", code])
 
 

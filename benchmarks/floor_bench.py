@@ -66,10 +66,10 @@ def agent(formation: Path, agent_id: str, steps: int, warmup: int, clock: bool) 
     from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
     from rclpy.experimental import EventsExecutor
 
+    from formation_core.spec import agent_view, load_formation
     from formation_msgs_py import topics
+    from formation_msgs_py.codec import stamp_of
     from formation_msgs_py.ros import conversions, qos
-    from formation_msgs_py.spec import agent_view, load_formation
-    from formation_msgs_py.wire import stamp_of
 
     view = agent_view(load_formation(formation), agent_id)
     node = _node(f"floor_agent_{agent_id}", sim_time=clock)
@@ -120,10 +120,10 @@ def simulator(
     from rclpy.experimental import EventsExecutor
     from rosgraph_msgs.msg import Clock
 
+    from formation_core.spec import agent_view, load_formation
     from formation_msgs_py import topics
+    from formation_msgs_py.codec import stamp_of
     from formation_msgs_py.ros import conversions, qos
-    from formation_msgs_py.spec import agent_view, load_formation
-    from formation_msgs_py.wire import stamp_of
 
     spec = load_formation(formation)
     node = _node("floor_sim")
@@ -203,7 +203,7 @@ def simulator(
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
     from formation_sim.launch.dds_env import run_environment
     from formation_sim.launch.supervisor import die_with_parent
 

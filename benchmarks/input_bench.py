@@ -16,9 +16,9 @@ import tracemalloc
 from pathlib import Path
 
 from formation_agent.measurement_checks import InputCheck
-from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.loader import parse_document
-from formation_msgs_py.spec import load_formation
+from formation_core.errors import FormationSpecError
+from formation_core.loader import parse_document
+from formation_core.spec import load_formation
 from formation_sim.core.wrench_checks import WrenchCheck
 
 REPO = Path(__file__).resolve().parents[1]

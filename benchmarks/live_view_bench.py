@@ -23,13 +23,13 @@ from pathlib import Path
 import numpy as np
 import websockets
 
+from formation_bag.foxglove_server import SUBPROTOCOL, LiveView, display_topics
+from formation_core.spec import load_formation, simulator_view
 from formation_msgs_py import topics
-from formation_msgs_py.spec import load_formation, simulator_view
-from formation_msgs_py.wire import clock_bytes
+from formation_msgs_py.codec import clock_bytes
 from formation_sim.core.simulation import Simulation
 from formation_sim.node.display import FUNNEL_FIELDS
 from formation_sim.views.display_wire import FunnelsWire, MarkerArrayWire
-from formation_sim.views.live_view import SUBPROTOCOL, LiveView, display_topics
 from formation_sim.views.markers import FormationScene
 
 REPO = Path(__file__).resolve().parents[1]

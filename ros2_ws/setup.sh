@@ -108,7 +108,7 @@ fi
 # --- 4. numba's cache of the compiled core, and Python's bytecode of src/ ---------------------------
 # A first run would compile the closed loop (~15 s on two cores); here it is done once per change of
 # the sources. Every kernel's cache entry is keyed on all the sources compiled into it
-# (formation_msgs_py/compiled.py), so an entry of older sources is never loaded; they are deleted
+# (formation_core/numba_kernels.py), so an entry of older sources is never loaded; they are deleted
 # here only so that they do not pile up. A short headless run of the paper
 # scenario compiles the headless loop and, as its parts, the kernels the simulator and the agents
 # load (team_step, agent_step, rkmk4_step, relative_poses, measured_velocity_into). The editable

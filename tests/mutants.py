@@ -25,8 +25,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
-#: a mutated file's test folder: tests/<its distribution>, and the simulator's for the judge (its run's rules)
-FOLDERS = {"formation_msgs_py": ("formation_msgs_py", "formation_sim")}
+#: a mutated file's test folders where they are not tests/<its distribution> (none today)
+FOLDERS: dict[str, tuple[str, ...]] = {}
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ class Mutant:
     after: str
 
 
-JUDGE = "formation_msgs_py/formation_msgs_py/judge.py"
+JUDGE = "formation_sim/formation_sim/core/judge.py"
 CONTROLLER = "formation_agent/formation_agent/controller.py"
 READER = "formation_bag/formation_bag/reader.py"
 MUTANTS = (

@@ -10,7 +10,7 @@ golden runs) a second time with the environment this prints, one ``NAME=VALUE`` 
   architecture, not for this one's instruction set.
 
 Neither reproduces another machine's libm or compiler; that is why every numeric tolerance states
-its reason. ``numeric_platform()`` (formation_msgs_py.compiled) differs under this environment, so
+its reason. ``numeric_platform()`` (formation_core.numba_kernels) differs under this environment, so
 tests that are exact on one platform take their other-platform branch here.
 """
 

@@ -3,7 +3,7 @@
 ``.venv/bin/python tests/paper_reference.py`` runs today's compiled headless
 loop on config/paper_5agents.yaml and stores e, ψ at the record rate, the final states, every margin
 and peak wrench, and the numeric platform and code form that computed them
-(formation_msgs_py.compiled). ``tests/formation_sim/test_headless.py`` compares a run with it: bit for bit on that
+(formation_core.numba_kernels). ``tests/formation_sim/test_headless.py`` compares a run with it: bit for bit on that
 platform, within the closed loop's response to round-off elsewhere. Run it again when a change
 of the code is meant to change the run's last places (an operation order, a formula).
 """
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from formation_msgs_py.compiled import CODE_FORM, numeric_platform
-from formation_msgs_py.spec import load_formation
+from formation_core.numba_kernels import CODE_FORM, numeric_platform
+from formation_core.spec import load_formation
 from formation_sim.cli.headless import run_headless
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,7 +5,11 @@ absolute or relative (``from . import x`` resolved against the module's package)
 (``import_module`` or ``__import__`` of a literal name), function-level (lazy) imports included: a
 lazy import still ties two modules together. A module name computed at run time is refused unless
 :data:`DYNAMIC_IMPORTS` says what it can load. The
-layers: ``formation_sim.cli`` -> ``launch`` | ``node`` -> ``core`` -> ``formation_msgs_py``; ``views``
+packages, from the bottom: ``formation_core`` (ROS-free: the formation file, options, verdicts,
+numerics) -> ``formation_msgs_py`` (topics, codec, QoS, conversions) -> ``formation_ros`` (the nodes'
+rclpy plumbing) -> ``formation_deploy`` (security, deployment) -> ``formation_agent`` ->
+``formation_bag`` (bag I/O, the record and replay nodes, the live Foxglove server) -> ``formation_sim``.
+Inside formation_sim: ``cli`` -> ``launch`` | ``node`` | ``offline`` -> ``preflight`` -> ``core``; ``views``
 serve the runners and the analysis; ROS (rclpy, message packages) only in the nodes.
 """
 
@@ -22,32 +26,39 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 #: Top-level names of ROS 2 client libraries; any ``*_msgs`` package counts as ROS too.
 _ROS_TOP = {"rclpy", "builtin_interfaces", "rosidl_runtime_py", "rmw", "launch", "launch_ros"}
 
-#: The only modules that may import ROS (rclpy or message packages): the rclpy helpers, the simulator
-#: node's folder, the three other nodes and the parameter tool (a client of the nodes' parameter services).
-ROS_ALLOWED_PACKAGES = ("formation_msgs_py.ros", "formation_sim.node")
+#: The only modules that may import ROS (rclpy or message packages): the messages' QoS and conversions, the
+#: nodes' rclpy plumbing (with the parameter tool), the simulator node's folder, the three other nodes and the
+#: graph watch of the intruder detection.
+ROS_ALLOWED_PACKAGES = ("formation_msgs_py.ros", "formation_ros", "formation_sim.node")
 ROS_ALLOWED_MODULES = (
     "formation_agent.agent_node",
-    "formation_agent.param_cli",
     "formation_bag.record_node",
     "formation_bag.replay_node",
+    "formation_deploy.graph_watch",
 )
 
 #: (importer prefix, imported prefix): an importer under the first may not import anything under the second.
-FORBIDDEN = (
-    # formation_sim: cli -> launch | node -> core -> formation_msgs_py; views never drive a run
-    *(("formation_sim.core", p) for p in ("formation_sim.node", "formation_sim.launch", "formation_sim.cli")),
-    *(("formation_sim.core", "formation_sim.views"),),
-    *(("formation_sim.views", p) for p in ("formation_sim.node", "formation_sim.launch", "formation_sim.cli")),
-    *(("formation_sim.node", p) for p in ("formation_sim.launch", "formation_sim.cli")),
-    *(("formation_sim.launch", p) for p in ("formation_sim.node", "formation_sim.cli")),
-    # the core library stands alone
-    *(("formation_msgs_py", p) for p in ("formation_agent", "formation_sim", "formation_bag", "formation_deploy")),
-    # bags are read and analysed without the simulator's node, launcher or command line
-    *(("formation_bag", p) for p in ("formation_sim.node", "formation_sim.launch", "formation_sim.cli")),
-    # the agent knows nothing of the simulator
-    ("formation_agent", "formation_sim"),
+_PACKAGES = (  # bottom to top: a package may import only those before it
+    "formation_core",
+    "formation_msgs_py",
+    "formation_ros",
+    "formation_deploy",
+    "formation_agent",
+    "formation_bag",
+    "formation_sim",
 )
-
+_SIM_TOP = ("formation_sim.node", "formation_sim.launch", "formation_sim.cli", "formation_sim.offline")
+FORBIDDEN = (
+    # the packages, bottom to top: nothing imports a package above its own
+    *((low, high) for k, low in enumerate(_PACKAGES) for high in _PACKAGES[k + 1 :]),
+    # formation_sim: cli -> launch | node | offline -> preflight -> core; views never drive a run
+    *(("formation_sim.core", p) for p in (*_SIM_TOP, "formation_sim.views", "formation_sim.preflight")),
+    *(("formation_sim.views", p) for p in (*_SIM_TOP, "formation_sim.preflight")),
+    *(("formation_sim.preflight", p) for p in (*_SIM_TOP, "formation_sim.views")),
+    *(("formation_sim.node", p) for p in ("formation_sim.launch", "formation_sim.cli", "formation_sim.offline")),
+    *(("formation_sim.launch", p) for p in ("formation_sim.node", "formation_sim.cli", "formation_sim.offline")),
+    *(("formation_sim.offline", p) for p in ("formation_sim.node", "formation_sim.launch", "formation_sim.cli")),
+)
 
 #: Modules that import a name computed at run time, and what it can be: these edges join the graph.
 DYNAMIC_IMPORTS = {
@@ -176,8 +187,8 @@ def _ros_allowed(module: str) -> bool:
 def test_graph_is_read() -> None:
     """The parser finds the project's modules and their imports (a broken walk would pass every rule)."""
     edges, ros = _graph()
-    assert "formation_msgs_py.spec" in edges and "formation_sim.core.loop" in edges
-    assert any(e.target == "formation_msgs_py.schema" for e in edges["formation_msgs_py.spec"])
+    assert "formation_core.spec" in edges and "formation_sim.core.loop" in edges
+    assert any(e.target == "formation_core.schema" for e in edges["formation_core.spec"])
     assert any(e.target.split(".")[0] == "rclpy" for e in ros["formation_sim.node.sim_node"])
     lazy = [e for imports in edges.values() for e in imports if not e.top_level]
     assert lazy, "function-level imports are part of the graph"
@@ -239,8 +250,8 @@ def test_no_import_circles() -> None:
 
 
 def test_ros_is_imported_only_by_the_nodes() -> None:
-    """rclpy and ROS message packages are imported only by formation_msgs_py.ros, formation_sim.node and the
-    agent, recorder and replay nodes."""
+    """rclpy and ROS message packages are imported only by formation_msgs_py.ros, formation_ros,
+    formation_sim.node, the agent, recorder and replay nodes and the graph watch."""
 
     _, ros = _graph()
     bad = [str(imp) for module, imports in sorted(ros.items()) if not _ros_allowed(module) for imp in imports]
@@ -251,7 +262,7 @@ def test_ros_is_imported_only_by_the_nodes() -> None:
 
 def test_ros_free_modules_do_not_reach_ros_at_module_level() -> None:
     """Importing a module outside the nodes never imports ROS through a chain of module-level imports
-    (an entry point may import its node inside a function: ``formation_agent.process``)."""
+    (an entry point may import its node inside a function: ``formation_agent.entry_point``)."""
     edges, ros = _graph()
     top_ros = {
         m: next(i for i in imports if i.top_level) for m, imports in ros.items() if any(i.top_level for i in imports)
@@ -271,8 +282,8 @@ def test_ros_free_modules_do_not_reach_ros_at_module_level() -> None:
 
 
 def test_imports_point_one_way() -> None:
-    """No module imports a layer above its own: the FORBIDDEN pairs (cli -> launch | node -> core ->
-    formation_msgs_py; formation_bag without the simulator's node, launcher or command line)."""
+    """No module imports a layer above its own: the FORBIDDEN pairs (the packages bottom to top, and
+    formation_sim's folders: cli -> launch | node | offline -> preflight -> core)."""
     edges, _ = _graph()
     bad: dict[tuple[str, int, str], str] = {}  # one message per import statement and rule
     for module, imports in sorted(edges.items()):

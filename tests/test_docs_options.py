@@ -123,7 +123,7 @@ def _help_text(command: str) -> str:
 def test_every_output_file_is_named_in_the_help_and_the_docs(command: str) -> None:
     """Every figure and file a run (and an analysis) writes is named in the command's --help and in
     docs/outputs.md (an analysis's own files in docs/bags.md)."""
-    from formation_bag.analysis import ANALYSIS_OUTPUTS
+    from formation_sim.offline.analysis import ANALYSIS_OUTPUTS
     from formation_sim.views.figures import FIGURES
     from formation_sim.views.foxglove_layout import LAYOUT_NAME
 

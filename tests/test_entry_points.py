@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from formation_msgs_py.options import without_ros_args
+from formation_core.options import without_ros_args
 
 REPO = Path(__file__).resolve().parents[1]
 #: what --help must not import (numpy 0.1 s, scipy 0.2 s, rclpy 0.2 s, numba 0.7 s and ~100 MB)

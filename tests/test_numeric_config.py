@@ -28,7 +28,7 @@ def test_second_configuration_changes_what_decides_the_bits() -> None:
     probe = (
         "import sys, numba.core.config as c\n"
         "from numpy._core._multiarray_umath import __cpu_features__ as f\n"
-        "from formation_msgs_py.compiled import numeric_platform\n"
+        "from formation_core.numba_kernels import numeric_platform\n"
         "print(c.CPU_NAME, [g for g in sys.argv[1:] if f.get(g)], numeric_platform())\n"
     )
     groups = second.get("NPY_DISABLE_CPU_FEATURES", "").split()
@@ -38,7 +38,7 @@ def test_second_configuration_changes_what_decides_the_bits() -> None:
     )
     assert name == "generic" and enabled == "[]"
     if os.environ.get("NUMBA_CPU_NAME") != "generic":  # this process runs the first configuration
-        from formation_msgs_py.compiled import numeric_platform
+        from formation_core.numba_kernels import numeric_platform
 
         assert platform.strip() != numeric_platform()
 

@@ -20,15 +20,15 @@ REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / "config" / "paper_5agents.yaml"
 PACKAGES = sorted(p.parent.name for p in (REPO / "src").glob("*/package.xml"))
 CORE_MODULES = [
-    "formation_msgs_py.spec",
-    "formation_msgs_py.schema",
-    "formation_msgs_py.so3",
-    "formation_msgs_py.funnels",
+    "formation_core.spec",
+    "formation_core.schema",
+    "formation_core.so3",
+    "formation_core.funnels",
     "formation_msgs_py.topics",
-    "formation_msgs_py.wire",
+    "formation_msgs_py.codec",
     "formation_agent.controller",
     "formation_sim.core.plant",
-    "formation_sim.core.signals",
+    "formation_sim.core.disturbances",
     "formation_sim.core.measurement",
     "formation_sim.core.simulation",
     "formation_sim.cli.headless",
@@ -255,7 +255,7 @@ def test_colcon_symlink_install_builds_every_package_from_ros2_ws(tmp_path: Path
 def test_colcon_install_runs_a_formation(tmp_path: Path, ros_domain_id: int) -> None:
     """`colcon build` installs every package; formation-launch from the sourced install space runs a
     short recorded formation whose agents are the install space's, and whose simulator writes its bag
-    with the install space's formation_msgs_py.bag."""
+    with the install space's formation_bag.contract."""
     colcon(tmp_path)
     install = tmp_path / "install"
     for pkg in PACKAGES:

@@ -10,7 +10,15 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "formation_msgs_py", "numpy", "PyYAML"],
+    install_requires=[
+        "setuptools",
+        "formation_core",
+        "formation_msgs_py",
+        "formation_ros",
+        "formation_deploy",
+        "numpy",
+        "PyYAML",
+    ],
     extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
     maintainer="formation developers",
@@ -19,8 +27,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "formation-agent = formation_agent.process:main",
-            "formation-param = formation_agent.param_cli:main",
+            "formation-agent = formation_agent.entry_point:main",
         ],
     },
 )

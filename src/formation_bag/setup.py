@@ -12,16 +12,19 @@ setup(
     ],
     install_requires=[
         "setuptools",
+        "formation_core",
         "formation_msgs_py",
-        "formation_agent",
-        "formation_sim",
+        "formation_ros",
+        "formation_deploy",
         "numpy",
         "PyYAML",
         "rosbags",
         "mcap",
         "mcap-ros2-support",
     ],
-    extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
+    # colcon test runs pytest when "test" lists it; "live": the live view (--foxglove), whose foxglove-sdk has
+    # no rosdep key
+    extras_require={"test": ["pytest"], "live": ["foxglove-sdk"]},
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
@@ -31,8 +34,6 @@ setup(
         "console_scripts": [
             "formation-record = formation_bag.entry_points:record",
             "formation-replay = formation_bag.entry_points:replay",
-            "formation-analyze = formation_bag.entry_points:analyze",
-            "formation-rerun = formation_bag.entry_points:rerun",
             "formation-bag = formation_bag.cli:main",
         ],
     },

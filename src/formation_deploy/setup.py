@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "formation_msgs_py", "cryptography", "PyYAML"],
+    install_requires=["setuptools", "formation_core", "formation_msgs_py", "formation_ros", "cryptography", "PyYAML"],
     extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
     maintainer="formation developers",

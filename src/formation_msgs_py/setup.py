@@ -11,7 +11,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["setuptools", "numpy", "numba", "scipy", "PyYAML", "rosbags"],
+    install_requires=["setuptools", "formation_core"],
     extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
     zip_safe=True,
     maintainer="formation developers",

@@ -12,19 +12,20 @@ setup(
     ],
     install_requires=[
         "setuptools",
+        "formation_core",
         "formation_msgs_py",
-        "formation_agent",
+        "formation_ros",
         "formation_deploy",
+        "formation_agent",
+        "formation_bag",
         "numpy",
         "matplotlib",
         "scipy",
         "PyYAML",
         "pillow",
-        "numba",
     ],
-    # colcon test runs pytest when "test" lists it; "dask": formation-campaign --scheduler; "live": the
-    # live view (--foxglove), whose foxglove-sdk has no rosdep key
-    extras_require={"test": ["pytest"], "dask": ["distributed"], "live": ["foxglove-sdk"]},
+    # colcon test runs pytest when "test" lists it; "dask": formation-campaign --scheduler
+    extras_require={"test": ["pytest"], "dask": ["distributed"]},
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
@@ -38,6 +39,8 @@ setup(
             "formation-launch = formation_sim.launch.launcher:main",
             "formation-generate = formation_sim.cli.generate:main",
             "formation-campaign = formation_sim.cli.campaign:main",
+            "formation-analyze = formation_sim.offline.entry_points:analyze",
+            "formation-rerun = formation_sim.offline.entry_points:rerun",
         ],
     },
 )

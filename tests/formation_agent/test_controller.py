@@ -11,9 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from formation_agent.controller import ERROR, OK, AgentController, MissingMeasurementError
 from formation_agent.roundoff import BoundedController
-from formation_msgs_py.rotations import vee
-from formation_msgs_py.so3 import exp_so3
-from formation_msgs_py.spec import FormationSpec, agent_view, load_formation
+from formation_core.rotations import vee
+from formation_core.so3 import exp_so3
+from formation_core.spec import FormationSpec, agent_view, load_formation
 
 pytestmark = pytest.mark.numeric
 
@@ -260,8 +260,8 @@ def test_controller_limits_default_to_the_actuators_and_never_exceed_them(paper_
     """controller.max_force: null takes dynamics.max_force; a larger value is an error naming both."""
     import yaml
 
-    from formation_msgs_py.errors import FormationSpecError
-    from formation_msgs_py.spec import formation_from_dict
+    from formation_core.errors import FormationSpecError
+    from formation_core.spec import formation_from_dict
 
     doc = yaml.safe_load(paper_path.read_text())
     doc["agents"][0]["dynamics"]["max_force"] = 40.0
@@ -300,7 +300,7 @@ def test_mutant_torque_limited_by_max_force__force_and_torque_have_their_own_lim
     gives a torque of norm 5 and a force of norm 100; with the limits the other way round, 100 and 5."""
     import yaml
 
-    from formation_msgs_py.spec import formation_from_dict
+    from formation_core.spec import formation_from_dict
 
     for max_force, max_torque in ((100.0, 5.0), (5.0, 100.0)):
         doc = yaml.safe_load(paper_path.read_text())

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from formation_agent.roundoff import BoundedController
-from formation_msgs_py.spec import agent_view, load_formation
+from formation_core.spec import agent_view, load_formation
 
 DATA = np.load(Path(__file__).with_name("data") / "controller_reference.npz")
 pytestmark = pytest.mark.numeric
@@ -91,8 +91,8 @@ def test_interpreted_and_compiled_controllers_agree(paper_path: Path, tmp_path: 
     out_file = tmp_path / "interpreted.npz"
     script = (
         "import sys, numpy as np; sys.path.insert(0, sys.argv[1]);"
-        "from formation_msgs_py.compiled import INTERPRETED; assert INTERPRETED;"
-        "from formation_msgs_py.spec import load_formation;"
+        "from formation_core.numba_kernels import INTERPRETED; assert INTERPRETED;"
+        "from formation_core.spec import load_formation;"
         "import test_controller_reference as t;"
         "out, levels, _ = t.replay(load_formation(sys.argv[2]));"
         "np.savez(sys.argv[3], levels=levels, **out)"

@@ -32,7 +32,7 @@ def test_cache_is_warm_only_for_the_sources_and_numba_as_they_are(tmp_path, monk
     import pickle
     import sys
 
-    from formation_msgs_py.compiled import STAMP_IN_NAME, sources_stamp
+    from formation_core.numba_kernels import STAMP_IN_NAME, sources_stamp
 
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     package = tmp_path / "formation_kernel_cache_probe"

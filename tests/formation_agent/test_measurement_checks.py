@@ -10,9 +10,10 @@ import pytest
 from formation_agent import measurement_checks
 from formation_agent.controller import ERROR, AgentController
 from formation_agent.synchroniser import StepSynchroniser
-from formation_msgs_py import rotations, wire
-from formation_msgs_py.errors import RotationError
-from formation_msgs_py.spec import agent_view, load_formation, simulator_view
+from formation_core import rotations
+from formation_core.errors import RotationError
+from formation_core.spec import agent_view, load_formation, simulator_view
+from formation_msgs_py import codec
 from formation_sim.core.simulation import Simulation
 
 NS = 1_000_000_000
@@ -82,7 +83,7 @@ def test_non_finite_velocity_is_refused() -> None:
 def test_zero_quaternion_cannot_crash_the_conversion() -> None:
     """The one conversion of a message quaternion raises RotationError, never ZeroDivisionError."""
     with pytest.raises(RotationError, match="has no rotation"):
-        wire.relative_pose_from_values((1, 0, 0, 0, 0, 0, 0))
+        codec.relative_pose_from_values((1, 0, 0, 0, 0, 0, 0))
     with pytest.raises(RotationError):
         rotations.matrix_from_quaternion(math.nan, 0, 0, 1)
 

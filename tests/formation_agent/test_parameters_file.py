@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from formation_agent.parameters_file import agent_gains
-from formation_msgs_py.errors import FormationSpecError
+from formation_core.errors import FormationSpecError
 
 IDS = ("1", "2", "3", "4", "5")
 

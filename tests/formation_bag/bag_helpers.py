@@ -8,7 +8,7 @@ from pathlib import Path
 from bin_helpers import executable
 from process_hygiene import cpu_load  # noqa: F401  (re-exported for the bag tests)
 
-from formation_msgs_py.spec import FormationSpec, load_formation
+from formation_core.spec import FormationSpec, load_formation
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"

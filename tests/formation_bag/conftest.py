@@ -20,11 +20,11 @@ from pathlib import Path
 
 import pytest
 
-from formation_bag.synth import SynthResult, write_run_bag
 from formation_sim.launch.dds_env import transport_environment
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # bag_helpers, next to this file
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bag_helpers and synth, next to this file
 from bag_helpers import PAPER, VIOLATING, paper_spec
+from synth import SynthResult, write_run_bag
 
 
 @pytest.fixture(scope="session")

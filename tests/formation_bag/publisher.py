@@ -19,9 +19,9 @@ import numpy as np
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
 from formation_msgs_py.ros import conversions as cv
-from formation_msgs_py.spec import load_formation
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -15,15 +15,15 @@ import pytest
 import yaml
 from bag_helpers import PAPER, VIOLATING, paper_spec
 
-from formation_bag import analysis, rerun
-from formation_bag.analysis import analyze_run, message_ages
+from formation_bag.contract import KEY_FORMATION_YAML
 from formation_bag.dataset import RUN_SETTING_KEYS, apply_overrides, load_run
 from formation_bag.reader import Bag
-from formation_bag.rerun import rerun_all
-from formation_msgs_py.bag import KEY_FORMATION_YAML
-from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.errors import BagFormatError, OverrideError
+from formation_bag.writer import SegmentedBagWriter
+from formation_core.errors import BagFormatError, OverrideError
 from formation_sim.cli.headless import run_headless
+from formation_sim.offline import analysis, rerun
+from formation_sim.offline.analysis import analyze_run, message_ages
+from formation_sim.offline.rerun import rerun_all
 
 pytestmark = pytest.mark.numeric
 
@@ -229,12 +229,22 @@ def test_a_closed_pipe_keeps_the_verdict_and_prints_no_traceback(violating_bag, 
     bag, _ = violating_bag
     out = tmp_path / "out"
     if command == "analyze":
-        args = ["-m", "formation_bag.analysis", str(bag), "--no-plots", "--out", str(out)]
+        args = ["-m", "formation_sim.offline.analysis", str(bag), "--no-plots", "--out", str(out)]
         expected = 1
     else:
         override = tmp_path / "override.yaml"
         override.write_text("agents: {'1': {controller: {gamma: 7.0}}}\n")
-        args = ["-m", "formation_bag.rerun", str(bag), "--agent", "1", "--override", str(override), "--out", str(out)]
+        args = [
+            "-m",
+            "formation_sim.offline.rerun",
+            str(bag),
+            "--agent",
+            "1",
+            "--override",
+            str(override),
+            "--out",
+            str(out),
+        ]
         expected = 1
     proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     proc.stdout.close()  # closed before the first line: every write meets a closed pipe
@@ -246,7 +256,7 @@ def test_a_closed_pipe_keeps_the_verdict_and_prints_no_traceback(violating_bag, 
 
 def test_bag_without_formation_needs_one(tmp_path: Path, short_bags) -> None:
     """A bag without the formation file asks for --formation; with it, the analysis runs."""
-    from formation_bag.synth import write_run_bag
+    from synth import write_run_bag
 
     bag = tmp_path / "bag"
     write_run_bag(paper_spec(duration=0.01, control_rate=1000.0, physics_rate=1000.0), bag)
@@ -267,7 +277,7 @@ def _copy_without(
 ) -> None:
     """A copy of bag ``src`` without the messages ``drop(topic, stamp_ns)`` selects (with ``custom_data``
     instead of its own if given)."""
-    from formation_msgs_py.wire import stamp_of
+    from formation_msgs_py.codec import stamp_of
 
     custom = custom_data
     with (
@@ -412,7 +422,7 @@ print(code, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
 
 def _analyze_peak_rss(bag: Path, out: Path) -> tuple[int, int]:
     """(exit status, peak RSS in KiB) of formation-analyze BAG, its only child measured by a fresh parent."""
-    cmd = [sys.executable, "-c", _PEAK_RSS, sys.executable, "-m", "formation_bag.analysis", str(bag)]
+    cmd = [sys.executable, "-c", _PEAK_RSS, sys.executable, "-m", "formation_sim.offline.analysis", str(bag)]
     done = subprocess.run([*cmd, "--out", str(out), "--no-plots"], capture_output=True, text=True, check=True)
     code, kib = done.stdout.split()
     return int(code), int(kib)
@@ -421,7 +431,7 @@ def _analyze_peak_rss(bag: Path, out: Path) -> tuple[int, int]:
 def test_analysis_memory_does_not_grow_with_the_bag(tmp_path: Path) -> None:
     """formation-analyze of a 5 s bag needs at most 60 MB more than of a 1 s bag (the decoded messages are
     kept compact), and its summary counts every topic the bag holds, /diagnostics, markers and funnels too."""
-    from formation_bag.synth import write_run_bag
+    from synth import write_run_bag
 
     peaks = {}
     for duration in (1.0, 5.0):

@@ -9,9 +9,9 @@ from typing import Any
 import pytest
 from bag_helpers import PAPER, REPO, cpu_load, script
 
-from formation_bag.analysis import analyze_run
 from formation_bag.dataset import load_run
-from formation_bag.interop import check_bag
+from formation_bag.interop_check import check_bag
+from formation_sim.offline.analysis import analyze_run
 
 REALTIME = REPO / "config" / "realtime_5agents_100hz.yaml"
 #: what the judge decides: equal between the run and the analysis of its bag

@@ -17,10 +17,10 @@ import pytest
 import yaml
 
 from formation_bag import messages as m
-from formation_bag.interop import JAZZY_KEYS, check_bag
+from formation_bag.interop_check import JAZZY_KEYS, check_bag
 from formation_bag.reader import Bag, repair, repair_file
-from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.errors import BagExistsError, BagFormatError, BagNotFoundError, BagWriterError
+from formation_bag.writer import SegmentedBagWriter
+from formation_core.errors import BagExistsError, BagFormatError, BagNotFoundError, BagWriterError
 
 START = 1_700_000_000 * m.NS_PER_S
 
@@ -70,7 +70,7 @@ def test_mcap_files_are_byte_for_byte_those_of_rosbags_own_writer(tmp_path: Path
     the same bytes for a segment of several chunks (messages of different topics and sizes)."""
     from rosbags.rosbag2.storage_mcap import McapWriter
 
-    from formation_msgs_py.bag import writer as bag_writer
+    from formation_bag import writer as bag_writer
 
     def segment(path: Path) -> bytes:
         enc = m.Encoder()
@@ -153,7 +153,7 @@ def test_sigkill_loses_at_most_the_open_segment(tmp_path: Path, storage: str) ->
         f"""
         import sys, time
         from formation_bag import messages as m
-        from formation_msgs_py.bag.writer import SegmentedBagWriter
+        from formation_bag.writer import SegmentedBagWriter
         enc = m.Encoder()
         w = SegmentedBagWriter({str(bag)!r}, storage={storage!r}, segment_seconds=0.2)
         w.add_topic("/clock", m.CLOCK)
@@ -200,7 +200,7 @@ def test_sigkill_of_a_one_file_writer_is_salvaged_by_repair(tmp_path: Path) -> N
         f"""
         import time
         from formation_bag import messages as m
-        from formation_msgs_py.bag.writer import SegmentedBagWriter
+        from formation_bag.writer import SegmentedBagWriter
         enc = m.Encoder()
         w = SegmentedBagWriter({str(bag)!r}, segment_seconds=None, segment_bytes=None)
         w.add_topic("/clock", m.CLOCK)
@@ -237,7 +237,7 @@ def test_a_killed_writer_loses_at_most_the_last_second_of_log_time(tmp_path: Pat
         f"""
         import time
         from formation_bag import messages as m
-        from formation_msgs_py.bag.writer import SegmentedBagWriter
+        from formation_bag.writer import SegmentedBagWriter
         enc = m.Encoder()
         w = SegmentedBagWriter({str(bag)!r}, segment_seconds=None, segment_bytes=None,
                                custom_data={{"duration": "10", "formation_file": "f.yaml"}})
@@ -280,7 +280,7 @@ def test_a_killed_view_file_is_completed_in_place_by_repair(tmp_path: Path) -> N
         f"""
         import time
         from formation_bag import messages as m
-        from formation_msgs_py.bag.writer import McapFileWriter
+        from formation_bag.writer import McapFileWriter
         enc = m.Encoder()
         w = McapFileWriter({str(view)!r}, custom_data={{"mode": "lockstep"}})
         w.add_topic("/clock", m.CLOCK)
@@ -341,17 +341,17 @@ def test_interop_decodes_a_sample_with_mcap_ros2_or_every_message(tmp_path: Path
 
 def test_interop_reports_bytes_that_differ_between_the_readers(tmp_path: Path, monkeypatch) -> None:
     """One message whose bytes differ between rosbags and mcap is a problem naming its topic."""
-    import formation_bag.interop as interop
+    import formation_bag.interop_check as interop_check
 
     bag = tmp_path / "bag"
     _write(bag, "mcap", 20, segment_seconds=None)
-    honest = interop._rosbags_bytes
+    honest = interop_check._rosbags_bytes
 
-    def one_byte_off(b: Bag, report: interop.InteropReport):
+    def one_byte_off(b: Bag, report: interop_check.InteropReport):
         for k, (topic, data) in enumerate(honest(b, report)):
             yield topic, (data[:-1] + bytes([data[-1] ^ 1]) if k == 7 else data)
 
-    monkeypatch.setattr(interop, "_rosbags_bytes", one_byte_off)
+    monkeypatch.setattr(interop_check, "_rosbags_bytes", one_byte_off)
     report = check_bag(bag)
     assert not report.ok
     assert len(report.problems) == 1 and "bytes differ between rosbags and mcap" in report.problems[0]
@@ -360,8 +360,8 @@ def test_interop_reports_bytes_that_differ_between_the_readers(tmp_path: Path, m
 def test_interop_compares_decoded_fields_with_nan_equal_to_nan() -> None:
     """The field-by-field comparison of the two decoders: NaN equals NaN, -0.0 equals 0.0 as floats
     do, a changed number or a missing key does not."""
-    from formation_bag.interop import _same, plain
-    from formation_msgs_py.bag.writer import typestore
+    from formation_bag.interop_check import _same, plain
+    from formation_bag.writer import typestore
 
     enc = m.Encoder()
     data = enc.twist(5, "1", [float("nan"), -0.0, 1.0, 2.0, 3.0, 4.0])
@@ -409,13 +409,13 @@ def test_fast_ground_truth_decode_equals_rosbags() -> None:
     """The wire codec's PoseArray decoder gives rosbags' numbers exactly, for 1..7 poses (any frame name)."""
     from scipy.spatial.transform import Rotation
 
-    from formation_msgs_py import wire
+    from formation_msgs_py import codec
 
     rng = np.random.default_rng(11)
     for n in (1, 2, 7):
         p = rng.normal(size=(n, 3)).tolist()
         R = Rotation.random(n, random_state=n).as_matrix().tolist()
-        data = wire.ground_truth_bytes(12_345_678_901, p, R)
+        data = codec.ground_truth_bytes(12_345_678_901, p, R)
         stamp, (p_fast, R_fast) = m.fast_decode("ground_truth", data, m.POSE_ARRAY)
         p_ref, R_ref = m.decode_poses(m.deserialize(data, m.POSE_ARRAY))
         assert stamp == 12_345_678_901

@@ -15,13 +15,13 @@ from bag_helpers import PAPER, REPO, cpu_load, script
 from process_hygiene import kill_hard, remove_segments
 
 from formation_bag import messages as m
-from formation_bag.analysis import analyze_run
 from formation_bag.dataset import load_run
-from formation_bag.interop import check_bag
+from formation_bag.interop_check import check_bag
 from formation_bag.reader import Bag
 from formation_bag.record_node import parse_meta
-from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.errors import BagFormatError
+from formation_bag.writer import SegmentedBagWriter
+from formation_core.errors import BagFormatError
+from formation_sim.offline.analysis import analyze_run
 
 
 def _recorder(ros_procs, bag: Path, *extra: str, env: dict[str, str] | None = None):
@@ -152,7 +152,7 @@ def test_replay_publishes_every_message_in_order(ros_procs, tmp_path: Path) -> N
 def _formation_bag(bag: Path, steps: int, period_ns: int) -> dict[str, int]:
     """A bag of every closed-loop topic of the paper formation (and /diagnostics every 10th step),
     ``steps`` steps ``period_ns`` apart; returns its count per topic."""
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
 
     spec = load_formation(PAPER)
     ids = list(spec.agent_ids)
@@ -247,7 +247,7 @@ def test_replay_window_and_rate(ros_procs, tmp_path: Path) -> None:
 def test_decimation_option() -> None:
     """--decimate TOPIC=N parses globs and refuses malformed entries, naming them."""
     from formation_bag.record_node import parse_decimation, parse_meta
-    from formation_msgs_py.errors import BagTopicError
+    from formation_core.errors import BagTopicError
 
     assert parse_decimation(["/agent_*/relative_pose/*=10", "/diagnostics=2"]) == [
         ("/agent_*/relative_pose/*", 10),
@@ -280,7 +280,7 @@ def test_meta_run_settings_are_checked(tmp_path: Path, capsys) -> None:
 def test_recorder_started_after_the_run_says_what_it_missed(ros_procs, tmp_path: Path) -> None:
     """record.sh attached to a lockstep run already stepping: it names the steps it missed, and the
     analysis of its bag is INCOMPLETE with the missing start listed (never PASS, never FAIL)."""
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
 
     spec = load_formation(PAPER)
     for a in spec.agents:

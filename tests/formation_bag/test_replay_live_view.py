@@ -10,10 +10,10 @@ from bag_helpers import PAPER, script
 from live_client import wait_and_receive
 
 from formation_bag import messages as m
+from formation_bag.writer import SegmentedBagWriter
+from formation_core.so3 import exp_so3
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
-from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.so3 import exp_so3
-from formation_msgs_py.spec import load_formation
 from formation_sim.views.display_wire import MarkerArrayWire
 from formation_sim.views.markers import FormationScene
 

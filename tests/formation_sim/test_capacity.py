@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from formation_msgs_py.errors import CalibrationError
-from formation_msgs_py.spec import formation_from_dict
+from formation_core.errors import CalibrationError
+from formation_core.spec import formation_from_dict
+from formation_sim import capacity
 from formation_sim.cli import check
 from formation_sim.cli.generate import generate
-from formation_sim.core import capacity
 
 # pytest.approx's default (relative 1e-6) checks sums and products of a few stated costs against their
 # closed form: rounding is some 1e-16 of them, a wrong count of messages off by a whole message.

@@ -9,7 +9,7 @@ from pathlib import Path
 import yaml
 from bin_helpers import executable
 
-from formation_msgs_py.spec import load_formation
+from formation_core.spec import load_formation
 from formation_sim.cli import check
 from formation_sim.core.loop import initial_rho_v0
 from formation_sim.core.rates import rate_needs

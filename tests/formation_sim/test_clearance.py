@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from formation_msgs_py.judge import Pairs, judge, pair_clearance
-from formation_msgs_py.spec import load_formation
+from formation_core.spec import load_formation
 from formation_sim.cli.headless import main, run_headless
+from formation_sim.core.judge import Pairs, judge, pair_clearance
 from formation_sim.views.figures import nearest_clearances
 
 pytestmark = pytest.mark.numeric

@@ -10,7 +10,7 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from formation_msgs_py.options import Discovery
+from formation_core.options import Discovery
 from formation_sim.launch.dds_env import (
     FASTDDS_LOOPBACK_PROFILE,
     FASTDDS_PROFILE,

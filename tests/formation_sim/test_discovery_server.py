@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from formation_msgs_py.options import Discovery
+from formation_core.options import Discovery
 from formation_sim.launch import discovery_server
 from formation_sim.launch.dds_env import discovery_client_environment
 

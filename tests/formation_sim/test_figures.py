@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from formation_msgs_py.spec import load_formation, simulator_view
+from formation_core.spec import load_formation, simulator_view
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam
@@ -100,8 +100,8 @@ def test_edge_figures_are_two_columns_with_one_legend(short_run, tmp_path: Path)
 
 def test_every_runner_help_and_outputs_page_name_every_figure() -> None:
     """formation-headless and formation-analyze --help, docs/outputs.md and docs/bags.md name each figure."""
-    from formation_bag.parsers import analyze_parser
     from formation_sim.cli.headless import build_parser
+    from formation_sim.offline.parsers import analyze_parser
     from formation_sim.views.figures import FIGURES
     from formation_sim.views.foxglove_layout import LAYOUT_NAME
 
@@ -174,7 +174,7 @@ def test_the_caption_says_each_verdict_its_reason_and_the_time_covered() -> None
 def test_the_figures_of_a_ros_run_show_the_launchers_verdict(short_recorder, tmp_path: Path, capsys) -> None:
     """The simulator captions its figures PASS; an agent that died in a realtime run makes the run
     INCOMPLETE (exit 3), and formation-launch draws the figures again with that verdict."""
-    from formation_msgs_py.options import RunOptions
+    from formation_core.options import RunOptions
     from formation_sim.launch import launcher as launch
     from formation_sim.views.figures import FIGURES
     from formation_sim.views.outputs import write_outputs

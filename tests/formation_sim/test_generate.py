@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
-from formation_msgs_py.spec import formation_from_dict, load_formation
+from formation_core.spec import formation_from_dict, load_formation
 from formation_sim.cli import generate
 
 

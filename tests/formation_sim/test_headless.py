@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from paper_reference import REFERENCE, golden_values
 
-from formation_msgs_py.compiled import CODE_FORM, numeric_platform
-from formation_msgs_py.spec import load_formation, simulator_view
+from formation_core.numba_kernels import CODE_FORM, numeric_platform
+from formation_core.spec import load_formation, simulator_view
 from formation_sim.cli import headless
 from formation_sim.cli.headless import run_headless
 from formation_sim.core.recorder import RunRecorder
@@ -101,7 +101,7 @@ def loop_tolerance(spec) -> dict[str, float]:
 def test_paper_scenario_is_its_reference_run(paper_run, paper_path) -> None:
     """The paper run against ``data/paper_headless_reference.npz`` (``tests/paper_reference.py``):
     bit for bit on the numeric platform that made it; on another (CPU, libm, numpy and numba builds and
-    their switches: formation_msgs_py.compiled.numeric_platform), within the closed loop's response to
+    their switches: formation_core.numba_kernels.numeric_platform), within the closed loop's response to
     round-off, measured here (:func:`loop_tolerance`), never a constant read off one machine."""
     out, summary = paper_run
     ref = np.load(REFERENCE)
@@ -222,7 +222,7 @@ def test_continuous_mode_substeps_to_rk4_stability_on_a_stiff_plant(paper_path) 
     again changes e and ψ by less than 1e-6 over 50 ms: the result is the continuous-time closed loop."""
     import yaml
 
-    from formation_msgs_py.spec import formation_from_dict
+    from formation_core.spec import formation_from_dict
     from formation_sim.core.loop import continuous_substeps, run_closed_loop
     from formation_sim.core.recorder import RunRecorder
 

@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 from bin_helpers import executable
 
+from formation_core.faults import FaultLog, write_json
+from formation_core.verdict import ExitCode, Incomplete
 from formation_deploy.keys import init_keys, process_names
-from formation_msgs_py.faults import FaultLog, write_json
-from formation_msgs_py.outcome import ExitCode, Incomplete
 from formation_sim.launch.launcher import RESERVE_BYTES, SpaceReserve, agent_faults_file, merge_agent_faults
 
 
@@ -142,7 +142,7 @@ def test_an_intruder_only_an_agent_saw_makes_the_run_untrusted(tmp_path: Path) -
     """An agent's intruder (the simulator's graph never saw it) enters summary.json's security and
     turns a PASS into INCOMPLETE, untrusted input, exit 4; a run INCOMPLETE for its own reason keeps
     it, with the intruder added; no agent report changes nothing."""
-    from formation_msgs_py.publisher_watch import security_file
+    from formation_deploy.publisher_watch import security_file
     from formation_sim.launch.launcher import merge_agent_security
 
     pose = "/agent_3/relative_pose/agent_1"
@@ -178,8 +178,8 @@ def test_an_intruder_only_an_agent_saw_makes_the_run_untrusted(tmp_path: Path) -
 def test_hang_timeout_covers_the_longest_silence_of_a_working_simulator(paper_path: Path, tmp_path: Path) -> None:
     """Default --hang-timeout: the longer of the discovery timeout (30 s + 1 per agent, or the option) and,
     in lockstep, the step timeout, plus HANG_MARGIN; the option wins."""
-    from formation_msgs_py.options import RunOptions
-    from formation_msgs_py.spec import load_formation
+    from formation_core.options import RunOptions
+    from formation_core.spec import load_formation
     from formation_sim.launch.launcher import HANG_MARGIN, Launcher
 
     spec = load_formation(paper_path)
@@ -206,8 +206,8 @@ def test_the_stop_grace_grows_with_the_processes_stopped_at_once() -> None:
 def _completed(tmp_path: Path, violation_t: float | None, stop: Incomplete | None = None) -> tuple[int, dict, str]:
     """(exit status, summary.json, printed verdict) of a realtime launch of the paper's formation whose
     simulator ran its 10 s and whose agent 3, after answering the step of t = 3.12 s, was killed."""
-    from formation_msgs_py.options import RunOptions
-    from formation_msgs_py.spec import load_formation
+    from formation_core.options import RunOptions
+    from formation_core.spec import load_formation
     from formation_sim.launch import launcher as launch
 
     fv = None if violation_t is None else {"t": violation_t, "kind": "velocity", "agent": "3", "channel": "vx"}

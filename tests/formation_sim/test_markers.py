@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from formation_msgs_py.spec import load_formation, simulator_view
+from formation_core.spec import load_formation, simulator_view
 from formation_sim.core.simulation import Simulation
 from formation_sim.views.markers import ARROW, SPHERE, FormationScene, arrow_length, margin_colour
 
@@ -59,7 +59,7 @@ def test_scene_of_the_paper_start(scene_and_state) -> None:
 
 def test_funnel_values_match_the_report(scene_and_state) -> None:
     """e, ψ and their bounds equal the run recorder's (one definition of the funnels)."""
-    from formation_msgs_py.judge import EdgeErrors
+    from formation_sim.core.judge import EdgeErrors
 
     scene, spec, state = scene_and_state
     f = scene.funnels(0.7, state.p, state.R)

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from formation_msgs_py.options import LAUNCH, RunOptions
-from formation_sim.core import preflight
-from formation_sim.core.preflight import (
+from formation_core.options import LAUNCH, RunOptions
+from formation_sim import preflight
+from formation_sim.preflight import (
     InvalidRunError,
     check_out_dir,
     duration_problem,

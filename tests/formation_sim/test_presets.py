@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from formation_msgs_py.spec import load_formation
+from formation_core.spec import load_formation
 from formation_sim.cli.headless import main, run_headless
 
 pytestmark = pytest.mark.numeric

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from formation_msgs_py import funnels
-from formation_msgs_py.spec import load_formation
+from formation_core import funnels
+from formation_core.spec import load_formation
 from formation_sim.core.loop import initial_rho_v0
 from formation_sim.core.rates import mass_matrix, rate_need, rate_needs
 

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from formation_msgs_py.judge import Judge, judge
-from formation_msgs_py.outcome import ExitCode, Incomplete
-from formation_msgs_py.spec import FormationSpec, load_formation
+from formation_core.spec import FormationSpec, load_formation
+from formation_core.verdict import ExitCode, Incomplete
+from formation_sim.core.judge import Judge, judge
 from formation_sim.core.loop import initial_rho_v0
 from formation_sim.core.rates import rate_needs
 from formation_sim.core.recorder import RunRecorder
@@ -166,7 +166,7 @@ def test_settle_time_is_the_entry_into_the_steady_band(spec: FormationSpec) -> N
 def test_settle_times_of_a_stack_are_the_settle_rule_folded_per_sample(spec: FormationSpec) -> None:
     """Judge's settle times after stacks of samples (split anywhere) equal :func:`settle` applied sample by
     sample: one rule (the compiled loop's) in both forms. Seeded random inside/outside sequences."""
-    from formation_msgs_py.judge import settle
+    from formation_sim.core.judge import settle
 
     rng = np.random.default_rng(3)
     K = len(spec.edges)
@@ -445,7 +445,7 @@ def test_mutant_violation_at_margin_below_zero__an_error_exactly_on_a_funnel_bou
     """The funnel rule is margin ≤ 0, not < 0: e exactly on C_con·ρ_e at t = 0 is the first violation
     (numpy judge), and the run core's step check (the same rule, here as Python) leaves the funnel there."""
     from formation_agent.controller import MARGIN_V, OUT_COLUMNS
-    from formation_msgs_py.judge import outside
+    from formation_sim.core.judge import outside
     from formation_sim.core.loop import check_step, new_buffers, new_watch
 
     assert outside(0.0) and outside(-0.0) and not outside(5e-324)

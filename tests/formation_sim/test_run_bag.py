@@ -11,8 +11,8 @@ import pytest
 import yaml
 from rosbags.rosbag2 import Reader
 
-from formation_msgs_py import wire
-from formation_msgs_py.bag.writer import make_qos
+from formation_bag.writer import make_qos
+from formation_msgs_py import codec
 from formation_sim.node.run_bag import RunBag
 
 CLOCK, WRENCH, FUNNELS = "/clock", "/agent_1/wrench", "/formation/funnels"
@@ -41,12 +41,12 @@ def test_log_time_is_simulation_time(tmp_path: Path) -> None:
     """Stamped messages are logged at their stamp; unstamped ones (funnels) and malformed ones at the
     latest stamp the simulator itself published, never at a stamp an agent claimed."""
     bag = _bag(tmp_path / "bag")
-    codec = wire.wrench_codec("1")
+    wrench = codec.wrench_codec("1")
     for k in range(3):
-        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+        bag.write(CLOCK, codec.clock_bytes(k * STEP_NS))
         bag.write(FUNNELS, b"\x00\x01\x00\x00" + bytes(12))  # contents are not read
-        bag.write(WRENCH, codec.encode(k * STEP_NS, [float(k)] * 6))
-    bag.write(WRENCH, codec.encode(10**12, [0.0] * 6))  # from the future: refused by the node, kept here
+        bag.write(WRENCH, wrench.encode(k * STEP_NS, [float(k)] * 6))
+    bag.write(WRENCH, wrench.encode(10**12, [0.0] * 6))  # from the future: refused by the node, kept here
     bag.write(WRENCH, b"\x00\x01")  # malformed
     bag.write(FUNNELS, b"\x00\x01\x00\x00" + bytes(12))
     counts = bag.close()
@@ -79,7 +79,7 @@ def test_one_file_unless_a_size_is_given_and_the_wall_time_noted(tmp_path: Path,
     that many bytes); custom_data.wall_time is the wall span from the first to the last message written."""
     bag = _bag(tmp_path / "bag", max_bytes)
     for k in range(1000):  # 1000 × (12 B + 48 B of MCAP record and index) ≈ 60 kB
-        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+        bag.write(CLOCK, codec.clock_bytes(k * STEP_NS))
     bag.close()
     info = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert len(info["relative_file_paths"]) == files
@@ -90,10 +90,10 @@ def test_one_file_unless_a_size_is_given_and_the_wall_time_noted(tmp_path: Path,
 def test_a_failed_write_stops_the_bag_and_counts_what_is_lost(tmp_path: Path) -> None:
     """A write that fails (here: to a closed writer) names the bag; later messages are counted, not written."""
     bag = _bag(tmp_path / "bag")
-    bag.write(CLOCK, wire.clock_bytes(0))
+    bag.write(CLOCK, codec.clock_bytes(0))
     bag.writer.close()
-    bag.write(CLOCK, wire.clock_bytes(STEP_NS))
-    bag.write(WRENCH, wire.wrench_codec("1").encode(STEP_NS, [0.0] * 6))
+    bag.write(CLOCK, codec.clock_bytes(STEP_NS))
+    bag.write(WRENCH, codec.wrench_codec("1").encode(STEP_NS, [0.0] * 6))
     assert bag.failed is not None and str(tmp_path / "bag") in bag.failed and "closed" in bag.failed
     counts = bag.close()
     assert counts["written"] == 1 and counts["not_recorded"] == 2
@@ -141,14 +141,14 @@ def test_publications_held_are_written_in_order_when_the_hold_ends(tmp_path: Pat
     bag = _bag(tmp_path / "bag")
     with bag.held():
         for k in range(3):
-            bag.write_sent(CLOCK, wire.clock_bytes(k * STEP_NS))
+            bag.write_sent(CLOCK, codec.clock_bytes(k * STEP_NS))
         assert bag.written[CLOCK] == 0
     assert bag.written[CLOCK] == 3
     with pytest.raises(RuntimeError), bag.held():
-        bag.write_sent(CLOCK, wire.clock_bytes(3 * STEP_NS))
+        bag.write_sent(CLOCK, codec.clock_bytes(3 * STEP_NS))
         raise RuntimeError("a publish failed")
     assert bag.written[CLOCK] == 4
-    bag.write_sent(CLOCK, wire.clock_bytes(4 * STEP_NS))  # not held: at once
+    bag.write_sent(CLOCK, codec.clock_bytes(4 * STEP_NS))  # not held: at once
     assert bag.written[CLOCK] == 5
     bag.close()
     assert _log_times(tmp_path / "bag")[CLOCK] == [k * STEP_NS for k in range(5)]
@@ -165,11 +165,11 @@ def test_view_file_holds_the_display_topics_and_the_rest_at_the_display_rate(tmp
     bag.add_topic(GT, "geometry_msgs/msg/PoseArray", make_qos(), published=True)
     bag.add_topic(MARKERS, "visualization_msgs/msg/MarkerArray", make_qos(), published=True)
     bag.add_topic(WRENCH, "geometry_msgs/msg/WrenchStamped", make_qos(), published=False)
-    codec = wire.wrench_codec("1")
+    wrench = codec.wrench_codec("1")
     for k in range(2001):  # 0.2 s at 10 kHz
-        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
-        bag.write(GT, wire.clock_bytes(k * STEP_NS))  # a stamp first: all the log time needs
-        bag.write(WRENCH, codec.encode(k * STEP_NS, [0.0] * 6))
+        bag.write(CLOCK, codec.clock_bytes(k * STEP_NS))
+        bag.write(GT, codec.clock_bytes(k * STEP_NS))  # a stamp first: all the log time needs
+        bag.write(WRENCH, wrench.encode(k * STEP_NS, [0.0] * 6))
         if k % 333 == 0:
             bag.write(MARKERS, b"\x00\x01\x00\x00" + bytes(4))
     counts = bag.close()
@@ -214,12 +214,12 @@ def test_a_full_disk_keeps_every_flushed_second_for_repair(tmp_path: Path) -> No
     from formation_bag.reader import Bag, repair
 
     bag = _bag(tmp_path / "bag")
-    bag.write(CLOCK, wire.clock_bytes(0))
+    bag.write(CLOCK, codec.clock_bytes(0))
     storage = bag.writer._open.storage
     # a Clock message takes ~60 B with its index: a 1 s chunk (10 000 of them) ~0.6 MB; room for two
     storage.bio = _DiskFull(storage.bio, 1_400_000)
     for k in range(1, 35_000):
-        bag.write(CLOCK, wire.clock_bytes(k * STEP_NS))
+        bag.write(CLOCK, codec.clock_bytes(k * STEP_NS))
     counts = bag.close()
     assert bag.failed is not None and "No space left on device" in bag.failed
     assert counts["not_recorded"] > 0

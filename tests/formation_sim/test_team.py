@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from formation_agent.controller import AgentController
-from formation_msgs_py.spec import agent_view, load_formation, simulator_view
+from formation_core.spec import agent_view, load_formation, simulator_view
 from formation_sim.core.measurement import Ends
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam
@@ -75,7 +75,7 @@ def test_measurements_in_another_end_order_are_refused() -> None:
 def test_team_answers_at_the_stamps_time_on_what_an_agent_decodes() -> None:
     """At 3 kHz (a period of no whole number of ns) the team answers each agent as its own controller does
     from the step's messages: the rotations decoded from their quaternions, the time from the stamp, bit for bit."""
-    from formation_msgs_py.wire import control_time, relative_pose_from_values, step_stamp_ns
+    from formation_msgs_py.codec import control_time, relative_pose_from_values, step_stamp_ns
 
     spec = load_formation(PAPER, overrides={"control_rate": 3000.0, "physics_rate": 3000.0})
     sim = Simulation(simulator_view(spec))

@@ -11,9 +11,9 @@ import pytest
 from formation_agent.controller import AgentController
 from formation_agent.measurement_checks import InputCheck
 from formation_agent.synchroniser import StepSynchroniser
-from formation_msgs_py import wire
-from formation_msgs_py.compiled import FORM_INTERPRETED, numeric_platform
-from formation_msgs_py.spec import FormationSpec, agent_view, load_formation, simulator_view
+from formation_core.numba_kernels import FORM_INTERPRETED, numeric_platform
+from formation_core.spec import FormationSpec, agent_view, load_formation, simulator_view
+from formation_msgs_py import codec
 from formation_sim.cli.headless import run_headless
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Simulation
@@ -35,16 +35,16 @@ class AgentProcess:
         view = agent_view(spec, agent_id)
         self.answers: list[tuple[int, tuple[float, ...]]] = []
         self.sync = StepSynchroniser(AgentController(view), lambda ns, u: self.answers.append((ns, tuple(u))))
-        self.inputs = InputCheck(view.sensing_radius, round(view.controller.measurement_timeout * wire.NS_PER_S))
-        self.pose_codec = wire.relative_pose_codec(agent_id)
-        self.twist_codec = wire.twist_codec(agent_id)
+        self.inputs = InputCheck(view.sensing_radius, round(view.controller.measurement_timeout * codec.NS_PER_S))
+        self.pose_codec = codec.relative_pose_codec(agent_id)
+        self.twist_codec = codec.twist_codec(agent_id)
 
     def take(self, poses: list[tuple[str, bytes]], velocity: bytes) -> tuple[int, tuple[float, ...]]:
         """The agent's answer to one step: its neighbours' poses, then its velocity (the simulator's order)."""
         for j, data in poses:
             ns, values = self.pose_codec.decode(data)
             assert self.inputs.pose(j, ns, values, 0, self.sync.confirmed_ns) is None
-            p, R = wire.relative_pose_from_values(values)
+            p, R = codec.relative_pose_from_values(values)
             self.sync.on_pose(j, ns, p, R, 0.0)
         ns, v = self.twist_codec.decode(velocity)
         assert self.inputs.velocity(ns, v, 0, self.sync.confirmed_ns) is None

@@ -100,7 +100,7 @@ def test_blown_up_plant_ends_the_run_incomplete_naming_the_agent(tmp_path) -> No
     """An initial spin of 1e200 rad/s overflows the integrator: INCOMPLETE (exit 4), agent named, strict JSON."""
     import yaml
 
-    from formation_msgs_py.outcome import ExitCode
+    from formation_core.verdict import ExitCode
     from formation_sim.cli import headless
 
     agent = {"radius": 0.5, "sensing_radius": 3.0, "dynamics": {"mass": 1.0, "inertia": [0.1, 0.2, 0.3]}}
@@ -126,11 +126,11 @@ def test_bytes_that_are_no_wrench_are_refused() -> None:
     """Raw bytes on a wrench topic that do not decode: counted as malformed for that agent."""
     import struct
 
-    from formation_msgs_py import wire
+    from formation_msgs_py import codec
 
     c = check()
     with pytest.raises(struct.error):
-        wire.wrench_codec("b").decode(b"\x00\x01\x00\x00garbage")
+        codec.wrench_codec("b").decode(b"\x00\x01\x00\x00garbage")
     assert c.malformed().kind == wrench_checks.MALFORMED and wrench_checks.MALFORMED in wrench_checks.DROPPED_KINDS
 
 

@@ -40,7 +40,7 @@ def assert_equals_headless(
     the agents' ({id: {"delta"|"gamma": value}}, as a parameters file did). Returns the headless arrays."""
     import numpy as np
 
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
     from formation_sim.cli.headless import run_headless
 
     ros = np.load(trajectory)
@@ -303,7 +303,7 @@ def lockstep_with_a_killed_agent(procs: Procs, out: Path, victim: str = "3") -> 
     agent ``victim`` once the simulator reports progress and wait up to 30 s for the simulator; every
     process stopped afterwards. A simulator still running then leaves its native stacks in the log
     directory (stacks.txt) and is stopped by SIGABRT first."""
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
 
     agents = {a.id: procs.agent(PAPER, a.id) for a in load_formation(PAPER).agents}
     sim = procs.sim(PAPER, out, "--duration", "5", "--step-timeout", "2", "--progress-period", "0.2")
@@ -364,7 +364,7 @@ class SecureOutsidersRun:
 
         import numpy as np
 
-        from formation_msgs_py.spec import load_formation
+        from formation_core.spec import load_formation
 
         if self.code is None:
             return [f"driver timeout: still running {self.elapsed:.0f} s after its start"]

@@ -25,6 +25,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from formation_core.spec import load_formation
 from formation_deploy.keys import init_keys, process_names
 from formation_deploy.secure_transport import (
     Peer,
@@ -34,7 +35,6 @@ from formation_deploy.secure_transport import (
     single_host_port_start,
     write_process_config,
 )
-from formation_msgs_py.spec import load_formation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: bin_helpers
 from bin_helpers import executable

@@ -7,8 +7,7 @@ import json
 import pytest
 
 from formation_sim.cli import check
-from formation_sim.core import capacity
-from formation_sim.launch import calibrate
+from formation_sim.launch import calibrate, capacity
 
 
 @pytest.fixture

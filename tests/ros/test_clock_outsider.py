@@ -18,9 +18,9 @@ from rclpy.node import Node
 from ros_helpers import REALTIME, executable, ros_context
 from rosgraph_msgs.msg import Clock
 
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
 from formation_msgs_py.ros import conversions, qos
-from formation_msgs_py.spec import load_formation
 
 NS = 1_000_000_000
 #: inject once agent 3's velocities reach this sim time [ns] (the run is under way)

@@ -20,7 +20,7 @@ from ros_helpers import (
     read_log,
 )
 
-from formation_msgs_py.spec import load_formation
+from formation_core.spec import load_formation
 from formation_sim.launch.dds_env import netns_available
 from formation_sim.launch.discovery_server import free_udp_port, udp_port_bound
 

@@ -8,10 +8,10 @@ from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import MarkerArray
 
+from formation_core.so3 import exp_so3
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
 from formation_msgs_py.ros import conversions
-from formation_msgs_py.so3 import exp_so3
-from formation_msgs_py.spec import load_formation
 from formation_sim.node.display import FUNNEL_FIELDS, marker_message
 from formation_sim.views.display_wire import FunnelsWire, MarkerArrayWire
 from formation_sim.views.markers import FormationScene

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from formation_msgs_py.publisher_watch import PublisherWatch, expected_publishers
-from formation_msgs_py.ros.graph_watch import FULL_PERIOD, POLL_PERIOD, GraphWatch
+from formation_deploy.graph_watch import FULL_PERIOD, POLL_PERIOD, GraphWatch
+from formation_deploy.publisher_watch import PublisherWatch, expected_publishers
 
 
 @dataclass

@@ -10,10 +10,10 @@ from live_client import wait_and_receive
 from process_hygiene import stop_group
 from ros_helpers import PAPER, executable
 
+from formation_bag.foxglove_server import DIAGNOSTIC_ARRAY, MARKER_ARRAY
+from formation_bag.writer import typestore
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
-from formation_msgs_py.bag.writer import typestore
-from formation_msgs_py.spec import load_formation
-from formation_sim.views.live_view import DIAGNOSTIC_ARRAY, MARKER_ARRAY
 
 MARKERS = "/" + topics.MARKERS
 

@@ -28,7 +28,7 @@ from ros_helpers import (
     wait_for_line,
 )
 
-from formation_msgs_py.spec import load_formation
+from formation_core.spec import load_formation
 
 #: 0.08 s of the paper preset at its 10 kHz control rate: 800 lockstep steps, recorded at every step
 SHORT = ("--duration", "0.08", "--record-rate", "10000")
@@ -277,7 +277,7 @@ def test_a_contact_is_reported_in_lockstep_realtime_and_the_analysis(ros_env: di
     """Two non-neighbours steered into each other (tests/formation_sim/data/crossing_3agents.yaml): the
     lockstep run reports the contact as the headless run does (pair 1-3 from t = 0.2 s), so does
     formation-analyze of its bag, and so does a realtime run (at its own times)."""
-    from formation_msgs_py.spec import load_formation as load
+    from formation_core.spec import load_formation as load
     from formation_sim.cli.headless import run_headless
 
     crossing = REPO / "tests" / "formation_sim" / "data" / "crossing_3agents.yaml"
@@ -312,7 +312,7 @@ def test_a_run_with_links_in_lockstep_equals_headless_also_beside_busy_loops(
     """The link preset (delays and losses on poses, velocities and wrenches) in lockstep, agents compiled,
     beside two busy loops: the headless run's trajectory, link ages and link statistics, bit for bit; its
     bag's analysis reports the same link statistics."""
-    from formation_msgs_py.spec import load_formation as load
+    from formation_core.spec import load_formation as load
     from formation_sim.cli.headless import run_headless
 
     spec = load(LINKS_PRESET).with_simulation(duration=3.0)

@@ -12,8 +12,8 @@ from rclpy.node import Node
 from ros_helpers import PAPER, REPO, ros_context
 
 from formation_agent.agent_node import AgentNode
-from formation_agent.process import USAGE
-from formation_msgs_py import options
+from formation_agent.entry_point import USAGE
+from formation_core import options
 from formation_sim.node.display import declare_simulator_parameters
 from formation_sim.node.sim_options import sim_parser, sim_preflight
 

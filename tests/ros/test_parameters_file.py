@@ -12,8 +12,8 @@ from rclpy.node import Node
 from ros_helpers import PAPER, assert_equals_headless, executable, ros_context, run
 
 from formation_agent.parameters_file import agent_gains
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
-from formation_msgs_py.spec import load_formation
 
 IDS = load_formation(PAPER).agent_ids
 

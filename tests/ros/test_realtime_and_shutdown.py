@@ -30,7 +30,7 @@ from ros_helpers import (
 )
 
 from formation_bag.reader import Bag
-from formation_msgs_py.spec import agent_view, load_formation
+from formation_core.spec import agent_view, load_formation
 
 
 def test_realtime_zeroes_a_killed_agent_and_carries_on(procs, tmp_path: Path) -> None:
@@ -344,8 +344,8 @@ def _cmd(pid: int) -> str:
 
 
 def test_help_states_the_exit_statuses() -> None:
-    """Every runner's --help states the same exit statuses (formation_msgs_py.outcome)."""
-    from formation_msgs_py.outcome import EXIT_STATUS_HELP
+    """Every runner's --help states the same exit statuses (formation_core.verdict)."""
+    from formation_core.verdict import EXIT_STATUS_HELP
 
     for name in ("formation-launch", "formation-sim", "formation-headless", "formation-analyze"):
         out = subprocess.run([executable(name), "--help"], capture_output=True, text=True, check=True).stdout

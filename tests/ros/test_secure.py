@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from ros_helpers import PAPER, assert_equals_headless, executable, secure_run_beside_outsiders
 
+from formation_core.spec import load_formation
 from formation_deploy.keys import init_keys, process_names
-from formation_msgs_py.spec import load_formation
 from formation_sim.launch.dds_env import netns_available
 
 #: formation-launch with the certificate pre-flight (check_run_keys) switched off: the only way a

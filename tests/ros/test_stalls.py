@@ -37,8 +37,8 @@ from ros_helpers import (
     wait_for_line,
 )
 
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
-from formation_msgs_py.spec import load_formation
 
 #: 0.2 s of the paper preset at 10 kHz: 2000 lockstep steps, every one recorded
 DURATION = 0.2

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from ros_helpers import PAPER, REPO, assert_equals_headless, executable, run
 
-from formation_msgs_py.spec import load_formation
+from formation_core.spec import load_formation
 
 PRESETS = sorted(p for p in (REPO / "config").glob("*.yaml"))
 

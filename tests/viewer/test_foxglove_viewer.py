@@ -230,7 +230,7 @@ def viewed_links(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -
 def viewed_live(tmp_path_factory: pytest.TempPathFactory, ros_domain_id: int) -> Viewed:
     """The same formation in a realtime run with --foxglove, Studio connected to it live (through the
     subprotocol relay) with the formation's layout imported; the run stopped (by its PID) once seen."""
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
     from formation_sim.views.foxglove_layout import write_layout
 
     tmp = tmp_path_factory.mktemp("viewer_live")

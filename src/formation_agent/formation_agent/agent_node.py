@@ -48,22 +48,23 @@ from formation_agent.synchroniser import (
     Window,
     live_gains,
 )
-from formation_msgs_py import topics
-from formation_msgs_py.compiled import CODE_FORM, numeric_platform
-from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.faults import fault_lines, write_json
-from formation_msgs_py.publisher_watch import (
+from formation_core.errors import FormationSpecError
+from formation_core.faults import fault_lines, write_json
+from formation_core.numba_kernels import CODE_FORM, numeric_platform
+from formation_core.spec import AgentView, agent_view, load_formation
+from formation_deploy.graph_watch import GraphWatch
+from formation_deploy.publisher_watch import (
     POLICIES,
     PublisherWatch,
     expected_publishers,
     security_file,
 )
-from formation_msgs_py.ros import conversions, parameters, qos, stopping
-from formation_msgs_py.ros.graph_watch import GraphWatch
-from formation_msgs_py.ros.rclpy_internals import RCLError, now_ns_reader
-from formation_msgs_py.spec import AgentView, agent_view, load_formation
-from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
-from formation_msgs_py.wire import NS_PER_S
+from formation_deploy.transport_check import InsecureTransportError, check_secure_transport
+from formation_msgs_py import topics
+from formation_msgs_py.codec import NS_PER_S
+from formation_msgs_py.ros import conversions, qos
+from formation_ros import parameters, shutdown
+from formation_ros.rclpy_internals import RCLError, now_ns_reader
 
 _DIAG_LEVEL = {OK: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
 NODE_NAME = topics.AGENT_NODE_NAME
@@ -363,14 +364,14 @@ def resolve_agent_id(argv: Sequence[str], context: Context | None) -> str:
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of ``formation-agent``; exit 2 on a bad file or parameter. SIGINT and SIGTERM
-    stop the agent (formation_msgs_py.ros.stopping): it writes its faults, destroys its node and ends
+    stop the agent (formation_ros.shutdown): it writes its faults, destroys its node and ends
     the process at once."""
     argv = list(sys.argv if args is None else args)
     if not _cli_sets(argv, "use_sim_time"):
         argv += ["--ros-args", "-p", "use_sim_time:=true"]
     node = None
     try:
-        stopping.init(argv)
+        shutdown.init(argv)
         try:
             node = AgentNode(resolve_agent_id(argv, None))
             check_secure_transport()
@@ -394,7 +395,7 @@ def main(args: list[str] | None = None) -> int:
             pass  # rclpy's signal handler shut the context down at the same moment (SIGINT/SIGTERM)
     if node is None:
         return 0  # stopped while starting: a node half made is released by the interpreter's finalization
-    stopping.exit_now(0, node.context)
+    shutdown.exit_now(0, node.context)
 
 
 if __name__ == "__main__":

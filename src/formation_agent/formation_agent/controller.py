@@ -1,7 +1,7 @@
 """One agent's prescribed-performance controller, from local measurements only.
 
 The paper's Steps I–II (Section "Main Results"; docs/controller.md), one function per step
-(:func:`formation_msgs_py.compiled.formula`, compiled into :func:`agent_step`, the kernel):
+(:func:`formation_core.numba_kernels.formula`, compiled into :func:`agent_step`, the kernel):
 
 - :func:`edge_errors`: e_k, ψ_k, e_Rk of an incident edge from the neighbour's relative pose;
 - :func:`distance_term`, :func:`orientation_term`: ξ, the margin and the weight
@@ -34,11 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from formation_msgs_py import funnels
-from formation_msgs_py.compiled import formula, kernel
-from formation_msgs_py.errors import FormationError
-from formation_msgs_py.so3 import add3, flat_rows, matmul3, matrix_rows, matTvec3, matvec3, scale3, transpose3, vec3
-from formation_msgs_py.spec import AgentView
+from formation_core import funnels
+from formation_core.errors import FormationError
+from formation_core.numba_kernels import formula, kernel
+from formation_core.so3 import add3, flat_rows, matmul3, matrix_rows, matTvec3, matvec3, scale3, transpose3, vec3
+from formation_core.spec import AgentView
 
 OK, WARN, ERROR = 0, 1, 2
 LEVEL_NAMES = ("OK", "WARN", "ERROR")

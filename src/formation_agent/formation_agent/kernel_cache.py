@@ -25,10 +25,10 @@ import pickle
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from formation_msgs_py.compiled import cache_index_glob
+from formation_core.numba_kernels import cache_index_glob
 
 if TYPE_CHECKING:  # the agent's view: not imported for --help
-    from formation_msgs_py.spec import AgentView
+    from formation_core.spec import AgentView
 
 #: lockstep control rate [Hz] from which the launcher starts agents with the compiled controller
 COMPILED_FROM_RATE = 1000.0
@@ -42,7 +42,7 @@ def numba_cache_warm(package: Path = Path(__file__).parent) -> bool:
     The simulator compiles it (its shadow controllers call it) at a first run or after a change of
     ``controller.py`` or of a module it imports; agents that found no fresh entry would each compile
     it at start (~10 s of CPU each: 20 of them miss the discovery timeout). The entry's file name
-    holds :func:`formation_msgs_py.compiled.sources_stamp` (every source compiled into the kernel)
+    holds :func:`formation_core.numba_kernels.sources_stamp` (every source compiled into the kernel)
     and the index starts with numba's version: both are checked here without importing numba
     (the index is not unpickled past its version).
     """

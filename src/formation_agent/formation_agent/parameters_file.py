@@ -24,8 +24,8 @@ from typing import Any
 import yaml
 
 from formation_agent.synchroniser import LIVE_GAINS, live_gains
+from formation_core.errors import FormationSpecError
 from formation_msgs_py import topics
-from formation_msgs_py.errors import FormationSpecError
 
 PARAMETERS_KEY = "ros__parameters"
 

@@ -76,10 +76,10 @@ from formation_agent.controller import (
     edge_errors,
     new_outputs,
 )
-from formation_msgs_py import funnels
-from formation_msgs_py.compiled import formula, kernel
-from formation_msgs_py.so3 import flat_rows, matrix_rows, vec3
-from formation_msgs_py.spec import AgentView
+from formation_core import funnels
+from formation_core.numba_kernels import formula, kernel
+from formation_core.so3 import flat_rows, matrix_rows, vec3
+from formation_core.spec import AgentView
 
 #: unit round-off of IEEE double: the largest relative error of one correctly rounded operation
 UNIT = 2.0**-53
@@ -98,7 +98,7 @@ def tolerance(bound: np.ndarray | float) -> np.ndarray | float:
 
 @formula
 def rho_bound(t, rho_0, rho_inf, decay, rho_value):
-    """Δρ of ρ(t) = (ρ0 − ρ∞)·exp(−l·t) + ρ∞ as :func:`formation_msgs_py.funnels.rho` computes it:
+    """Δρ of ρ(t) = (ρ0 − ρ∞)·exp(−l·t) + ρ∞ as :func:`formation_core.funnels.rho` computes it:
     the argument −l·t (two roundings when t is a difference), exp, one product and one sum."""
     return UNIT * (abs(rho_0 - rho_inf) * np.exp(-decay * t) * (2.0 * decay * t + KAPPA + 3.0) + 2.0 * abs(rho_value))
 

@@ -9,7 +9,7 @@ computed again from the resend's poses. A refused value (:mod:`formation_agent.m
 answers its step with a zero wrench and ERROR.
 
 Time only from the simulator's measurements. The controller's time is the stamp of the step it
-answers (:func:`formation_msgs_py.wire.control_time`). The agent's own time, against which stamps are
+answers (:func:`formation_msgs_py.codec.control_time`). The agent's own time, against which stamps are
 judged, is its newest *confirmed* step: one answered from its velocity and at least one neighbour's
 pose (two topics agree; one forged message cannot confirm a step). /clock, which any process may
 publish in plain mode, moves nothing: it only widens the window of acceptable stamps
@@ -38,15 +38,15 @@ from typing import Any
 
 from formation_agent.controller import ERROR, OK, AgentController, ControlOutput
 from formation_agent.measurement_checks import MAX_LEAD_NS, PAST_STAMP
-from formation_msgs_py.faults import FaultLog
-from formation_msgs_py.schema import AGENT_FIELDS, parse_mapping
-from formation_msgs_py.wire import NS_PER_S, control_time
+from formation_core.faults import FaultLog
+from formation_core.schema import AGENT_FIELDS, parse_mapping
+from formation_msgs_py.codec import NS_PER_S, control_time
 
 #: Bounded memory of stamps with poses (and of refusals); more only happens when the agent lags.
 _POSE_MEMORY = 8
 
 PoseTuple = tuple[list[float], list[list[float]]]
-#: fault kinds of the synchroniser (formation_msgs_py.faults)
+#: fault kinds of the synchroniser (formation_core.faults)
 REFUSED_PAST_STAMP = f"refused_{PAST_STAMP}"
 CLOCK_JUMP = "clock_jump"
 
@@ -112,7 +112,7 @@ class StepSynchroniser:
     last_wrench: tuple[float, ...] = (0.0,) * 6
     last_output: ControlOutput | None = None
     window: Window = None  # type: ignore[assignment]
-    #: every fault of this agent by kind (formation_msgs_py.faults): resets, refusals, zero answers
+    #: every fault of this agent by kind (formation_core.faults): resets, refusals, zero answers
     faults: FaultLog = field(default_factory=FaultLog)
     last_measurement_wall: float | None = None
     #: reasons of refused measurements (formation_agent.measurement_checks) by stamp: that step answers zero
@@ -268,7 +268,7 @@ class StepSynchroniser:
                     del steps[old]
 
 
-#: read-only parameters an agent reports: its code form and numeric platform (formation_msgs_py.compiled)
+#: read-only parameters an agent reports: its code form and numeric platform (formation_core.numba_kernels)
 CODE_FORM_PARAMETER, PLATFORM_PARAMETER = "code_form", "numeric_platform"
 
 #: Gains that a running agent applies from its next step: {parameter name: description}.

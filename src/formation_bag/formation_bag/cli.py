@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from formation_msgs_py.errors import BagError
-from formation_msgs_py.outcome import guarded
+from formation_core.errors import BagError
+from formation_core.verdict import guarded
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     from formation_bag import messages as m  # rosbags: not for --help
-    from formation_bag.interop import DECODE_SAMPLE, check_bag
+    from formation_bag.interop_check import DECODE_SAMPLE, check_bag
     from formation_bag.reader import Bag, repair, repair_file
 
     try:

@@ -1,4 +1,4 @@
-"""The console scripts of formation-record, -replay, -analyze and -rerun.
+"""The console scripts of formation-record and formation-replay.
 
 Each parses its command line and checks a ``--formation`` file before it imports its command's
 module: ``--help`` and a bad option end before rclpy, rosbags, numpy or the cores are imported
@@ -13,17 +13,18 @@ import argparse
 import sys
 from collections.abc import Callable
 
-from formation_bag.parsers import analyze_parser, record_parser, replay_parser, rerun_parser
-from formation_msgs_py.errors import FormationError
+from formation_bag.parsers import record_parser, replay_parser
+from formation_core.errors import FormationError
 
 
-def _refused(parser: Callable[[], argparse.ArgumentParser], argv: list[str] | None) -> int | None:
-    """2 for a bad ``--formation`` file (named on stderr), else None; exits on ``--help`` or a bad option."""
+def refused_early(parser: Callable[[], argparse.ArgumentParser], argv: list[str] | None) -> int | None:
+    """2 for a bad ``--formation`` file (named on stderr), else None; exits on ``--help`` or a bad option
+    (before rclpy, rosbags, numpy or the cores are imported)."""
     p = parser()
     args = p.parse_args(argv)
     if getattr(args, "formation", None) is None:
         return None
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
 
     try:
         load_formation(args.formation)
@@ -35,7 +36,7 @@ def _refused(parser: Callable[[], argparse.ArgumentParser], argv: list[str] | No
 
 def record(argv: list[str] | None = None) -> int:
     """formation-record: :func:`formation_bag.record_node.main`."""
-    if (code := _refused(record_parser, argv)) is not None:
+    if (code := refused_early(record_parser, argv)) is not None:
         return code
     from formation_bag.record_node import main
 
@@ -44,26 +45,8 @@ def record(argv: list[str] | None = None) -> int:
 
 def replay(argv: list[str] | None = None) -> int:
     """formation-replay: :func:`formation_bag.replay_node.main`."""
-    if (code := _refused(replay_parser, argv)) is not None:
+    if (code := refused_early(replay_parser, argv)) is not None:
         return code
     from formation_bag.replay_node import main
-
-    return main(argv)
-
-
-def analyze(argv: list[str] | None = None) -> int:
-    """formation-analyze: :func:`formation_bag.analysis.main`."""
-    if (code := _refused(analyze_parser, argv)) is not None:
-        return code
-    from formation_bag.analysis import main
-
-    return main(argv)
-
-
-def rerun(argv: list[str] | None = None) -> int:
-    """formation-rerun: :func:`formation_bag.rerun.main`."""
-    if (code := _refused(rerun_parser, argv)) is not None:
-        return code
-    from formation_bag.rerun import main
 
     return main(argv)

@@ -1,6 +1,6 @@
 """The docs/topics.md topics without ROS: names, types, and CDR <-> Python values via rosbags.
 
-Decoding uses the agent node's own decoders and CDR codecs (:mod:`formation_msgs_py.wire`, no
+Decoding uses the agent node's own decoders and CDR codecs (:mod:`formation_msgs_py.codec`, no
 ROS import), so a relative pose decoded here gives the controller exactly the numbers the agent
 node saw. Relative poses are geometry_msgs/PoseStamped; bags recorded when they were
 TransformStamped (same numbers, plus a child frame name) are still read.
@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from formation_msgs_py import topics, wire
-from formation_msgs_py.bag.writer import typestore
-from formation_msgs_py.rotations import quaternion_from_matrix
-from formation_msgs_py.wire import NS_PER_S, stamp_ns
-from formation_msgs_py.wire import control_time as seconds  # noqa: F401 - a stamp's time, as an agent's
+from formation_bag.writer import typestore
+from formation_core.rotations import quaternion_from_matrix
+from formation_msgs_py import codec, topics
+from formation_msgs_py.codec import NS_PER_S, stamp_ns
+from formation_msgs_py.codec import control_time as seconds  # noqa: F401 - a stamp's time, as an agent's
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 #: the relative poses' type in bags recorded before they became PoseStamped (still read)
@@ -105,18 +105,18 @@ def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
 
 
 # the agent node's own decoders (by field name, so rosbags messages work too)
-decode_relative_pose = wire.relative_pose_from_msg
-decode_twist = wire.twist_from_msg
-decode_wrench = wire.wrench_from_msg
-decode_poses = wire.poses_from_msg
+decode_relative_pose = codec.relative_pose_from_msg
+decode_twist = codec.twist_from_msg
+decode_wrench = codec.wrench_from_msg
+decode_poses = codec.poses_from_msg
 
 
 # -- fast decoding of the fixed-layout messages (little-endian CDR), same numbers as rosbags ---------
 
-# the nodes' codecs (formation_msgs_py.wire); decoding ignores the frame names
-_POSE_CODEC = wire.StampedCodec([""], 7)  # PoseStamped: header.frame_id, then position, orientation
-_OLD_POSE_CODEC = wire.StampedCodec(["", ""], 7)  # TransformStamped: frame_id and child_frame_id
-_SIX_CODEC = wire.StampedCodec([""], 6)
+# the nodes' codecs (formation_msgs_py.codec); decoding ignores the frame names
+_POSE_CODEC = codec.StampedCodec([""], 7)  # PoseStamped: header.frame_id, then position, orientation
+_OLD_POSE_CODEC = codec.StampedCodec(["", ""], 7)  # TransformStamped: frame_id and child_frame_id
+_SIX_CODEC = codec.StampedCodec([""], 6)
 
 
 def _doubles_of(kind: str, obj: Any) -> tuple[float, ...]:
@@ -154,13 +154,13 @@ def fast_values(kind: str, data: bytes | memoryview, msgtype: str) -> tuple[int,
             return stamp_ns(obj.clock), ()
         return stamp_ns(obj.header.stamp), _doubles_of(kind, obj)
     if kind == "clock":
-        return wire.stamp_of(data), ()
+        return codec.stamp_of(data), ()
     if kind == "relative_pose":
         return (_OLD_POSE_CODEC if msgtype == TRANSFORM_STAMPED else _POSE_CODEC).decode(data)
     if kind in ("velocity", "wrench"):
         return _SIX_CODEC.decode(data)
     if kind == "ground_truth":
-        return wire.ground_truth_values(data)
+        return codec.ground_truth_values(data)
     raise ValueError(f"no fast decoder for {kind!r}")
 
 
@@ -168,15 +168,15 @@ def pose_stamped_from_transform(data: bytes | memoryview, observer: str) -> byte
     """An older bag's TransformStamped relative pose as the PoseStamped the agents now take (same
     stamp and numbers, frame ``agent_<observer>``): what formation-replay publishes for it."""
     stamp, values = fast_values("relative_pose", data, TRANSFORM_STAMPED)
-    return wire.relative_pose_codec(observer).encode(stamp, values)
+    return codec.relative_pose_codec(observer).encode(stamp, values)
 
 
 #: the decoded value of a message from its doubles, per kind (the agent node's own decoders)
 FROM_VALUES: dict[str, Callable[[Sequence[float]], Any]] = {
-    "relative_pose": wire.relative_pose_from_values,
+    "relative_pose": codec.relative_pose_from_values,
     "velocity": list,
     "wrench": list,
-    "ground_truth": wire.ground_truth_from_values,
+    "ground_truth": codec.ground_truth_from_values,
 }
 
 

@@ -26,10 +26,10 @@ from rosbags.interfaces import Connection, ConnectionExtRosbag2
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 
-from formation_msgs_py.bag import KEY_REPAIRED
-from formation_msgs_py.bag.metadata import STORAGES, SegmentInfo, metadata_yaml
-from formation_msgs_py.bag.writer import typestore
-from formation_msgs_py.errors import BagExistsError, BagFormatError, BagNotFoundError
+from formation_bag.contract import KEY_REPAIRED
+from formation_bag.metadata import STORAGES, SegmentInfo, metadata_yaml
+from formation_bag.writer import typestore
+from formation_core.errors import BagExistsError, BagFormatError, BagNotFoundError
 
 SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
 _SEG_RE = re.compile(r"_(\d+)$")
@@ -237,7 +237,7 @@ def salvage(partial: Path, final: Path, name: str | None = None) -> int:
     """Write the messages of the closed chunks of ``partial`` (an MCAP file whose writer was killed:
     no summary, a torn last chunk) as the complete MCAP file ``final``; returns how many.
 
-    The writer (formation_msgs_py.bag.writer) puts each chunk in the file when it closes (at ~1 MiB
+    The writer (formation_bag.writer) puts each chunk in the file when it closes (at ~1 MiB
     or 1 s of log time), so a killed writer's file holds all but its last chunk, and its custom_data
     (the run's settings) at its start: the complete file carries them again. Nothing is written if
     no message can be read. The complete file's custom_data also says what was recovered
@@ -248,7 +248,7 @@ def salvage(partial: Path, final: Path, name: str | None = None) -> int:
     from mcap.stream_reader import StreamReader
     from rosbags.rosbag2.metadata import parse_qos
 
-    from formation_msgs_py.bag.writer import CUSTOM_DATA_RECORD, SegmentedBagWriter
+    from formation_bag.writer import CUSTOM_DATA_RECORD, SegmentedBagWriter
 
     tmp = final.parent / f".salvage_{final.stem}"
     schemas: dict[int, str] = {}

@@ -1,7 +1,7 @@
 """``formation-record``: record the docs/topics.md topics of a running formation into a bag.
 
 A thin rclpy node: raw subscriptions (the CDR bytes, nothing is deserialized) drained by one
-wait-set loop straight into a :class:`formation_msgs_py.bag.writer.SegmentedBagWriter`
+wait-set loop straight into a :class:`formation_bag.writer.SegmentedBagWriter`
 (a segment closes in a few ms; every subscription queues up to 1000 messages meanwhile).
 Counts: received and written per topic, and the publishers' sequence numbers (what they
 published in total and while we listened), stored in metadata.yaml custom_data ``recorder_counts``
@@ -46,18 +46,18 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from formation_bag import messages as m
+from formation_bag.contract import KEY_FORMATION_FILE, KEY_FORMATION_YAML, STAMPED_TYPES, ros_type_name
 from formation_bag.dataset import stated_settings
 from formation_bag.parsers import record_parser
-from formation_msgs_py import topics, wire
-from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML, STAMPED_TYPES, ros_type_name
-from formation_msgs_py.bag.writer import SegmentedBagWriter
-from formation_msgs_py.errors import BagError, BagTopicError, FormationSpecError
-from formation_msgs_py.faults import write_json
-from formation_msgs_py.outcome import ExitCode, guarded
+from formation_bag.writer import SegmentedBagWriter, offered_qos
+from formation_core.errors import BagError, BagTopicError, FormationSpecError
+from formation_core.faults import write_json
+from formation_core.spec import load_formation
+from formation_core.verdict import ExitCode, guarded
+from formation_deploy.transport_check import InsecureTransportError, check_secure_transport
+from formation_msgs_py import codec, topics
 from formation_msgs_py.ros import qos as fqos
-from formation_msgs_py.ros.rclpy_internals import RCLError, SubscriptionWaitSet, pointer, raw_taker
-from formation_msgs_py.spec import load_formation
-from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
+from formation_ros.rclpy_internals import RCLError, SubscriptionWaitSet, pointer, raw_taker
 
 #: depth of the recorder's own subscription queues (it must never be the one that drops)
 SUB_DEPTH = 1000
@@ -235,7 +235,7 @@ class Recorder(Node):
         offered = [p.qos_profile for p in pubs] or [offered_profile(name)]
         best_effort = any(p.reliability == ReliabilityPolicy.BEST_EFFORT for p in offered)
         try:
-            self.writer.add_topic(name, msgtype, tuple(fqos.bag_qos(p) for p in offered[:1]))
+            self.writer.add_topic(name, msgtype, tuple(offered_qos(p) for p in offered[:1]))
         except BagError as exc:
             self.get_logger().warning(f"{name}: {exc}; not recorded")
             self.subs[name] = None
@@ -346,7 +346,7 @@ class Recorder(Node):
         while (got := take(cls, True)) is not None:
             data, info = got
             if stamped:
-                stamp = wire.stamp_of(data)
+                stamp = codec.stamp_of(data)
                 self.sim_now = max(self.sim_now, stamp)
             else:
                 stamp = self.sim_now

@@ -10,7 +10,7 @@ that a recorder started before it misses nothing (one that subscribes as it disc
 or one told the formation, which subscribes to the ground truth last); its reliable publishers keep
 a history of at least :data:`PUBLISHER_DEPTH` messages, so a matched subscriber on a busy machine
 loses nothing either. Then it shows progress once a second on stderr. ``--foxglove [HOST:]PORT``
-serves the replayed display topics to a live view as well (:mod:`formation_sim.views.live_view`).
+serves the replayed display topics to a live view as well (:mod:`formation_bag.foxglove_server`).
 """
 
 from __future__ import annotations
@@ -27,14 +27,14 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 
 from formation_bag import messages as m
+from formation_bag.foxglove_server import DEFAULT_RATE, SUBPROTOCOL, LiveView, LiveViewError, display_topics
 from formation_bag.parsers import replay_parser
 from formation_bag.reader import Bag
 from formation_bag.record_node import SUB_DEPTH, msg_class
+from formation_core.errors import BagError, BagTopicError
 from formation_msgs_py import topics
-from formation_msgs_py.errors import BagError, BagTopicError
+from formation_msgs_py.codec import clock_bytes
 from formation_msgs_py.ros import qos as fqos
-from formation_msgs_py.wire import clock_bytes
-from formation_sim.views.live_view import DEFAULT_RATE, SUBPROTOCOL, LiveView, LiveViewError, display_topics
 
 SPIN_BEFORE = 0.003  # s: sleep until this close to a deadline, then spin (scheduler wake-up latency)
 #: least history of a reliable replay publisher: what a matched subscriber that is slow to take (or

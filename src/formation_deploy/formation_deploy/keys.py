@@ -31,7 +31,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from formation_msgs_py.errors import FormationError
+from formation_core.errors import FormationError
 
 EXIT_OK, EXIT_FAILED, EXIT_INVALID = 0, 1, 2
 CA_NAME = "ca"

@@ -28,6 +28,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from formation_core.errors import FormationSpecError
 from formation_deploy.keys import (
     CA_NAME,
     DEFAULT_DAYS,
@@ -47,7 +48,6 @@ from formation_deploy.secure_transport import (
     peers_of,
     write_process_config,
 )
-from formation_msgs_py.errors import FormationSpecError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -120,7 +120,7 @@ def _profile(args: argparse.Namespace, agent_ids: Sequence[str], duration_s: flo
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from formation_msgs_py.spec import load_formation  # numpy: not for --help
+    from formation_core.spec import load_formation  # numpy: not for --help
 
     try:
         spec = load_formation(args.formation)

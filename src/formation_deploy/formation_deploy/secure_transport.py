@@ -38,9 +38,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import escape
 
+from formation_core.faults import write_atomic
 from formation_deploy.keys import KeysError, cert_path, check_keys, init_keys, key_path, process_names
-from formation_msgs_py.faults import write_atomic
-from formation_msgs_py.transport_check import SECURE_FLAG
+from formation_deploy.transport_check import SECURE_FLAG
 
 #: Default first port of a multi-host secure run (one port per process above it).
 DEFAULT_PORT_BASE = 7700

@@ -1,11 +1,6 @@
-"""The shared, ROS-free core of the formation packages.
+"""The messages of the formation: what travels between the processes and how.
 
-Formation files (schema, loading, validation, agent and simulator views), run options, outcome
-(verdicts, exit codes), faults, SO(3) helpers, performance functions, the judge (one funnel rule),
-topic names, the wire codec and the bag writer. The few helpers that import rclpy (QoS profiles,
-message conversions, parameters, graph watch, stopping) are in :mod:`formation_msgs_py.ros`.
+:mod:`topics` (names, docs/topics.md), :mod:`codec` (a message's CDR bytes to and from numbers, without
+rclpy: the agents, the simulator's witness and the bag tools decode with the same code), and in
+:mod:`formation_msgs_py.ros` the QoS profiles and the conversions to and from ROS message objects.
 """
-
-from formation_msgs_py.errors import FormationError, FormationSpecError
-
-__all__ = ["FormationError", "FormationSpecError"]

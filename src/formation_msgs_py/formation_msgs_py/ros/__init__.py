@@ -1,2 +1,2 @@
-"""The few helpers that import rclpy: QoS profiles, message conversions, parameters, graph watch,
-stopping. Everything else in formation_msgs_py is ROS-free."""
+"""The messages' rclpy side: QoS profiles (:mod:`qos`) and conversions to and from ROS message objects
+(:mod:`conversions`)."""

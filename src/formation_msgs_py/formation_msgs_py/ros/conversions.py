@@ -1,10 +1,10 @@
 """numpy ⇄ ROS message conversions, one function per message type and direction.
 
-The decoders and the raw-CDR codecs live in :mod:`formation_msgs_py.wire` (no ROS import) and
+The decoders and the raw-CDR codecs live in :mod:`formation_msgs_py.codec` (no ROS import) and
 are re-exported here.
 
 geometry_msgs quaternions are fields (x, y, z, w); our rotations are 3×3 row-major matrices,
-converted by :func:`formation_msgs_py.rotations.quaternion_from_matrix` and its inverse only. Time
+converted by :func:`formation_core.rotations.quaternion_from_matrix` and its inverse only. Time
 stamps are float seconds on our side and (sec, nanosec) on the wire; simulation times are
 multiples of the control period, so :func:`stamp_from_seconds` rounds to the nanosecond
 and :func:`seconds_from_stamp` maps it back to the same float.
@@ -18,9 +18,9 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rosgraph_msgs.msg import Clock
 
+from formation_core.rotations import quaternion_from_matrix
 from formation_msgs_py import topics
-from formation_msgs_py.rotations import quaternion_from_matrix
-from formation_msgs_py.wire import (  # noqa: F401 - the ROS-free half, re-exported for the nodes
+from formation_msgs_py.codec import (  # noqa: F401 - the ROS-free half, re-exported for the nodes
     NS_PER_S,
     StampedCodec,
     clock_bytes,

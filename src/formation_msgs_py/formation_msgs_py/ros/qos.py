@@ -16,8 +16,6 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 CONTROL = QoSProfile(
@@ -67,15 +65,3 @@ DISPLAY = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
-
-
-def bag_qos(profile: QoSProfile) -> Any:
-    """The offered QoS of a topic as a bag stores it (rosbags Qos, metadata.yaml)."""
-    from formation_msgs_py.bag.writer import make_qos  # rosbags: only where a bag is written
-
-    return make_qos(
-        depth=int(profile.depth),
-        reliable=profile.reliability != ReliabilityPolicy.BEST_EFFORT,
-        transient_local=profile.durability == DurabilityPolicy.TRANSIENT_LOCAL,
-        keep_all=profile.history == HistoryPolicy.KEEP_ALL,
-    )

@@ -18,7 +18,7 @@ figures ``pass_rate.png`` and ``worst_margin.png``.
 ``formation-campaign --sweep-rate FILE RATE…`` runs the file's own plant at each rate and prints
 the pass/fail table next to the rate each agent needs (:mod:`formation_sim.core.rates`).
 
-Exit status (:mod:`formation_msgs_py.outcome`): 0 done, 2 invalid campaign or formation file (naming the
+Exit status (:mod:`formation_core.verdict`): 0 done, 2 invalid campaign or formation file (naming the
 field), 4 an I/O or internal error (the runs finished are kept: a rerun resumes), 130 interrupted.
 """
 
@@ -38,13 +38,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from formation_msgs_py.errors import FormationSpecError
-from formation_msgs_py.loader import read_document
-from formation_msgs_py.outcome import ExitCode, guarded
-from formation_msgs_py.schema import REQUIRED
+from formation_core.errors import FormationSpecError
+from formation_core.loader import read_document
+from formation_core.schema import REQUIRED
+from formation_core.verdict import ExitCode, guarded
 
 if TYPE_CHECKING:  # numpy, the loader of formations and the cores: imported where used, not for --help
-    from formation_msgs_py.spec import FormationSpec, SignalModel
+    from formation_core.spec import FormationSpec, SignalModel
 
 #: the conditions a campaign may cross with the control rate: a link model's values (``links``) and
 #: gains (``gains``); each run's row names its own (empty where the campaign does not set one)
@@ -471,7 +471,7 @@ def reference_markdown() -> str:
 def load_campaign(path: Path) -> Campaign:
     """Read and validate a campaign file with the formation files' reader (duplicate keys, size and
     alias budgets); errors name the field and its FILE:LINE:COL."""
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
 
     try:
         document = read_document(path)
@@ -518,7 +518,7 @@ def tasks(campaign: Campaign) -> list[Task]:
 
 
 def _scaled_amplitude(model: SignalModel, value: float) -> SignalModel:
-    from formation_msgs_py.spec import SignalModel
+    from formation_core.spec import SignalModel
 
     if model.model != "paper":
         return model
@@ -529,8 +529,8 @@ def sample_spec(task: Task) -> FormationSpec:
     """The base formation with sample ``task.sample``'s plant, initial orientations and control rate."""
     import numpy as np
 
-    from formation_msgs_py.so3 import exp_so3
-    from formation_msgs_py.spec import load_formation
+    from formation_core.so3 import exp_so3
+    from formation_core.spec import load_formation
 
     spec = load_formation(task.formation)
     rng = np.random.default_rng(np.random.SeedSequence(task.entropy, spawn_key=task.spawn_key))
@@ -566,7 +566,7 @@ def sample_spec(task: Task) -> FormationSpec:
 
 def _with_condition(spec: FormationSpec, condition: tuple[Any, ...], apply_to: tuple[str, ...]) -> FormationSpec:
     """``spec`` with a run's link values on every agent's links of ``apply_to`` and its gains."""
-    from formation_msgs_py.spec import EdgeLinks, MeasurementLink, SignalModel, WrenchLink
+    from formation_core.spec import EdgeLinks, MeasurementLink, SignalModel, WrenchLink
 
     delay, loss, jitter, sensor_rate, delta, gamma = condition
     agents = []
@@ -954,7 +954,7 @@ def condition_table(summary: dict[str, Any]) -> str:
 
 def sweep_rate(formation: Path, rates: list[float], out: Path, *, workers: int, scheduler: str | None) -> int:
     """The file's own plant at each rate, with the rate each agent needs."""
-    from formation_msgs_py.spec import load_formation
+    from formation_core.spec import load_formation
 
     spec = load_formation(formation)
     from formation_sim.core.loop import initial_rho_v0  # numba: once the file is valid

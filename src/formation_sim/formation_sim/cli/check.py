@@ -5,7 +5,7 @@ an initial error within a few percent of its funnel bound; with ``--realtime``, 
 this host has, or a simulator that no core keeps on time), 2 invalid (the message names the
 field). ``--schema`` prints the reference of every field of a formation file.
 
-``--realtime`` adds what a realtime run of the file needs (:mod:`formation_sim.core.capacity`):
+``--realtime`` adds what a realtime run of the file needs (:mod:`formation_sim.capacity`):
 the CPU per tick of the simulator and of each agent, and the cores that keep its ticks on time,
 from this host's calibration (``--calibrate`` measures it first, 20-40 s) or built-in
 costs; the prediction's first line says which. A calibration that fails exits 3 (a floor process
@@ -17,13 +17,13 @@ from __future__ import annotations
 import sys
 from typing import TYPE_CHECKING
 
-from formation_msgs_py import options
-from formation_msgs_py.errors import FormationError
-from formation_msgs_py.options import OptionParser
-from formation_msgs_py.outcome import ExitCode
+from formation_core import options
+from formation_core.errors import FormationError
+from formation_core.options import OptionParser
+from formation_core.verdict import ExitCode
 
 if TYPE_CHECKING:
-    from formation_msgs_py.spec import FormationSpec
+    from formation_core.spec import FormationSpec
 
 # The cores (numba) are imported only once the file has been validated (load_spec imports numpy
 # and the loader only): a file that is not a formation at all (binary, alias bomb, duplicate keys)
@@ -37,7 +37,7 @@ def report(spec: FormationSpec) -> tuple[list[str], list[str]]:
     """(lines of the readable summary, list of reasons the file is unsafe)."""
     import numpy as np
 
-    from formation_msgs_py import funnels
+    from formation_core import funnels
     from formation_sim.core.loop import initial_rho_v0
     from formation_sim.core.rates import rate_needs
 
@@ -105,7 +105,7 @@ def link_report(spec: FormationSpec, unsafe: list[str]) -> list[str]:
     bounded nowhere in the paper's analysis, which assumes every measurement at once."""
     import math
 
-    from formation_msgs_py.spec import simulator_view
+    from formation_core.spec import simulator_view
     from formation_sim.core.links import (
         CHANNELS,
         P_BAD_GOOD,
@@ -192,7 +192,7 @@ def build_parser() -> OptionParser:
 
 def realtime_report(spec: FormationSpec, record: bool) -> tuple[list[str], list[str]]:
     """(lines of the realtime prediction for this host, reasons this host cannot run it on time)."""
-    from formation_sim.core import capacity
+    from formation_sim import capacity
 
     prediction = capacity.predict(spec, capacity.load_costs(), record=record)
     return capacity.report_lines(prediction, capacity.available_cores())
@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     ns = parser.parse_args(argv)
     opts = options.RunOptions.from_namespace(options.CHECK, ns)
     if opts.schema:
-        from formation_msgs_py.schema import schema_markdown
+        from formation_core.schema import schema_markdown
 
         sys.stdout.write(schema_markdown())
         return ExitCode.PASS
@@ -233,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
             return code
     if opts.file is None:
         parser.error("a formation file is required (or --schema, --calibrate)")
-    from formation_sim.core.preflight import InvalidRunError, duration_problem, load_spec
+    from formation_sim.preflight import InvalidRunError, duration_problem, load_spec
 
     try:
         spec = load_spec(opts)

@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from formation_msgs_py.errors import FormationSpecError
+from formation_core.errors import FormationSpecError
 
 if TYPE_CHECKING:  # numpy, yaml and the cores are imported where used: not for --help
     import numpy as np
@@ -61,7 +61,7 @@ def generate(
     """A formation document (ready for yaml.safe_dump) with ``n_agents`` agents."""
     import numpy as np
 
-    from formation_msgs_py.spec import formation_from_dict
+    from formation_core.spec import formation_from_dict
 
     _check_arguments(n_agents, topology, preset)
     rng = np.random.default_rng(seed)  # one stream, drawn in this order: tree, agents, edges

@@ -13,14 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from formation_msgs_py import options
-from formation_msgs_py.errors import FormationError
-from formation_msgs_py.options import OptionParser
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
-from formation_sim.core.preflight import preflight
+from formation_core import options
+from formation_core.errors import FormationError
+from formation_core.options import OptionParser
+from formation_core.verdict import EXIT_STATUS_HELP, ExitCode, Incomplete, guarded
+from formation_sim.preflight import preflight
 
 if TYPE_CHECKING:  # the cores (numba) are imported once the options and the file are valid
-    from formation_msgs_py.spec import FormationSpec
+    from formation_core.spec import FormationSpec
     from formation_sim.core.loop import ProgressFn
     from formation_sim.core.recorder import RunRecorder
 

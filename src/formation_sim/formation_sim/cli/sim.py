@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sys
 
-from formation_msgs_py.outcome import guarded
+from formation_core.verdict import guarded
 from formation_sim.node.sim_options import sim_preflight
 
 

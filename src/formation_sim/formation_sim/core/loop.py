@@ -3,7 +3,7 @@
 Per control step k (t_k = k / control_rate) :func:`run_sampled` does what the ROS 2 lockstep run
 does, step for step: the measurements of step k (relative poses with their noise, their rotations
 through the messages' quaternions, noisy twists), every agent's controller at the time an agent
-reads off the step's stamp (:func:`formation_msgs_py.wire.control_time`;
+reads off the step's stamp (:func:`formation_msgs_py.codec.control_time`;
 :func:`formation_sim.core.team.team_step`, with the fault policy), the step's ground truth,
 wrenches and velocity-funnel margins into the recording buffers, every funnel checked on ground
 truth (:func:`check_step`, the :class:`Watch`), then ``substeps``
@@ -13,7 +13,7 @@ stability limit: :func:`continuous_substeps`); two kernels, so that a sampled ru
 the continuous one. Each returns to Python after a buffer's worth of steps, at the first
 violation when the run stops there, or when a state is no longer finite (naming the agents).
 Python then hands the buffers to the recorder (the decimated trajectory,
-the faults) and names the first violation (:meth:`formation_msgs_py.judge.Judge.violation_at`).
+the faults) and names the first violation (:meth:`formation_sim.core.judge.Judge.violation_at`).
 
 :func:`run_closed_loop` drives it for a formation and a :class:`RunRecorder`.
 """
@@ -40,9 +40,12 @@ from formation_agent.controller import (
     new_funnel_start,
     new_outputs,
 )
-from formation_msgs_py import funnels
-from formation_msgs_py.compiled import INTERPRETED, formula, kernel, kernel_cached
-from formation_msgs_py.judge import (
+from formation_core import funnels
+from formation_core.numba_kernels import INTERPRETED, formula, kernel, kernel_cached
+from formation_core.so3 import flat_rows, matrix_rows, vec3
+from formation_core.spec import FormationSpec, agent_view, simulator_view
+from formation_msgs_py.codec import control_time, step_stamp_ns
+from formation_sim.core.judge import (
     CheckedSteps,
     EdgeSample,
     Judge,
@@ -54,9 +57,6 @@ from formation_msgs_py.judge import (
     pair_clearance,
     settle,
 )
-from formation_msgs_py.so3 import flat_rows, matrix_rows, vec3
-from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
-from formation_msgs_py.wire import control_time, step_stamp_ns
 from formation_sim.core.links import (
     LinkSet,
     deliver_wrenches,
@@ -162,7 +162,7 @@ W_BAND_LO, W_BAND_HI, W_BAND_PSI = 17, 18, 19
 
 class Watch(NamedTuple):
     """Every funnel checked on ground truth at every control step, compiled, with the rules of
-    :class:`formation_msgs_py.judge.Judge` (which names the first violation): running minimum
+    :class:`formation_sim.core.judge.Judge` (which names the first violation): running minimum
     margins, settle times (NaN: none) and peak wrenches, as :class:`formation_sim.core.recorder.CheckedSteps`."""
 
     pairs: np.ndarray  # (K, 2) tail, head
@@ -204,7 +204,7 @@ def new_watch(spec: FormationSpec, judge: Judge) -> Watch:
 @formula
 def check_step(watch, buf, n, t, p, R, out):
     """The funnels at step n of the chunk on ground truth (e, ψ, ρ into ``buf``); True if one is left
-    (the judge's formulas and rule: :func:`formation_msgs_py.funnels.edge_errors`, ``edge_margins``, ``outside``)."""
+    (the judge's formulas and rule: :func:`formation_core.funnels.edge_errors`, ``edge_margins``, ``outside``)."""
     c = watch.checked
     left = False
     for k in range(watch.pairs.shape[0]):
@@ -238,7 +238,7 @@ def check_step(watch, buf, n, t, p, R, out):
 
 @formula
 def check_clearances(watch, t, p):
-    """Every pair of bodies at t [s] (the judge's formula and rule: :func:`formation_msgs_py.judge.pair_clearance`,
+    """Every pair of bodies at t [s] (the judge's formula and rule: :func:`formation_sim.core.judge.pair_clearance`,
     ``in_contact``): each pair's smallest clearance and its first contact; True if a contact fails the run."""
     c = watch.checked
     fails = False
@@ -387,7 +387,7 @@ def run_continuous(loop, watch, p, R, v, work, k0, k_stop, k_last, control_rate,
 
 def chunk_control_times(k0: int, k_stop: int, control_rate: float) -> np.ndarray:
     """The controllers' time [s] of steps k0 … k_stop − 1: each step's stamp as an agent reads it
-    (:func:`formation_msgs_py.wire.control_time` of :func:`formation_msgs_py.wire.step_stamp_ns`)."""
+    (:func:`formation_msgs_py.codec.control_time` of :func:`formation_msgs_py.codec.step_stamp_ns`)."""
     return np.array([control_time(step_stamp_ns(k, control_rate)) for k in range(k0, k_stop)])
 
 

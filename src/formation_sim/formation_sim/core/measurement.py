@@ -8,9 +8,9 @@ i's sensing radius::
 
 optionally with seeded Gaussian noise (position_std [m] per axis; rotation_std [rad], a
 rotation vector applied on the right) of the receiving agent. The rotation travels as the
-quaternion of the message (:func:`formation_msgs_py.rotations.quaternion_of_rows`), and what a
+quaternion of the message (:func:`formation_core.rotations.quaternion_of_rows`), and what a
 controller reads is the matrix an agent decodes from it
-(:func:`formation_msgs_py.rotations.rows_of_quaternion`): the model gives both, so that every run
+(:func:`formation_core.rotations.rows_of_quaternion`): the model gives both, so that every run
 (headless, lockstep, the simulator's witness) computes on the values an agent receives.
 
 Measurements are indexed by *edge end* (agent i's view of one of its edges, grouped by agent in
@@ -25,10 +25,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from formation_msgs_py.compiled import formula, kernel
-from formation_msgs_py.rotations import quaternion_of_rows, rows_of_quaternion
-from formation_msgs_py.so3 import add3, exp_rows, matmul3, matrix_rows, matTvec3, scale3, set3x3, transpose3, vec3
-from formation_msgs_py.spec import SimulatorView
+from formation_core.numba_kernels import formula, kernel
+from formation_core.rotations import quaternion_of_rows, rows_of_quaternion
+from formation_core.so3 import add3, exp_rows, matmul3, matrix_rows, matTvec3, scale3, set3x3, transpose3, vec3
+from formation_core.spec import SimulatorView
 
 #: {agent_id: {neighbour_id: (p_i_j_in_i (3,), R_i_j (3,3))}}
 RelativePoses = dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]

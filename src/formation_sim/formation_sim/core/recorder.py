@@ -1,8 +1,8 @@
 """The streaming recorder of a run: :class:`RunRecorder` is what the headless runner, the simulator
 node, the synthesiser and the bag analysis fill sample by sample. It feeds the judge
-(:class:`formation_msgs_py.judge.Judge`), keeps the decimated trajectory, counts faults per agent and
-kind (:class:`formation_msgs_py.faults.FaultLog`) and builds the summary, whose verdict comes from
-:func:`formation_msgs_py.outcome.decide` (docs/outputs.md).
+(:class:`formation_sim.core.judge.Judge`), keeps the decimated trajectory, counts faults per agent and
+kind (:class:`formation_core.faults.FaultLog`) and builds the summary, whose verdict comes from
+:func:`formation_core.verdict.decide` (docs/outputs.md).
 """
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from formation_msgs_py.faults import FaultLog, strict_json
-from formation_msgs_py.judge import CheckedSteps, EdgeSample, Judge, Violation
-from formation_msgs_py.outcome import ExitCode, Incomplete, Outcome, Verdict, decide
-from formation_msgs_py.publisher_watch import untrusted_input
-from formation_msgs_py.spec import FormationSpec
+from formation_core.faults import FaultLog, strict_json
+from formation_core.spec import FormationSpec
+from formation_core.verdict import ExitCode, Incomplete, Outcome, Verdict, decide
+from formation_deploy.publisher_watch import untrusted_input
+from formation_sim.core.judge import CheckedSteps, EdgeSample, Judge, Violation
 
 #: samples :meth:`RunRecorder.add` queues before checking them together
 CHECK_BATCH = 64

@@ -13,8 +13,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from formation_msgs_py.spec import SimulatorView
-from formation_msgs_py.wire import control_time, step_stamp_ns
+from formation_core.spec import SimulatorView
+from formation_msgs_py.codec import control_time, step_stamp_ns
 from formation_sim.core.links import (
     LinkSet,
     deliver_step,
@@ -37,8 +37,8 @@ class Measurements:
     (n_ends,4) (x, y, z, w) and the matrices R_rel (n_ends,3,3) an agent decodes from them, which
     ends are in range (only those are received), and the noisy body twists (N,6).
 
-    ``ns`` is the step's stamp (:func:`formation_msgs_py.wire.step_stamp_ns`) and ``t`` its time
-    [s] (:func:`formation_msgs_py.wire.control_time`): the time every agent, record and analysis gives
+    ``ns`` is the step's stamp (:func:`formation_msgs_py.codec.step_stamp_ns`) and ``t`` its time
+    [s] (:func:`formation_msgs_py.codec.control_time`): the time every agent, record and analysis gives
     the step (the plant integrates from k / control_rate, within half a nanosecond of it).
     """
 
@@ -141,7 +141,7 @@ class Simulation:
 
     @property
     def t(self) -> float:
-        """The current step's time [s]: its stamp's (:func:`formation_msgs_py.wire.control_time`)."""
+        """The current step's time [s]: its stamp's (:func:`formation_msgs_py.codec.control_time`)."""
         return control_time(step_stamp_ns(self.step_index, self.control_rate))
 
     @property

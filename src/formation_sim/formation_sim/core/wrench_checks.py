@@ -2,7 +2,7 @@
 
 A wrench (body frame, [fx, fy, fz, tx, ty, tz] in N and N·m) stamped ``ns`` (integer ns of
 sim time) from agent i is refused (the simulator counts it as the fault ``refused_wrench_<kind>``
-of that agent, :mod:`formation_msgs_py.faults`) and never integrated when:
+of that agent, :mod:`formation_core.faults`) and never integrated when:
 
 - a value is not finite (``non_finite``);
 - its force or torque norm exceeds the agent's actuator limits, ``dynamics.max_force`` /
@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from formation_msgs_py.wire import step_stamp_ns
+from formation_msgs_py.codec import step_stamp_ns
 
 NON_FINITE, OVER_LIMIT, UNKNOWN_STEP, FUTURE_STEP, PAST_STEP, MALFORMED = (
     "non_finite",

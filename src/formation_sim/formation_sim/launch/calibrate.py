@@ -1,12 +1,12 @@
 """``formation-check --calibrate``: measure this host's CPU per message and store it.
 
-Runs the floor (:mod:`formation_sim.node.floor`: a realtime run's messages with no work) of a
+Runs the floor (:mod:`formation_sim.node.calibration_chain`: a realtime run's messages with no work) of a
 chain of :data:`AGENTS` agents at :data:`RATE` Hz for :data:`TICKS` ticks after :data:`WARMUP`
 (20-40 s with start-up on two cores), in a reserved ROS domain, and divides each process's CPU
 by the messages it sent and took: the simulator's cost per message and an agent's (their mean),
-which :func:`formation_sim.core.capacity.calibrated` turns into the host's costs. The result goes
-to :func:`formation_sim.core.capacity.calibration_path` with the host name, its cores and the
-date; :func:`formation_sim.core.capacity.load_costs` reads it back.
+which :func:`formation_sim.capacity.calibrated` turns into the host's costs. The result goes
+to :func:`formation_sim.capacity.calibration_path` with the host name, its cores and the
+date; :func:`formation_sim.capacity.load_costs` reads it back.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from formation_msgs_py.errors import CalibrationError
-from formation_sim.core import capacity
+from formation_core.errors import CalibrationError
+from formation_sim import capacity
 from formation_sim.launch.dds_env import run_environment
 from formation_sim.launch.supervisor import die_with_parent
 
@@ -34,7 +34,7 @@ TIMEOUT_S = 180.0
 
 def measure(agents: int = AGENTS, rate: float = RATE, ticks: int = TICKS, warmup: int = WARMUP) -> dict[str, Any]:
     """Run the floor; {"sim": {...}, "agents": {id: {...}}} as each process reported it."""
-    from formation_sim.core.capacity import chain_ids
+    from formation_sim.capacity import chain_ids
 
     with tempfile.TemporaryDirectory(prefix="formation-calibrate-") as logs:
         env = run_environment(dict(os.environ), log_dir=Path(logs))
@@ -44,7 +44,7 @@ def measure(agents: int = AGENTS, rate: float = RATE, ticks: int = TICKS, warmup
         try:
             for role in roles:
                 procs[role] = subprocess.Popen(
-                    [sys.executable, "-m", "formation_sim.node.floor", role, *common],
+                    [sys.executable, "-m", "formation_sim.node.calibration_chain", role, *common],
                     env=env,
                     stdout=subprocess.PIPE,
                     stderr=subprocess.PIPE,

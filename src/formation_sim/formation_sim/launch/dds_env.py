@@ -20,14 +20,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO
 
-from formation_msgs_py import errors
-from formation_msgs_py.options import Discovery
+from formation_core.options import Discovery
+from formation_msgs_py import topics
 
 #: the Fast DDS profile of a non-secure process whose discovery range is not LOCALHOST (the file
-#: says what it sets and why)
-FASTDDS_PROFILE = Path(errors.__file__).with_name("fastdds_profile.xml")
+#: says what it sets and why); the profiles ship with the messages package
+FASTDDS_PROFILE = Path(topics.__file__).with_name("fastdds_profile.xml")
 #: the profile of a non-secure process kept on this host: UDP on 127.0.0.1 only, no shared memory
-FASTDDS_LOOPBACK_PROFILE = Path(errors.__file__).with_name("fastdds_loopback.xml")
+FASTDDS_LOOPBACK_PROFILE = Path(topics.__file__).with_name("fastdds_loopback.xml")
 _OUR_PROFILES = {str(FASTDDS_PROFILE), str(FASTDDS_LOOPBACK_PROFILE)}
 
 #: Ids Fast DDS accepts whose port blocks stay clear of Linux's ephemeral ports (102..214 may collide).

@@ -26,7 +26,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from formation_msgs_py.options import DEFAULT_DISCOVERY_PORT, Discovery, discovery
+from formation_core.options import DEFAULT_DISCOVERY_PORT, Discovery, discovery
 from formation_sim.launch.dds_env import discovery_client_environment, shell_lines
 
 #: the server executable of the ros_fastrtps wheel (in the environment's bin/)

@@ -33,20 +33,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from formation_agent.kernel_cache import compiled_pays
-from formation_msgs_py import options
-from formation_msgs_py.errors import FormationError
-from formation_msgs_py.faults import FaultLog
-from formation_msgs_py.options import Discovery, OptionParser, RunOptions
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
-from formation_msgs_py.publisher_watch import merge_security, security_file, untrusted_input
-from formation_sim.core.preflight import InvalidRunError, Prepared, launch_outputs, preflight, prepare_out_dir
+from formation_bag.foxglove_server import endpoint_problem
+from formation_core import options
+from formation_core.errors import FormationError
+from formation_core.faults import FaultLog
+from formation_core.options import Discovery, OptionParser, RunOptions
+from formation_core.verdict import EXIT_STATUS_HELP, ExitCode, Incomplete, decide, guarded
+from formation_deploy.publisher_watch import merge_security, security_file, untrusted_input
 from formation_sim.launch import dds_env, discovery_server
 from formation_sim.launch.supervisor import Child, LogFollower, Supervisor, tls_failures
-from formation_sim.views.live_view import endpoint_problem
+from formation_sim.preflight import InvalidRunError, Prepared, launch_outputs, preflight, prepare_out_dir
 
 if TYPE_CHECKING:
+    from formation_core.spec import FormationSpec
     from formation_deploy.secure_transport import SecureRun
-    from formation_msgs_py.spec import FormationSpec
 
 #: child name -> formation-keys process name, where they differ
 _KEY_NAMES = {"sim": "simulator"}
@@ -66,7 +66,7 @@ def _bin(name: str) -> Path:
 
 
 #: wall seconds from SIGINT to SIGKILL when the launcher stops its processes: a node process needs
-#: ~10-50 ms of CPU to stop (formation_msgs_py.ros.stopping), the interrupted simulator a little more to
+#: ~10-50 ms of CPU to stop (formation_ros.shutdown), the interrupted simulator a little more to
 #: write its summary and trajectory; at load 10 on 2 cores each gets about a fifth of a core
 STOP_GRACE = 2.5
 #: … plus this much per process beyond six stopped at once: 40 agents stopping together at load 58
@@ -105,7 +105,7 @@ def expected_bag_bytes(spec: FormationSpec) -> int:
 
 def check_space(out: Path, spec: FormationSpec, record: bool) -> str | None:
     """None if OUT's file system has room for the run's outputs, else the reason (creates nothing:
-    :func:`formation_sim.core.preflight.check_out_dir` has checked that OUT can be written)."""
+    :func:`formation_sim.preflight.check_out_dir` has checked that OUT can be written)."""
     s = spec.simulation
     rows = round(s.duration * s.record_rate) + 1
     need = rows * len(spec.agents) * 24 * 8 + 5_000_000  # trajectory.npz, figures, logs
@@ -640,7 +640,7 @@ def _remove_created(out: Path, existed: bool) -> None:
 
 def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
     """Complete and write summary.json and processes.json, print the verdict; the exit status."""
-    from formation_msgs_py.faults import write_json
+    from formation_core.faults import write_json
     from formation_sim.views.outputs import (  # numba: not for --help
         format_summary,
         redraw_figures,

@@ -5,7 +5,7 @@ a child must be able to finish when its supervisor is gone), and gets SIGTERM if
 dies (PR_SET_PDEATHSIG), so that a SIGKILLed launcher still leaves its children stopped and the
 simulator's summary written. Stopping sends SIGINT to every child at once and SIGKILL only after
 a grace period. No SIGTERM in between: a node process treats both alike (rclpy's handlers shut its
-context down, formation_msgs_py.ros.stopping), so SIGTERM after SIGINT changes nothing.
+context down, formation_ros.shutdown), so SIGTERM after SIGINT changes nothing.
 
 The children may run under Linux's ``SCHED_BATCH`` policy (``Supervisor.batch``, formation-launch
 ``--scheduling batch``): a process woken by a message then waits for a free core or the next

@@ -10,7 +10,7 @@ At ``marker_rate`` Hz of simulation time (default 30; 0 turns it off) the simula
   install of ROS 2 has it, the PyPI wheels of ``ros2_ws/requirements.txt`` do not.
 
 With ``--foxglove`` the same bytes of markers and funnels, ``/clock`` at each display instant and
-every ``/diagnostics`` received are served to the live view too (:mod:`formation_sim.views.live_view`).
+every ``/diagnostics`` received are served to the live view too (:mod:`formation_bag.foxglove_server`).
 
 Nothing here is read by an agent (docs/topics.md).
 """
@@ -28,14 +28,15 @@ from rclpy.node import Node
 from std_msgs.msg import ColorRGBA, Float64MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
+from formation_bag.foxglove_server import LiveView, display_topics
+from formation_core.options import RunOptions
+from formation_core.spec import FormationSpec, simulator_view
 from formation_msgs_py import topics
-from formation_msgs_py.options import RunOptions
-from formation_msgs_py.ros import conversions, parameters, qos
-from formation_msgs_py.spec import FormationSpec, simulator_view
-from formation_msgs_py.wire import clock_bytes
+from formation_msgs_py.codec import clock_bytes
+from formation_msgs_py.ros import conversions, qos
+from formation_ros import parameters
 from formation_sim.core.links import CHANNELS, link_names
 from formation_sim.views.display_wire import FUNNEL_FIELDS, FunnelsWire, MarkerArrayWire
-from formation_sim.views.live_view import LiveView, display_topics
 from formation_sim.views.markers import FormationScene, Shape
 
 DEFAULT_MARKER_RATE = 30.0

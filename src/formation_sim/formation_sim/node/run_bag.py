@@ -35,10 +35,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from formation_msgs_py.bag import KEY_LINKS, KEY_RUN_STOPPED, STAMPED_TYPES
-from formation_msgs_py.bag.writer import McapFileWriter, SegmentedBagWriter
-from formation_msgs_py.errors import BagError, BagExistsError
-from formation_msgs_py.wire import stamp_of
+from formation_bag.contract import KEY_LINKS, KEY_RUN_STOPPED, STAMPED_TYPES
+from formation_bag.writer import McapFileWriter, SegmentedBagWriter
+from formation_core.errors import BagError, BagExistsError
+from formation_msgs_py.codec import stamp_of
 
 #: the view file's name in OUT
 VIEW_FILE = "view.mcap"
@@ -203,8 +203,8 @@ class RunBag:
 
     def close(self, stopped: tuple[int, str] | None = None, links: dict[str, Any] | None = None) -> dict[str, Any]:
         """Close the bag with its counts in custom_data, why the run stopped before its end if it did
-        (``stopped``: exit status, reason; :data:`formation_msgs_py.bag.KEY_RUN_STOPPED`) and its
-        link model's statistics (:data:`formation_msgs_py.bag.KEY_LINKS`); the run summary's
+        (``stopped``: exit status, reason; :data:`formation_bag.contract.KEY_RUN_STOPPED`) and its
+        link model's statistics (:data:`formation_bag.contract.KEY_LINKS`); the run summary's
         ``recorder`` entry."""
         counts = self.counts()
         self.writer.custom_data["recorder_counts"] = json.dumps(counts, sort_keys=True)

@@ -15,11 +15,11 @@ import rclpy
 
 from formation_agent.kernel_cache import warm_up
 from formation_agent.synchroniser import CODE_FORM_PARAMETER, LIVE_GAINS, PLATFORM_PARAMETER
-from formation_msgs_py.faults import ANSWER_MISMATCH
-from formation_msgs_py.options import RunOptions
-from formation_msgs_py.outcome import ExitCode, Incomplete
-from formation_msgs_py.spec import FormationSpec, agent_view, simulator_view
-from formation_msgs_py.wire import step_stamp_ns
+from formation_core.faults import ANSWER_MISMATCH
+from formation_core.options import RunOptions
+from formation_core.spec import FormationSpec, agent_view, simulator_view
+from formation_core.verdict import ExitCode, Incomplete
+from formation_msgs_py.codec import step_stamp_ns
 from formation_sim.core import wrench_checks
 from formation_sim.core.links import link_summary
 from formation_sim.core.recorder import RunRecorder

@@ -20,7 +20,7 @@ ROS-free policy of :mod:`formation_sim.node.stepping`; this module is the thin n
   period with the latest wrench of each agent held (zero-order hold), then publishes the new
   measurements. A wrench older than ``simulation.command_timeout`` (sim time) is replaced by
   zero; every tick without an agent's answer (stale or zeroed wrench) and every late tick is a
-  counted fault (summary ``faults``, formation_msgs_py.faults). A run
+  counted fault (summary ``faults``, formation_core.faults). A run
   lagging more than ``--lag-budget`` wall seconds behind the wall clock stops INCOMPLETE (exit 4).
 
 Funnels are checked on ground truth at every control step inside this node; ``/clock`` and
@@ -52,16 +52,16 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 
-from formation_msgs_py.bag import KEY_FORMATION_FILE, KEY_FORMATION_YAML
-from formation_msgs_py.errors import BagError
-from formation_msgs_py.options import RunOptions
-from formation_msgs_py.outcome import ExitCode, Incomplete, guarded
-from formation_msgs_py.ros import stopping
-from formation_msgs_py.ros.rclpy_internals import RCLError
-from formation_msgs_py.spec import FormationSpec
-from formation_msgs_py.transport_check import InsecureTransportError, check_secure_transport
+from formation_bag.contract import KEY_FORMATION_FILE, KEY_FORMATION_YAML
+from formation_bag.foxglove_server import SUBPROTOCOL, LiveView, LiveViewError
+from formation_core.errors import BagError
+from formation_core.options import RunOptions
+from formation_core.spec import FormationSpec
+from formation_core.verdict import ExitCode, Incomplete, guarded
+from formation_deploy.transport_check import InsecureTransportError, check_secure_transport
+from formation_ros import shutdown
+from formation_ros.rclpy_internals import RCLError
 from formation_sim.core.links import link_summary
-from formation_sim.core.preflight import Prepared
 from formation_sim.node.display import DEFAULT_MARKER_RATE, declare_simulator_parameters
 from formation_sim.node.run_bag import VIEW_FILE, RunBag
 from formation_sim.node.runner import Runner, RunStoppedError, StopRequestedError
@@ -71,7 +71,7 @@ from formation_sim.node.stepping import (
     ParticipantMissingError,
     WrongAnswerError,
 )
-from formation_sim.views.live_view import SUBPROTOCOL, LiveView, LiveViewError
+from formation_sim.preflight import Prepared
 from formation_sim.views.outputs import format_summary, write_outputs
 
 
@@ -110,7 +110,7 @@ class SimProcess:
     def start(self) -> Runner:
         """rclpy, the node (secure transport checked), the executor, the runner; every agent matched."""
         spec, args = self.spec, self.args
-        stopping.init(self.raw)
+        shutdown.init(self.raw)
         self.node = node = SimNode(spec, args.measurement_qos, args.intruder_policy, self.bag)
         check_secure_transport()
         node.display = declare_simulator_parameters(node, spec, args, self.live)
@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
         code = _write_outputs(proc.runner, out, args, wall, incomplete, proc.extra)
     if proc.node is None:
         return code  # stopped while starting: a node half made is released by the interpreter's finalization
-    stopping.exit_now(code, proc.node.context)
+    shutdown.exit_now(code, proc.node.context)
 
 
 def _write_outputs(

@@ -7,11 +7,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from formation_msgs_py import options
-from formation_msgs_py.errors import FormationError
-from formation_msgs_py.options import OptionParser
-from formation_msgs_py.outcome import EXIT_STATUS_HELP, ExitCode
-from formation_sim.core.preflight import Prepared, preflight
+from formation_core import options
+from formation_core.errors import FormationError
+from formation_core.options import OptionParser
+from formation_core.verdict import EXIT_STATUS_HELP, ExitCode
+from formation_sim.preflight import Prepared, preflight
 
 
 def sim_parser() -> OptionParser:

@@ -23,13 +23,13 @@ from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
 from formation_agent.synchroniser import LIVE_GAINS
+from formation_bag.contract import ros_type_name
+from formation_core.faults import ANSWER_MISMATCH, FaultLog
+from formation_core.spec import FormationSpec, simulator_view
+from formation_deploy.graph_watch import GraphWatch
+from formation_deploy.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py import topics
-from formation_msgs_py.bag import ros_type_name
-from formation_msgs_py.faults import ANSWER_MISMATCH, FaultLog
-from formation_msgs_py.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py.ros import conversions, qos
-from formation_msgs_py.ros.graph_watch import GraphWatch
-from formation_msgs_py.spec import FormationSpec, simulator_view
 from formation_sim.core import wrench_checks
 from formation_sim.core.measurement import measurement_ends
 from formation_sim.core.simulation import Measurements, Simulation
@@ -143,10 +143,12 @@ class SimNode(Node):
             on_intruder=lambda intruder: print(f"formation-sim: {describe(intruder)}", flush=True),
         )
         if bag is not None:  # what the simulator receives goes into the bag as received
+            from formation_bag.writer import offered_qos  # rosbags: only where a bag is written
+
             for name in self.wrench_topics:
-                bag.add_topic(name, ros_type_name(WrenchStamped), qos.bag_qos(qos.CONTROL), published=False)
+                bag.add_topic(name, ros_type_name(WrenchStamped), offered_qos(qos.CONTROL), published=False)
             diagnostics = ros_type_name(DiagnosticArray)
-            bag.add_topic(topics.DIAGNOSTICS, diagnostics, qos.bag_qos(qos.DIAGNOSTICS), published=False)
+            bag.add_topic(topics.DIAGNOSTICS, diagnostics, offered_qos(qos.DIAGNOSTICS), published=False)
             self.diagnostics_sub = self.create_subscription(
                 DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, qos.DIAGNOSTICS, raw=True
             )
@@ -156,8 +158,10 @@ class SimNode(Node):
         publisher = super().create_publisher(msg_type, topic, qos_profile, **kwargs)
         if self.bag is None:
             return publisher
+        from formation_bag.writer import offered_qos
+
         self.bag.add_topic(
-            publisher.topic_name, ros_type_name(msg_type), qos.bag_qos(publisher.qos_profile), published=True
+            publisher.topic_name, ros_type_name(msg_type), offered_qos(publisher.qos_profile), published=True
         )
         return RecordedPublisher(publisher, self.bag)
 

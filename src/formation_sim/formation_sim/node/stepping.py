@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from formation_msgs_py.faults import ANSWER_MISMATCH
+from formation_core.faults import ANSWER_MISMATCH
 from formation_sim.core.wrench_checks import DROPPED_KINDS
 from formation_sim.node.witness import AGREES_NEW_GAINS, DIFFERS, AnswerWitness
 
@@ -219,7 +219,7 @@ def admit(
     return Admission(APPLY, tuple(u))
 
 
-#: realtime fault kinds (formation_msgs_py.faults): an older wrench held, or zero applied instead
+#: realtime fault kinds (formation_core.faults): an older wrench held, or zero applied instead
 STALE_COMMAND, ZERO_WRENCH = "stale_command", "zero_wrench"
 
 

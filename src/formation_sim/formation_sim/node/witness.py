@@ -4,7 +4,7 @@ The simulator runs every agent's controller itself (its *shadow*:
 :class:`formation_sim.core.team.AgentTeam`) on exactly what the agent received (the published
 values, decoded by the agent's own decoder), at the agent's time (the step's stamp), in the
 agent's code form and with the gains the agent uses. An agent reports its code form and numeric
-platform (read-only parameters, :mod:`formation_msgs_py.compiled`); where the simulator can run
+platform (read-only parameters, :mod:`formation_core.numba_kernels`); where the simulator can run
 the agent's form on the agent's platform, an answer must equal the shadow's **bit for bit**;
 otherwise (another host, another CPU or libm, a form the simulator cannot run) it must lie within
 the step's **round-off bound** (:mod:`formation_agent.roundoff`, docs/controller.md). An answer
@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from formation_msgs_py.compiled import CODE_FORM, FORM_COMPILED, FORM_INTERPRETED, numeric_platform
-from formation_msgs_py.spec import FormationSpec
+from formation_core.numba_kernels import CODE_FORM, FORM_COMPILED, FORM_INTERPRETED, numeric_platform
+from formation_core.spec import FormationSpec
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Measurements
 from formation_sim.core.team import AgentTeam, Trial

@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from formation_msgs_py import funnels
-from formation_msgs_py.spec import FormationSpec
+from formation_core import funnels
+from formation_core.spec import FormationSpec
 from formation_sim.views.markers import (
     ARROW,
     AXIS_COLOURS,

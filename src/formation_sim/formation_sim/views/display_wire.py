@@ -5,7 +5,7 @@ Building ``/formation/markers`` as rclpy messages cost ~20 ms of CPU per frame f
 60 % of the simulator's CPU in a realtime run at 30 Hz (BENCHMARKS.md). A formation's
 scene has the same markers at every instant (namespaces, ids, types, texts, point counts): only
 poses, points and colours move. So the message is laid out once as little-endian CDR (the layout
-rclpy publishes; formation_msgs_py.wire does the same for the per-step messages) and each frame
+rclpy publishes; formation_msgs_py.codec does the same for the per-step messages) and each frame
 writes the moving numbers into it through numpy views: a few array assignments per frame.
 tests/ros/test_display_wire.py checks the bytes against rclpy's own serialization.
 """

@@ -20,7 +20,7 @@ figure (every panel draws the same kinds of line):
   differs by the noise;
 - ``clearance.png``: per agent, its clearance to the nearest other body (the distance between
   centres minus both radii [m], every body, neighbour or not: the judge's
-  :class:`formation_msgs_py.judge.Pairs`), with contact (clearance ≤ 0) shaded;
+  :class:`formation_sim.core.judge.Pairs`), with contact (clearance ≤ 0) shaded;
 - ``link_ages.png`` (runs with a link model only): the age [ms] of the sample each link's receiver
   holds, per channel (relative poses, velocities, wrenches), with the age past which it is missing
   (the agents' ``measurement_timeout``, the plant's ``command_timeout``).
@@ -41,9 +41,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from formation_agent.controller import AgentController
-from formation_msgs_py import funnels
-from formation_msgs_py.judge import Pairs
-from formation_msgs_py.spec import EdgeSpec, FormationSpec, agent_view
+from formation_core import funnels
+from formation_core.spec import EdgeSpec, FormationSpec, agent_view
+from formation_sim.core.judge import Pairs
 
 if TYPE_CHECKING:  # matplotlib is imported when figures are drawn, not with this module
     from matplotlib.axes import Axes
@@ -200,7 +200,7 @@ def _plot_all(
 def _link_ages(
     plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
 ) -> Path:
-    from formation_msgs_py.spec import simulator_view
+    from formation_core.spec import simulator_view
     from formation_sim.core.links import CHANNELS, link_names
 
     t, ages = arrays["t"], arrays["link_age"] * 1e3

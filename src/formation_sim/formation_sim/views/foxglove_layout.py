@@ -16,8 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from formation_core.spec import EdgeSpec, FormationSpec
 from formation_msgs_py import topics
-from formation_msgs_py.spec import EdgeSpec, FormationSpec
 from formation_sim.views.display_wire import FUNNEL_FIELDS
 
 LAYOUT_NAME = "foxglove_layout.json"
@@ -169,7 +169,7 @@ def _right_column(links: bool) -> dict[str, Any]:
 
 def _link_ages_plot(spec: FormationSpec) -> dict[str, Any]:
     """Every link's held sample's age [s] (``/formation/links``, one value per link)."""
-    from formation_msgs_py.spec import simulator_view
+    from formation_core.spec import simulator_view
     from formation_sim.core.links import CHANNELS, link_names
 
     names = link_names(simulator_view(spec))
@@ -195,7 +195,7 @@ def layout_text(spec: FormationSpec) -> str:
 
 def write_layout(out_dir: Path, spec: FormationSpec) -> Path:
     """Write ``out_dir/foxglove_layout.json`` atomically; returns its path."""
-    from formation_msgs_py.faults import write_atomic
+    from formation_core.faults import write_atomic
 
     path = out_dir / LAYOUT_NAME
     write_atomic(path, layout_text(spec).encode())

@@ -13,7 +13,7 @@ One scene per display instant:
   ``arrow_scale·ln(1 + |u|)`` m (logarithmic: peaks of 10³ N and steady values of 10⁻² N are
   both visible);
 - every body in contact with another (clearance ≤ 0, neighbours or not: the judge's
-  :class:`formation_msgs_py.judge.Pairs`): a translucent red sphere of its radius around it, so that a
+  :class:`formation_sim.core.judge.Pairs`): a translucent red sphere of its radius around it, so that a
   pair that touches shows as two red spheres meeting (namespace ``contacts``, one per agent, clear
   while it touches nothing: the markers stay the same at every instant).
 
@@ -26,9 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from formation_msgs_py.judge import EdgeErrors, Pairs, in_contact
-from formation_msgs_py.rotations import quaternion_from_matrix
-from formation_msgs_py.spec import FormationSpec
+from formation_core.rotations import quaternion_from_matrix
+from formation_core.spec import FormationSpec
+from formation_sim.core.judge import EdgeErrors, Pairs, in_contact
 
 # visualization_msgs/Marker type codes (a ROS message constant, repeated here to stay ROS-free)
 ARROW, CUBE, SPHERE, LINE_LIST, TEXT_VIEW_FACING = 0, 1, 2, 5, 9
@@ -133,7 +133,7 @@ class FormationScene:
 
     def funnels(self, t: float, p: np.ndarray, R: np.ndarray) -> dict[str, np.ndarray]:
         """Per edge (K,): e [m²], its bounds −C_col·ρ_e and C_con·ρ_e, ψ, ρ_ψ, and the margins."""
-        e, psi = self.edges.errors(p, R)  # the judge's formulas (formation_msgs_py.judge)
+        e, psi = self.edges.errors(p, R)  # the judge's formulas (formation_sim.core.judge)
         rho_e, rho_psi, _, margin_e, margin_psi = self.edges.margins(t, e, psi)
         return {
             "e": e,

@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from formation_msgs_py.faults import fault_lines, fault_meanings, write_atomic, write_json
-from formation_msgs_py.outcome import ExitCode, Verdict
-from formation_msgs_py.publisher_watch import intruder_lines
-from formation_msgs_py.spec import FormationSpec
+from formation_core.faults import fault_lines, fault_meanings, write_atomic, write_json
+from formation_core.spec import FormationSpec
+from formation_core.verdict import ExitCode, Verdict
+from formation_deploy.publisher_watch import intruder_lines
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.views.foxglove_layout import write_layout
 

@@ -1,0 +1,20 @@
+from setuptools import find_packages, setup
+
+package_name = "formation_core"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["setuptools", "numpy", "numba", "scipy", "PyYAML"],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest when "test" lists it
+    zip_safe=True,
+    maintainer="formation developers",
+    maintainer_email="formation@example.com",
+    description="Formation files, run options, verdicts, faults, SO(3) maps, funnels, compiled kernels (no ROS).",
+    license="Apache-2.0",
+)

@@ -52,6 +52,23 @@ def assert_equals_headless(
     return ref
 
 
+def faults_besides_resends(summary: dict) -> tuple[dict, dict[str, int]]:
+    """(summary.json's faults without ``resent_step``, the resends per agent). A lockstep step is sent again
+    when an agent's answer is late, which a busy machine makes happen (most often at the first step, while
+    the processes still start): the step is integrated with the answer only, so the trajectory is unchanged
+    (docs/outputs.md), but an agent that had answered the step without a neighbour's pose answers the resend
+    again and counts ``missing_pose`` once more."""
+    faults, resends = {}, {}
+    for agent, kinds in summary["faults"].items():
+        kinds = dict(kinds)
+        resent = kinds.pop("resent_step", None)
+        if resent is not None:
+            resends[agent] = resent["count"]
+        if kinds:
+            faults[agent] = kinds
+    return faults, resends
+
+
 def run(cmd: Sequence[str], env: dict[str, str], timeout: float = 300.0) -> tuple[int, str]:
     """(exit status, stdout and stderr) of ``cmd`` started in its own process group; on a timeout the
     whole group it started is stopped (SIGINT, then SIGKILL) and the test fails naming the command."""

@@ -36,7 +36,8 @@ def main() -> None:
     import rclpy
 
     from formation_agent.agent_node import AgentNode
-    from formation_core.spec import load_formation, simulator_view
+    from formation_core.formation import simulator_view
+    from formation_core.spec import load_formation
     from formation_msgs_py import topics
     from formation_msgs_py.ros import conversions
     from formation_sim.core.simulation import Simulation

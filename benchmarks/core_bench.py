@@ -40,7 +40,8 @@ PY = sys.executable
 #: agent 3 of the paper (3 edges) and its measurements at t = 0, after its first compute
 AGENT_SETUP = r"""
 from formation_agent.controller import AgentController
-from formation_core.spec import agent_view, load_formation
+from formation_core.spec import load_formation
+from formation_core.formation import agent_view
 spec = load_formation(sys.argv[1])
 ctrl = AgentController(agent_view(spec, "3"))
 p = np.array([a.position for a in spec.agents]); R = np.array([a.R_world_body for a in spec.agents])
@@ -101,7 +102,8 @@ KERNEL_PROBE = (
     BEST_US
     + r"""
 import sys, time, numba, numpy as np
-from formation_core.spec import load_formation, simulator_view
+from formation_core.spec import load_formation
+from formation_core.formation import simulator_view
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.loop import closed_loop, new_buffers, new_watch, record_step, check_step, sense_and_control
 from formation_sim.core.measurement import relative_poses
@@ -169,7 +171,8 @@ BEFORE_KERNEL_PROBE = (
     BEST_US
     + r"""
 import sys, time, numba, numpy as np
-from formation_core.spec import load_formation, simulator_view
+from formation_core.spec import load_formation
+from formation_core.formation import simulator_view
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.loop import closed_loop, sense_and_control
 from formation_sim.core.measurement import relative_poses

@@ -20,7 +20,8 @@ import numpy as np
 from rclpy.serialization import serialize_message
 from visualization_msgs.msg import MarkerArray
 
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
 from formation_sim.core.simulation import Simulation
 from formation_sim.node.display import FUNNEL_FIELDS, marker_message

@@ -66,7 +66,8 @@ def agent(formation: Path, agent_id: str, steps: int, warmup: int, clock: bool) 
     from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
     from rclpy.experimental import EventsExecutor
 
-    from formation_core.spec import agent_view, load_formation
+    from formation_core.formation import agent_view
+    from formation_core.spec import load_formation
     from formation_msgs_py import topics
     from formation_msgs_py.codec import stamp_of
     from formation_msgs_py.ros import conversions, qos
@@ -120,7 +121,8 @@ def simulator(
     from rclpy.experimental import EventsExecutor
     from rosgraph_msgs.msg import Clock
 
-    from formation_core.spec import agent_view, load_formation
+    from formation_core.formation import agent_view
+    from formation_core.spec import load_formation
     from formation_msgs_py import topics
     from formation_msgs_py.codec import stamp_of
     from formation_msgs_py.ros import conversions, qos

@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from formation_core.spec import formation_from_dict, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import formation_from_dict
 from formation_sim.cli.headless import run_headless
 from formation_sim.core.simulation import Simulation
 

@@ -24,7 +24,8 @@ import numpy as np
 import websockets
 
 from formation_bag.foxglove_server import SUBPROTOCOL, LiveView, display_topics
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
 from formation_msgs_py.codec import clock_bytes
 from formation_sim.core.simulation import Simulation

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Simulation
 from formation_sim.node.step_messages import StepMessages

@@ -1,8 +1,9 @@
 """The libraries' internals the code reaches past their public API, checked against the installed
 versions (pinned in ros2_ws/requirements.txt): an upgrade that moves one fails here, naming it and the
-module that uses it, not somewhere in a run. numba's (the kernels' cache) are checked in
-test_compiled.py; rclpy's and rosbags' here. Each library's internals live in one module:
-formation_ros/rclpy_internals.py and formation_bag/writer.py."""
+module that uses it, not somewhere in a run. Each library's internals live in one module, its adapter:
+formation_ros/rclpy_internals.py (checked here), formation_bag/writer.py (rosbags', here) and
+formation_core/numba_kernels.py (numba's, in tests/formation_core/test_numba_kernels.py: they need a
+fresh compiled process)."""
 
 from __future__ import annotations
 

@@ -11,9 +11,10 @@ from scipy.spatial.transform import Rotation
 
 from formation_agent.controller import ERROR, OK, AgentController, MissingMeasurementError
 from formation_agent.roundoff import BoundedController
+from formation_core.formation import FormationSpec, agent_view
 from formation_core.rotations import vee
 from formation_core.so3 import exp_so3
-from formation_core.spec import FormationSpec, agent_view, load_formation
+from formation_core.spec import load_formation
 
 pytestmark = pytest.mark.numeric
 

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from formation_agent.roundoff import BoundedController
-from formation_core.spec import agent_view, load_formation
+from formation_core.formation import agent_view
+from formation_core.spec import load_formation
 
 DATA = np.load(Path(__file__).with_name("data") / "controller_reference.npz")
 pytestmark = pytest.mark.numeric

@@ -10,7 +10,8 @@ import pytest
 
 from formation_agent.controller import GAMMA, U, agent_step, new_outputs
 from formation_agent.roundoff import UNIT, tolerance
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam
 
@@ -70,7 +71,7 @@ def test_an_agents_bounded_controller_bounds_as_the_witness_does() -> None:
     the velocity funnel's bound again."""
     from formation_agent.controller import ERROR
     from formation_agent.roundoff import BoundedController
-    from formation_core.spec import agent_view
+    from formation_core.formation import agent_view
 
     spec = load_formation(PAPER)
     sim, team = Simulation(simulator_view(spec)), AgentTeam(spec)

@@ -6,7 +6,8 @@ from pathlib import Path
 
 from formation_agent.controller import ERROR, AgentController
 from formation_agent.synchroniser import StepSynchroniser
-from formation_core.spec import agent_view, load_formation, simulator_view
+from formation_core.formation import agent_view, simulator_view
+from formation_core.spec import load_formation
 from formation_sim.core.simulation import Simulation
 
 PAPER = Path(__file__).resolve().parents[2] / "config" / "paper_5agents.yaml"

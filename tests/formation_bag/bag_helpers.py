@@ -8,7 +8,8 @@ from pathlib import Path
 from bin_helpers import executable
 from process_hygiene import cpu_load  # noqa: F401  (re-exported for the bag tests)
 
-from formation_core.spec import FormationSpec, load_formation
+from formation_core.formation import FormationSpec
+from formation_core.spec import load_formation
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "config" / "paper_5agents.yaml"

@@ -28,7 +28,7 @@ import numpy as np
 from formation_bag import messages as m
 from formation_bag.contract import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_bag.writer import SegmentedBagWriter, make_qos
-from formation_core.spec import FormationSpec, simulator_view
+from formation_core.formation import FormationSpec, simulator_view
 from formation_msgs_py import topics
 from formation_sim.core.measurement import measurement_ends
 from formation_sim.core.recorder import RunRecorder

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from formation_core import spec
+from formation_core import formation, spec
 from formation_core.schema import (
     AGENT_FIELDS,
     EDGE_FIELDS,
@@ -29,12 +29,12 @@ def test_docs_reference_matches_schema() -> None:
 
 
 _BUILT = [
-    (spec.SimulationSpec, SIMULATION_FIELDS, ()),
-    (spec.ControllerGains, block(AGENT_FIELDS, "controller"), ()),
-    (spec.VelocityFunnel, block(AGENT_FIELDS, "controller", "velocity_funnel"), ()),
-    (spec.Dynamics, block(AGENT_FIELDS, "dynamics"), ()),
-    (spec.AgentSpec, AGENT_FIELDS, ("index",)),
-    (spec.EdgeSpec, EDGE_FIELDS, ("index",)),
+    (formation.SimulationSpec, SIMULATION_FIELDS, ()),
+    (formation.ControllerGains, block(AGENT_FIELDS, "controller"), ()),
+    (formation.VelocityFunnel, block(AGENT_FIELDS, "controller", "velocity_funnel"), ()),
+    (formation.Dynamics, block(AGENT_FIELDS, "dynamics"), ()),
+    (formation.AgentSpec, AGENT_FIELDS, ("index",)),
+    (formation.EdgeSpec, EDGE_FIELDS, ("index",)),
 ]
 
 
@@ -44,8 +44,8 @@ def test_built_records_have_exactly_the_declared_fields() -> None:
     for cls, fields, derived in _BUILT:
         names = [f.attr or f.name for _, f in attributes(fields)]
         assert [f.name for f in dataclasses.fields(cls)] == [*derived, *names], cls
-        assert cls.__module__ == "formation_core.spec" and "Attributes" in (cls.__doc__ or "")
-    assert [f.name for f in dataclasses.fields(spec.EdgeSpec)][3:5] == ["d_des", "R_des"]
+        assert cls.__module__ == "formation_core.formation" and "Attributes" in (cls.__doc__ or "")
+    assert [f.name for f in dataclasses.fields(formation.EdgeSpec)][3:5] == ["d_des", "R_des"]
 
 
 def test_built_records_have_the_declared_types_and_no_defaults() -> None:

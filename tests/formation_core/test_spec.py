@@ -11,8 +11,9 @@ import pytest
 import yaml
 
 from formation_core.errors import CollectedFormationSpecError, FormationSpecError
+from formation_core.formation import agent_view, simulator_view
 from formation_core.schema import AGENT_FIELDS, Parsed, UnusableValueError, block, parse_mapping, parse_partial
-from formation_core.spec import agent_view, formation_from_dict, load_formation, simulator_view
+from formation_core.spec import formation_from_dict, load_formation
 
 pytestmark = pytest.mark.numeric
 # pytest.approx's default (relative 1e-6) checks a value against its closed form: rounding is some

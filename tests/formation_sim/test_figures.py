@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam

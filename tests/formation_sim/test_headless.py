@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from paper_reference import REFERENCE, golden_values
 
+from formation_core.formation import simulator_view
 from formation_core.numba_kernels import CODE_FORM, numeric_platform
-from formation_core.spec import load_formation, simulator_view
+from formation_core.spec import load_formation
 from formation_sim.cli import headless
 from formation_sim.cli.headless import run_headless
 from formation_sim.core.recorder import RunRecorder

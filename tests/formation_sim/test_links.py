@@ -14,7 +14,8 @@ import pytest
 import yaml
 
 from formation_core.errors import FormationSpecError
-from formation_core.spec import MeasurementLink, SignalModel, formation_from_dict, load_formation, simulator_view
+from formation_core.formation import MeasurementLink, SignalModel, simulator_view
+from formation_core.spec import formation_from_dict, load_formation
 from formation_sim.cli.headless import run_headless
 from formation_sim.core import links as lm
 from formation_sim.core.recorder import RunRecorder

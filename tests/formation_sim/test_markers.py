@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_sim.core.simulation import Simulation
 from formation_sim.views.markers import ARROW, SPHERE, FormationScene, arrow_length, margin_colour
 

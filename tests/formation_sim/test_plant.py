@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from formation_core.formation import SignalModel, simulator_view
 from formation_core.rotations import orthonormality_error
-from formation_core.spec import SignalModel, formation_from_dict, load_formation, simulator_view
+from formation_core.spec import formation_from_dict, load_formation
 from formation_sim.core.disturbances import signal_params, signals_at
 from formation_sim.core.measurement import MeasurementModel
 from formation_sim.core.plant import Plant, PlantState

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from formation_core.spec import FormationSpec, load_formation
+from formation_core.formation import FormationSpec
+from formation_core.spec import load_formation
 from formation_core.verdict import ExitCode, Incomplete
 from formation_sim.core.judge import Judge, judge
 from formation_sim.core.loop import initial_rho_v0

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from formation_agent.controller import AgentController
-from formation_core.spec import agent_view, load_formation, simulator_view
+from formation_core.formation import agent_view, simulator_view
+from formation_core.spec import load_formation
 from formation_sim.core.measurement import Ends
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_sim.core.simulation import Simulation
 from formation_sim.core.team import AgentTeam
 
@@ -25,7 +26,8 @@ STEPS_AFTER_CONSTRUCTION = r"""
 import json, sys
 import numpy as np
 from formation_sim.core import measurement, plant, team
-from formation_core.spec import load_formation, simulator_view
+from formation_core.spec import load_formation
+from formation_core.formation import simulator_view
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Simulation
 spec = load_formation(sys.argv[1])

@@ -15,7 +15,8 @@ from ros_helpers import PAPER, executable, read_log, ros_context
 from rosgraph_msgs.msg import Clock
 
 from formation_agent.agent_node import AgentNode, resolve_agent_id
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
 from formation_msgs_py.ros import conversions, qos
 from formation_sim.core.simulation import Simulation

@@ -19,7 +19,8 @@ from rclpy.node import Node
 from ros_helpers import PAPER, REALTIME, read_log, ros_context, wait_for_line
 from rosgraph_msgs.msg import Clock
 
-from formation_core.spec import load_formation, simulator_view
+from formation_core.formation import simulator_view
+from formation_core.spec import load_formation
 from formation_msgs_py import topics
 from formation_msgs_py.ros import conversions, qos
 from formation_sim.core.simulation import Simulation

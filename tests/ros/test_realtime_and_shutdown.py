@@ -30,7 +30,8 @@ from ros_helpers import (
 )
 
 from formation_bag.reader import Bag
-from formation_core.spec import agent_view, load_formation
+from formation_core.formation import agent_view
+from formation_core.spec import load_formation
 
 
 def test_realtime_zeroes_a_killed_agent_and_carries_on(procs, tmp_path: Path) -> None:

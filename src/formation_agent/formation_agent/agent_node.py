@@ -50,8 +50,9 @@ from formation_agent.synchroniser import (
 )
 from formation_core.errors import FormationSpecError
 from formation_core.faults import fault_lines, write_json
+from formation_core.formation import AgentView, agent_view
 from formation_core.numba_kernels import CODE_FORM, numeric_platform
-from formation_core.spec import AgentView, agent_view, load_formation
+from formation_core.spec import load_formation
 from formation_deploy.graph_watch import GraphWatch
 from formation_deploy.publisher_watch import (
     POLICIES,

@@ -36,9 +36,9 @@ import numpy as np
 
 from formation_core import funnels
 from formation_core.errors import FormationError
+from formation_core.formation import AgentView
 from formation_core.numba_kernels import formula, kernel
 from formation_core.so3 import add3, flat_rows, matmul3, matrix_rows, matTvec3, matvec3, scale3, transpose3, vec3
-from formation_core.spec import AgentView
 
 OK, WARN, ERROR = 0, 1, 2
 LEVEL_NAMES = ("OK", "WARN", "ERROR")

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 from formation_core.numba_kernels import cache_index_glob
 
 if TYPE_CHECKING:  # the agent's view: not imported for --help
-    from formation_core.spec import AgentView
+    from formation_core.formation import AgentView
 
 #: lockstep control rate [Hz] from which the launcher starts agents with the compiled controller
 COMPILED_FROM_RATE = 1000.0

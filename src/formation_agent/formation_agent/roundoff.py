@@ -77,9 +77,9 @@ from formation_agent.controller import (
     new_outputs,
 )
 from formation_core import funnels
+from formation_core.formation import AgentView
 from formation_core.numba_kernels import formula, kernel
 from formation_core.so3 import flat_rows, matrix_rows, vec3
-from formation_core.spec import AgentView
 
 #: unit round-off of IEEE double: the largest relative error of one correctly rounded operation
 UNIT = 2.0**-53

@@ -24,10 +24,11 @@ from formation_bag.contract import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_bag.progress import Progress
 from formation_bag.reader import Bag
 from formation_core.errors import BagFormatError, BagTopicError, FormationSpecError, OverrideError
+from formation_core.formation import FormationSpec
 from formation_core.loader import parse_document, read_document
 from formation_core.options import positive
 from formation_core.schema import SIMULATION_FIELDS
-from formation_core.spec import FormationSpec, formation_from_dict
+from formation_core.spec import formation_from_dict
 
 
 class Series:

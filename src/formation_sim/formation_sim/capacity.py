@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 from formation_core.errors import CalibrationError
 
 if TYPE_CHECKING:
-    from formation_core.spec import FormationSpec
+    from formation_core.formation import FormationSpec
 
 #: the share of a core the processes may use and still keep their ticks on time. The messages alone
 #: of 20 agents at 100 Hz used 59-69 % of two cores and missed 2-10 % of the ticks (BENCHMARKS.md,

@@ -24,7 +24,7 @@ from formation_core.errors import FormationError, FormationSpecError
 from formation_core.options import HEADLESS, LAUNCH, RunOptions
 
 if TYPE_CHECKING:
-    from formation_core.spec import FormationSpec
+    from formation_core.formation import FormationSpec
 
 # The file is read and validated before the numerical cores are imported (rate_problems): a bad
 # file costs the loader (numpy, yaml) and no more (BENCHMARKS.md, "Bad input").

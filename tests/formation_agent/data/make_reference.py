@@ -13,7 +13,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from formation_agent.controller import AgentController
-from formation_core.spec import agent_view, load_formation
+from formation_core.formation import agent_view
+from formation_core.spec import load_formation
 
 ROOT = Path(__file__).resolve().parents[3]
 CASES = 200

@@ -44,7 +44,7 @@ from formation_core.schema import REQUIRED
 from formation_core.verdict import ExitCode, guarded
 
 if TYPE_CHECKING:  # numpy, the loader of formations and the cores: imported where used, not for --help
-    from formation_core.spec import FormationSpec, SignalModel
+    from formation_core.formation import FormationSpec, SignalModel
 
 #: the conditions a campaign may cross with the control rate: a link model's values (``links``) and
 #: gains (``gains``); each run's row names its own (empty where the campaign does not set one)
@@ -518,7 +518,7 @@ def tasks(campaign: Campaign) -> list[Task]:
 
 
 def _scaled_amplitude(model: SignalModel, value: float) -> SignalModel:
-    from formation_core.spec import SignalModel
+    from formation_core.formation import SignalModel
 
     if model.model != "paper":
         return model
@@ -566,7 +566,7 @@ def sample_spec(task: Task) -> FormationSpec:
 
 def _with_condition(spec: FormationSpec, condition: tuple[Any, ...], apply_to: tuple[str, ...]) -> FormationSpec:
     """``spec`` with a run's link values on every agent's links of ``apply_to`` and its gains."""
-    from formation_core.spec import EdgeLinks, MeasurementLink, SignalModel, WrenchLink
+    from formation_core.formation import EdgeLinks, MeasurementLink, SignalModel, WrenchLink
 
     delay, loss, jitter, sensor_rate, delta, gamma = condition
     agents = []

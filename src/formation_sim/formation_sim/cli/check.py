@@ -23,7 +23,7 @@ from formation_core.options import OptionParser
 from formation_core.verdict import ExitCode
 
 if TYPE_CHECKING:
-    from formation_core.spec import FormationSpec
+    from formation_core.formation import FormationSpec
 
 # The cores (numba) are imported only once the file has been validated (load_spec imports numpy
 # and the loader only): a file that is not a formation at all (binary, alias bomb, duplicate keys)
@@ -105,7 +105,7 @@ def link_report(spec: FormationSpec, unsafe: list[str]) -> list[str]:
     bounded nowhere in the paper's analysis, which assumes every measurement at once."""
     import math
 
-    from formation_core.spec import simulator_view
+    from formation_core.formation import simulator_view
     from formation_sim.core.links import (
         CHANNELS,
         P_BAD_GOOD,

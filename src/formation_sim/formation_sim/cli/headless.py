@@ -20,7 +20,7 @@ from formation_core.verdict import EXIT_STATUS_HELP, ExitCode, Incomplete, guard
 from formation_sim.preflight import preflight
 
 if TYPE_CHECKING:  # the cores (numba) are imported once the options and the file are valid
-    from formation_core.spec import FormationSpec
+    from formation_core.formation import FormationSpec
     from formation_sim.core.loop import ProgressFn
     from formation_sim.core.recorder import RunRecorder
 

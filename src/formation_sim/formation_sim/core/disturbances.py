@@ -20,8 +20,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from formation_core.formation import SignalModel
 from formation_core.numba_kernels import formula
-from formation_core.spec import SignalModel
 
 NONE, PAPER, CONSTANT, RANDOM = 0, 1, 2, 3
 _KINDS = {"none": NONE, "paper": PAPER, "constant": CONSTANT, "random": RANDOM}

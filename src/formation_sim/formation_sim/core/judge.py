@@ -33,9 +33,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from formation_core import funnels
+from formation_core.formation import FormationSpec
 from formation_core.funnels import edge_errors
 from formation_core.numba_kernels import formula
-from formation_core.spec import FormationSpec
 
 VELOCITY_CHANNELS = ("vx", "vy", "vz", "wx", "wy", "wz")
 #: Violation kinds that name an edge; ``velocity`` names an agent, ``contact`` a pair of agents.

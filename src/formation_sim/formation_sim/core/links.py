@@ -21,7 +21,7 @@ Every step draws three uniforms per link (loss, state change, jitter), used or n
 of its own spawned from ``simulation.seed``: the same file and seed give the same deliveries in
 every mode, and a link model changes no other draw. Ideal links (every sample, at once, none lost)
 hand every step's sample through unchanged, so a file with no link model runs as without this
-module (:attr:`formation_core.spec.FormationSpec.has_links`: the runs then skip it altogether).
+module (:attr:`formation_core.formation.FormationSpec.has_links`: the runs then skip it altogether).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from formation_core.formation import MeasurementLink, SimulatorView, WrenchLink
 from formation_core.numba_kernels import formula, kernel
-from formation_core.spec import MeasurementLink, SimulatorView, WrenchLink
 
 #: columns of :attr:`Links.params`
 P_RATIO, P_DELAY, P_JITTER, P_J_MEAN, P_J_MAX, P_LOSS, P_GOOD_BAD, P_BAD_GOOD, P_LOSS_GOOD, P_LOSS_BAD = range(10)
@@ -317,7 +317,7 @@ def new_links(params: np.ndarray, width: int, control_rate: float) -> Links:
 
 def end_links(view: SimulatorView) -> list[tuple[int, MeasurementLink]]:
     """(observer's index, link) of every edge end, in the controllers' order: agent by agent, its edges in
-    file order (formation_core.spec.agent_view); an edge's own link of the end, else the observer's."""
+    file order (formation_core.formation.agent_view); an edge's own link of the end, else the observer's."""
     out = []
     for i, a in enumerate(view.agents):
         for e in view.edges:

@@ -41,9 +41,9 @@ from formation_agent.controller import (
     new_outputs,
 )
 from formation_core import funnels
+from formation_core.formation import FormationSpec, agent_view, simulator_view
 from formation_core.numba_kernels import INTERPRETED, formula, kernel, kernel_cached
 from formation_core.so3 import flat_rows, matrix_rows, vec3
-from formation_core.spec import FormationSpec, agent_view, simulator_view
 from formation_msgs_py.codec import control_time, step_stamp_ns
 from formation_sim.core.judge import (
     CheckedSteps,

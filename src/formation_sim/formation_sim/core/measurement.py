@@ -25,10 +25,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from formation_core.formation import SimulatorView
 from formation_core.numba_kernels import formula, kernel
 from formation_core.rotations import quaternion_of_rows, rows_of_quaternion
 from formation_core.so3 import add3, exp_rows, matmul3, matrix_rows, matTvec3, scale3, set3x3, transpose3, vec3
-from formation_core.spec import SimulatorView
 
 #: {agent_id: {neighbour_id: (p_i_j_in_i (3,), R_i_j (3,3))}}
 RelativePoses = dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]

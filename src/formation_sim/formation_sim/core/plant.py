@@ -24,9 +24,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from formation_core.formation import SimulatorView
 from formation_core.numba_kernels import formula, kernel
 from formation_core.so3 import cross3, dexpinv, exp_rows, matmul3, matrix_rows, matTvec3, matvec3, set3x3, sub3, vec3
-from formation_core.spec import SimulatorView
 from formation_sim.core.disturbances import (
     NONE,
     SignalParams,

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from formation_core import funnels
-from formation_core.spec import FormationSpec
+from formation_core.formation import FormationSpec
 
 #: Fixed-step RK4 is stable on ẋ = −λx for λ·h < 2.785 (the real stability interval of RK4).
 RK4_STABILITY = 2.785

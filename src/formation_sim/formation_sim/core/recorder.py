@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from formation_core.faults import FaultLog, strict_json
-from formation_core.spec import FormationSpec
+from formation_core.formation import FormationSpec
 from formation_core.verdict import ExitCode, Incomplete, Outcome, Verdict, decide
 from formation_deploy.publisher_watch import untrusted_input
 from formation_sim.core.judge import CheckedSteps, EdgeSample, Judge, Violation

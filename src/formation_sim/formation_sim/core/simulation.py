@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from formation_core.spec import SimulatorView
+from formation_core.formation import SimulatorView
 from formation_msgs_py.codec import control_time, step_stamp_ns
 from formation_sim.core.links import (
     LinkSet,

@@ -37,8 +37,8 @@ from formation_agent.controller import (
     new_outputs,
 )
 from formation_agent.roundoff import answer_bounds, tolerance
+from formation_core.formation import FormationSpec, agent_view
 from formation_core.numba_kernels import CODE_FORM, in_code_form, kernel
-from formation_core.spec import FormationSpec, agent_view
 from formation_sim.core.measurement import Ends
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Measurements

@@ -45,7 +45,7 @@ from formation_sim.launch.supervisor import Child, LogFollower, Supervisor, tls_
 from formation_sim.preflight import InvalidRunError, Prepared, launch_outputs, preflight, prepare_out_dir
 
 if TYPE_CHECKING:
-    from formation_core.spec import FormationSpec
+    from formation_core.formation import FormationSpec
     from formation_deploy.secure_transport import SecureRun
 
 #: child name -> formation-keys process name, where they differ

@@ -29,8 +29,8 @@ from std_msgs.msg import ColorRGBA, Float64MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
 from formation_bag.foxglove_server import LiveView, display_topics
+from formation_core.formation import FormationSpec, simulator_view
 from formation_core.options import RunOptions
-from formation_core.spec import FormationSpec, simulator_view
 from formation_msgs_py import topics
 from formation_msgs_py.codec import clock_bytes
 from formation_msgs_py.ros import conversions, qos

@@ -16,8 +16,8 @@ import rclpy
 from formation_agent.kernel_cache import warm_up
 from formation_agent.synchroniser import CODE_FORM_PARAMETER, LIVE_GAINS, PLATFORM_PARAMETER
 from formation_core.faults import ANSWER_MISMATCH
+from formation_core.formation import FormationSpec, agent_view, simulator_view
 from formation_core.options import RunOptions
-from formation_core.spec import FormationSpec, agent_view, simulator_view
 from formation_core.verdict import ExitCode, Incomplete
 from formation_msgs_py.codec import step_stamp_ns
 from formation_sim.core import wrench_checks

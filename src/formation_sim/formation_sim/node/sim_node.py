@@ -55,8 +55,8 @@ from rclpy.experimental import EventsExecutor
 from formation_bag.contract import KEY_FORMATION_FILE, KEY_FORMATION_YAML
 from formation_bag.foxglove_server import SUBPROTOCOL, LiveView, LiveViewError
 from formation_core.errors import BagError
+from formation_core.formation import FormationSpec
 from formation_core.options import RunOptions
-from formation_core.spec import FormationSpec
 from formation_core.verdict import ExitCode, Incomplete, guarded
 from formation_deploy.transport_check import InsecureTransportError, check_secure_transport
 from formation_ros import shutdown

@@ -25,7 +25,7 @@ from rosgraph_msgs.msg import Clock
 from formation_agent.synchroniser import LIVE_GAINS
 from formation_bag.contract import ros_type_name
 from formation_core.faults import ANSWER_MISMATCH, FaultLog
-from formation_core.spec import FormationSpec, simulator_view
+from formation_core.formation import FormationSpec, simulator_view
 from formation_deploy.graph_watch import GraphWatch
 from formation_deploy.publisher_watch import PublisherWatch, describe, expected_publishers
 from formation_msgs_py import topics

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from formation_agent.measurement_checks import InputCheck
-from formation_core.spec import FormationSpec, simulator_view
+from formation_core.formation import FormationSpec, simulator_view
 from formation_msgs_py import codec
 from formation_sim.core.measurement import measurement_ends
 from formation_sim.core.simulation import Measurements

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from formation_core.formation import FormationSpec
 from formation_core.numba_kernels import CODE_FORM, FORM_COMPILED, FORM_INTERPRETED, numeric_platform
-from formation_core.spec import FormationSpec
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Measurements
 from formation_sim.core.team import AgentTeam, Trial

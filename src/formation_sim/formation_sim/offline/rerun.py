@@ -35,7 +35,7 @@ from formation_bag import messages as m
 from formation_bag.dataset import RunData, Series, apply_overrides, load_run, spec_from_document
 from formation_bag.progress import Progress
 from formation_core.errors import BagError, FormationSpecError, OverrideError
-from formation_core.spec import FormationSpec, agent_view
+from formation_core.formation import FormationSpec, agent_view
 from formation_core.verdict import ExitCode, guarded
 from formation_sim.offline.parsers import rerun_parser
 from formation_sim.preflight import InvalidRunError, check_out_dir

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from formation_core import funnels
-from formation_core.spec import FormationSpec
+from formation_core.formation import FormationSpec
 from formation_sim.views.markers import (
     ARROW,
     AXIS_COLOURS,

@@ -42,7 +42,7 @@ import numpy as np
 
 from formation_agent.controller import AgentController
 from formation_core import funnels
-from formation_core.spec import EdgeSpec, FormationSpec, agent_view
+from formation_core.formation import EdgeSpec, FormationSpec, agent_view
 from formation_sim.core.judge import Pairs
 
 if TYPE_CHECKING:  # matplotlib is imported when figures are drawn, not with this module
@@ -200,7 +200,7 @@ def _plot_all(
 def _link_ages(
     plt: ModuleType, out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], caption: Caption
 ) -> Path:
-    from formation_core.spec import simulator_view
+    from formation_core.formation import simulator_view
     from formation_sim.core.links import CHANNELS, link_names
 
     t, ages = arrays["t"], arrays["link_age"] * 1e3

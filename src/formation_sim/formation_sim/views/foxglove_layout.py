@@ -16,7 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from formation_core.spec import EdgeSpec, FormationSpec
+from formation_core.formation import EdgeSpec, FormationSpec
 from formation_msgs_py import topics
 from formation_sim.views.display_wire import FUNNEL_FIELDS
 
@@ -169,7 +169,7 @@ def _right_column(links: bool) -> dict[str, Any]:
 
 def _link_ages_plot(spec: FormationSpec) -> dict[str, Any]:
     """Every link's held sample's age [s] (``/formation/links``, one value per link)."""
-    from formation_core.spec import simulator_view
+    from formation_core.formation import simulator_view
     from formation_sim.core.links import CHANNELS, link_names
 
     names = link_names(simulator_view(spec))

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from formation_core.formation import FormationSpec
 from formation_core.rotations import quaternion_from_matrix
-from formation_core.spec import FormationSpec
 from formation_sim.core.judge import EdgeErrors, Pairs, in_contact
 
 # visualization_msgs/Marker type codes (a ROS message constant, repeated here to stay ROS-free)

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from formation_core.faults import fault_lines, fault_meanings, write_atomic, write_json
-from formation_core.spec import FormationSpec
+from formation_core.formation import FormationSpec
 from formation_core.verdict import ExitCode, Verdict
 from formation_deploy.publisher_watch import intruder_lines
 from formation_sim.core.recorder import RunRecorder

@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from formation_sim.cli import campaign
-from formation_sim.cli.campaign import load_campaign, run_campaign
+from formation_sim.cli import campaign, campaign_file, campaign_results
+from formation_sim.cli.campaign import run_campaign
+from formation_sim.cli.campaign_file import load_campaign
 
 #: two samples of the paper's formation, 30 ms each, at two rates: 4 runs of ~0.1 s
 SMALL = {
@@ -101,10 +102,10 @@ def test_wilson_interval_contains_a_0_and_a_100_percent_rate_exactly() -> None:
     """Every k of n, n up to 300, lies in its interval; all passes end at 1.0 exactly, none start at 0.0."""
     for n in range(1, 301):
         for k in range(n + 1):
-            lo, hi = campaign.wilson(k, n)
+            lo, hi = campaign_results.wilson(k, n)
             assert 0.0 <= lo <= k / n <= hi <= 1.0, (k, n, lo, hi)
-        assert campaign.wilson(n, n)[1] == 1.0 and campaign.wilson(0, n)[0] == 0.0
-    assert campaign.wilson(0, 0) == (0.0, 1.0)
+        assert campaign_results.wilson(n, n)[1] == 1.0 and campaign_results.wilson(0, n)[0] == 0.0
+    assert campaign_results.wilson(0, 0) == (0.0, 1.0)
 
 
 def _fake_run(task: campaign.Task) -> dict:
@@ -162,20 +163,20 @@ REPO = Path(__file__).resolve().parents[2]
 def test_docs_reference_matches_the_declaration() -> None:
     """docs/campaigns.md holds the table `formation-campaign --schema` prints, verbatim."""
     doc = (REPO / "docs" / "campaigns.md").read_text(encoding="utf-8")
-    assert campaign.reference_markdown() in doc, "regenerate: formation-campaign --schema (see docs/campaigns.md)"
+    assert campaign_file.reference_markdown() in doc, "regenerate: formation-campaign --schema (see docs/campaigns.md)"
 
 
 def test_schema_option_prints_the_reference(capsys) -> None:
     """formation-campaign --schema prints the reference table and exits 0."""
     assert campaign.main(["--schema"]) == 0
-    assert capsys.readouterr().out == campaign.reference_markdown()
+    assert capsys.readouterr().out == campaign_file.reference_markdown()
 
 
 def test_a_campaign_has_exactly_the_declared_keys() -> None:
     """Campaign's attributes are CAMPAIGN_KEYS in order: the record the declaration's parser builds."""
     import dataclasses
 
-    assert [f.name for f in dataclasses.fields(campaign.Campaign)] == [k.name for k in campaign.CAMPAIGN_KEYS]
+    assert [f.name for f in dataclasses.fields(campaign_file.Campaign)] == [k.name for k in campaign_file.CAMPAIGN_KEYS]
 
 
 def test_every_declared_key_is_read_and_no_other(tmp_path, paper_path) -> None:
@@ -190,7 +191,7 @@ def test_every_declared_key_is_read_and_no_other(tmp_path, paper_path) -> None:
         "sensor_rate": [None],
     }
     doc.update(formation="paper.yaml", duration=0.5, links=links, gains={"delta": [0.1], "gamma": [15.0, 10.0]})
-    declared = {k.name: {c.name for c in k.children} for k in campaign.CAMPAIGN_KEYS}
+    declared = {k.name: {c.name for c in k.children} for k in campaign_file.CAMPAIGN_KEYS}
     assert set(doc) == set(declared) and set(doc["vary"]) == declared["vary"]
     assert set(doc["links"]) == declared["links"] and set(doc["gains"]) == declared["gains"]
     c = load_campaign(write_campaign(tmp_path, paper_path, doc))
@@ -207,13 +208,13 @@ def test_every_declared_key_is_read_and_no_other(tmp_path, paper_path) -> None:
     }  # fmt: skip
     assert c.gains == {"delta": (0.1,), "gamma": (15.0, 10.0)} and len(c.conditions()) == 4
     for extra in ({"extra": 1}, {"vary": {**doc["vary"], "extra": [0, 1]}}):
-        with pytest.raises(campaign.CampaignError, match="extra: unknown key"):
+        with pytest.raises(campaign_file.CampaignError, match="extra: unknown key"):
             load_campaign(write_campaign(tmp_path, paper_path, {**doc, **extra}))
 
 
 def test_defaults_are_the_declared_ones(tmp_path, paper_path) -> None:
     """Without its optional keys a campaign has the declared defaults: the file's duration, nothing varied."""
-    required = {k.name for k in campaign.CAMPAIGN_KEYS if k.default is campaign.REQUIRED}
+    required = {k.name for k in campaign_file.CAMPAIGN_KEYS if k.default is campaign_file.REQUIRED}
     assert required == {"formation", "samples", "seed", "control_rates"}
     c = load_campaign(write_campaign(tmp_path, paper_path, {k: v for k, v in SMALL.items() if k in required}))
     assert (c.duration, c.vary) == (None, {})
@@ -228,7 +229,7 @@ def test_shipped_campaign_files_are_valid(path: Path) -> None:
 def test_docs_name_every_column_of_runs_csv() -> None:
     """docs/campaigns.md names every column of runs.csv and every file a campaign writes."""
     doc = (REPO / "docs" / "campaigns.md").read_text(encoding="utf-8")
-    names = [*campaign.COLUMNS, "runs.jsonl", "runs.csv", "summary.json", "pass_rate.png", "worst_margin.png"]
+    names = [*campaign_results.COLUMNS, "runs.jsonl", "runs.csv", "summary.json", "pass_rate.png", "worst_margin.png"]
     assert [name for name in names if f"`{name}`" not in doc] == []
 
 
@@ -241,7 +242,7 @@ def test_a_link_grid_gives_a_pass_rate_per_condition_and_the_largest_delay_and_l
     out = tmp_path / "out"
     summary = run_campaign(c, out, workers=1, quiet=True)
     rows = (out / "runs.csv").read_text().splitlines()
-    assert rows[0].split(",")[:8] == ["sample", "control_rate", *campaign.CONDITIONS]
+    assert rows[0].split(",")[:8] == ["sample", "control_rate", *campaign_file.CONDITIONS]
     assert len(rows) == 1 + 2 * 4
     cells = {(x["link_delay"], x["link_loss"]): x for x in summary["per_condition"]}
     assert set(cells) == {(0.0, 0.0), (0.0, 0.5), (0.0005, 0.0), (0.0005, 0.5)}
@@ -258,7 +259,7 @@ def test_a_link_grid_gives_a_pass_rate_per_condition_and_the_largest_delay_and_l
 
 def test_a_sensor_faster_than_a_control_rate_is_refused(tmp_path, paper_path) -> None:
     doc = {**SMALL, "links": {"sensor_rate": [None, 1e6]}}
-    with pytest.raises(campaign.CampaignError, match=r"links\.sensor_rate\[1\]: .* faster than the control rate"):
+    with pytest.raises(campaign_file.CampaignError, match=r"links\.sensor_rate\[1\]: .* faster than the control rate"):
         load_campaign(write_campaign(tmp_path, paper_path, doc))
 
 
@@ -271,7 +272,7 @@ def test_the_largest_delay_is_the_last_of_an_unbroken_run_of_passes() -> None:
 
     cells = [cell(0.0, 0.0, 1.0), cell(0.001, 0.0, 0.96), cell(0.002, 0.0, 0.5), cell(0.005, 0.0, 1.0)]
     cells += [cell(0.0, 0.01, 0.97), cell(0.0, 0.05, 0.2)]
-    (tol,) = campaign.tolerance(cells)
+    (tol,) = campaign_results.tolerance(cells)
     assert (tol["largest_delay"], tol["largest_loss"]) == (0.001, 0.01)
-    (none,) = campaign.tolerance([cell(0.0, 0.0, 0.9), cell(0.001, 0.0, 1.0)])
+    (none,) = campaign_results.tolerance([cell(0.0, 0.0, 0.9), cell(0.001, 0.0, 1.0)])
     assert none["largest_delay"] is None

@@ -292,3 +292,24 @@ def test_imports_point_one_way() -> None:
                 if _under(module, src) and _under(imp.target, dst):
                     bad.setdefault((module, imp.line, dst), f"{imp} (a {src} module may not import {dst})")
     assert not bad, "imports against the layering:\n  " + "\n  ".join(bad.values())
+
+
+#: a module longer than this many lines says at the top of its docstring why it is one file
+LONG_MODULE = 500
+_WHY_ONE_FILE = f"Over {LONG_MODULE} lines:"
+
+
+def test_a_long_module_says_why_it_is_one_file() -> None:
+    """Every module under src/ over LONG_MODULE lines has a paragraph ``Over 500 lines: <why>`` in its
+    docstring (a reason to keep it whole, or it is split); the rule is seen to apply (long modules exist)."""
+    long, unexplained = [], []
+    for path in _modules().values():
+        text = path.read_text(encoding="utf-8")
+        lines = text.count("\n")
+        if lines > LONG_MODULE:
+            long.append(path)
+            doc = ast.get_docstring(ast.parse(text)) or ""
+            if _WHY_ONE_FILE not in doc:
+                unexplained.append(f"{path.relative_to(SRC)}: {lines} lines")
+    assert long, "no module over the limit: the rule reads nothing"
+    assert not unexplained, f"split these or say why at their top ({_WHY_ONE_FILE} …):\n  " + "\n  ".join(unexplained)

@@ -23,6 +23,9 @@ plus whatever the graph shows that matches (checked every ``--discovery-period``
 ``ros2 bag record --use-sim-time`` gives; the default for lockstep runs, so a player shows the run
 at its true speed), or ``receive``, the receive time on the system clock (the default in realtime,
 where the analysis needs the order in which wrenches arrived).
+
+Over 500 lines: the recorder node's one wait-set loop with the plan of what to record, the counts
+it keeps per topic and the clean stop that writes them; they share the writer and the subscriptions.
 """
 
 from __future__ import annotations

@@ -24,6 +24,10 @@ segment's custom_data is written at its start (a Metadata record named :data:`CU
 a writer killed with SIGKILL, or stopped by a full disk, leaves every chunk but the open one and
 the run's settings on disk, and ``formation-bag repair`` makes a complete file of them. In
 lockstep the log time is simulation time: a crash loses at most the last second of the run.
+
+Over 500 lines: this is the one module that reaches into rosbags' internals (an MCAP writer
+subclassed, its chunks and records written directly), so that an upgrade of rosbags breaks here
+and nowhere else; tests/test_library_internals.py checks every internal it uses.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 :class:`FormationSpecError` naming the field, e.g.
 ``edges[2].distance: 4.5 is not inside (d_col=2.0, d_con=4.0)``: every error of the file at once.
 
-One file over 500 lines: parsing and the semantic checks share the file's item structure, the
+Over 500 lines: parsing and the semantic checks share the file's item structure, the
 defaults' merge and one error collector, so that every error of a file is reported in file order in
 one pass; split, each half would need the other's internals.
 """

@@ -16,6 +16,10 @@ Python then hands the buffers to the recorder (the decimated trajectory,
 the faults) and names the first violation (:meth:`formation_sim.core.judge.Judge.violation_at`).
 
 :func:`run_closed_loop` drives it for a formation and a :class:`RunRecorder`.
+
+Over 500 lines: every kernel of the closed loop with the buffer and watch layouts they share (the
+``W_*`` offsets, compiled into the kernels as constants); numba keys a kernel's cache on the sources
+it compiles, so keeping the loop in one module keeps one key for it.
 """
 
 from __future__ import annotations

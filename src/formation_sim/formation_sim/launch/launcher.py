@@ -16,6 +16,10 @@ when a process died or the run was interrupted (FAIL if a violation came first),
 agent's own fault counts
 (``faults_file``: resets, refused measurements, missing poses). ``OUT/logs/processes.json`` lists every
 process with its exit status, CPU time and peak memory.
+
+Over 500 lines: one process's life, from the checks before anything starts to the merged verdict
+after everything stopped; the :class:`Launcher` holds the state every stage shares (the processes,
+the output directory, the reserve of disk space), and the helpers around it are its stages.
 """
 
 from __future__ import annotations

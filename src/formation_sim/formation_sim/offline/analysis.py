@@ -24,6 +24,10 @@ summary's wall time and real-time factor are the run's (:func:`run_wall_time`).
 A bag truncated by a killed recorder, or missing messages, is analysed as far as it goes: the
 verdict is then INCOMPLETE with what is missing listed (``bag.missing``), never FAIL for lack of
 data; a violation seen in the data present is still FAIL.
+
+Over 500 lines: the settings of a run read back from its bag, the step-by-step replay of what the
+simulator decided, the report of what the bag lacks and the exports all read the same decoded run
+(:class:`formation_bag.dataset.RunData`) with the same notion of a step; apart, each would re-derive it.
 """
 
 from __future__ import annotations

@@ -6,8 +6,9 @@ import json
 
 import pytest
 
+from formation_sim import capacity
 from formation_sim.cli import check
-from formation_sim.launch import calibrate, capacity
+from formation_sim.launch import calibrate
 
 
 @pytest.fixture

@@ -255,7 +255,7 @@ def test_colcon_symlink_install_builds_every_package_from_ros2_ws(tmp_path: Path
 def test_colcon_install_runs_a_formation(tmp_path: Path, ros_domain_id: int) -> None:
     """`colcon build` installs every package; formation-launch from the sourced install space runs a
     short recorded formation whose agents are the install space's, and whose simulator writes its bag
-    with the install space's formation_bag.contract."""
+    with the install space's bag writer (formation_bag.writer)."""
     colcon(tmp_path)
     install = tmp_path / "install"
     for pkg in PACKAGES:

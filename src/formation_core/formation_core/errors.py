@@ -80,7 +80,7 @@ class CalibrationError(FormationError, ValueError):
     """A host's capacity calibration (formation-check --calibrate) that cannot be read or used."""
 
 
-# --- bags: writing (formation_bag.contract) and reading, analysing (formation_bag) ---
+# --- bags: writing and reading (formation_bag), analysing (formation_sim.offline) ---
 
 
 class BagError(FormationError):

@@ -28,7 +28,7 @@ setup(
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
-    description="Record, replay and analyse formation runs as standard ROS 2 bags.",
+    description="Formation runs as standard ROS 2 bags: writer, reader, repair, record and replay nodes, live view.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -15,7 +15,7 @@ setup(
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
-    description="Deployment helpers: docker compose generator, secure-mode keys and transport profiles.",
+    description="Deployment and security: compose generator, keys, TLS profiles, intruder detection.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -16,6 +16,6 @@ setup(
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
-    description="Formation files, SO(3) helpers, funnels, topics, QoS, message conversions and bag writing.",
+    description="The messages of formation: topics, CDR codec, QoS profiles, conversions.",
     license="Apache-2.0",
 )

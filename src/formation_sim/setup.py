@@ -29,7 +29,7 @@ setup(
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
-    description="Plant, measurements, headless runner, reports and the simulator node.",
+    description="Plant, judge, headless runner, simulator node, launcher, reports, offline runs from a bag.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

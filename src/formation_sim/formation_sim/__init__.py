@@ -1,3 +1,5 @@
 """The world of a formation and everything that runs it: ``core`` (ROS-free plant, measurements,
-closed loop, recorder), ``node`` (the simulator node), ``launch`` (the launcher of a ROS 2 run),
-``views`` (figures, animation, markers, run outputs) and ``cli`` (the console scripts)."""
+closed loop, judge, recorder), ``node`` (the simulator node), ``launch`` (the launcher of a ROS 2
+run), ``offline`` (runs from a recorded bag), ``views`` (figures, animation, markers, run outputs),
+``cli`` (the console scripts), with :mod:`preflight` (the checks before any run starts) and
+:mod:`capacity` (what a host holds in realtime)."""

@@ -28,19 +28,26 @@ INJECT_AT_NS = NS
 #: the forged velocity's lead over the genuine step it follows: 2.5 periods of the 100 Hz preset,
 #: so that it is ahead of the next two genuine steps (the old agent took each of them as a jump back)
 FORGED_LEAD_NS = 25_000_000
+#: the preset's control period [ns] (100 Hz)
+STEP_NS = 10_000_000
 #: genuine steps after the injection whose answers are looked for [ns of sim time]
 WINDOW_NS = 300_000_000
 #: genuine steps of that window the agent may leave unanswered: the one whose velocity the forged
 #: velocity replaced while it waited for its poses, and the step the injection coincided with
 UNANSWERED_ALLOWED = 3
+#: the forged /clock is published again every FORGE_EVERY genuine steps for FORGE_STEPS steps after the
+#: injection (each 1 s behind that step): /clock is kept last 1 and the simulator's own comes at 10 Hz,
+#: so on a loaded machine every agent could take the simulator's next /clock before a single forged one;
+#: over 0.5 s of forged clocks, one at least is taken
+FORGE_EVERY, FORGE_STEPS = 5, 50
 STAMP_KINDS = ("refused_future_stamp", "refused_old_stamp", "refused_past_stamp")
 
 
 def test_outsiders_clock_and_forged_stamp_reset_nothing(ros_env: dict[str, str], tmp_path: Path) -> None:
-    """Realtime, 2.5 s: at 1 s an outsider publishes /clock 1 s back and a velocity of agent 3 stamped
-    25 ms ahead. No agent resets or refuses a genuine stamp (those that saw the jump count it), agent 3
-    answers the genuine steps after it, and the run ends INCOMPLETE (untrusted input, exit 4) naming
-    the outsider on /clock."""
+    """Realtime, 2.5 s: at 1 s an outsider publishes /clock 1 s back (again every 50 ms for 0.5 s) and a
+    velocity of agent 3 stamped 25 ms ahead. No agent resets or refuses a genuine stamp (those that saw
+    the jump count it), agent 3 answers the genuine steps after it, and the run ends INCOMPLETE
+    (untrusted input, exit 4) naming the outsider on /clock."""
     out = tmp_path / "out"
     cmd = [executable("formation-launch"), str(REALTIME), "--out", str(out), "--no-plots", "--quiet", "--no-record"]
     # the lag budget is not what this test is about: a loaded machine must not end the run INCOMPLETE for it
@@ -70,6 +77,10 @@ def test_outsiders_clock_and_forged_stamp_reset_nothing(ros_env: dict[str, str],
                     injected = ns
                     clock.publish(conversions.clock_bytes(ns - NS))
                     velocity.publish(twist.encode(ns + FORGED_LEAD_NS, v))
+                elif (
+                    injected is not None and len(genuine) % FORGE_EVERY == 0 and ns <= injected + FORGE_STEPS * STEP_NS
+                ):
+                    clock.publish(conversions.clock_bytes(ns - NS))
 
             node.create_subscription(TwistStamped, topics.velocity("3"), on_velocity, qos.CONTROL, raw=True)
             node.create_subscription(

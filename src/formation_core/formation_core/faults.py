@@ -34,10 +34,24 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 #: lockstep: an agent's answer differed from the witness (its controller run by the simulator)
 ANSWER_MISMATCH = "answer_mismatch"
+
+
+class FaultRecord(TypedDict):
+    """One kind of fault of one agent as summary.json holds it: count, first and last time [s] and detail."""
+
+    count: int
+    first_t: float
+    last_t: float
+    first: str
+    last: str
+
+
+#: summary.json's ``faults``: {agent: {kind: record}}
+Faults = dict[str, dict[str, FaultRecord]]
 
 
 @dataclass
@@ -50,7 +64,7 @@ class FaultCount:
     first_detail: str
     last_detail: str
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> FaultRecord:
         return {
             "count": self.count,
             "first_t": self.first_t,
@@ -70,7 +84,7 @@ class FaultLog:
         """Count ``n`` faults at t [s]; True if it is this agent's first of this kind."""
         return self._combine(agent, kind, FaultCount(n, t, t, detail, detail))
 
-    def merge(self, faults: dict[str, dict[str, Any]]) -> None:
+    def merge(self, faults: Faults) -> None:
         """Add the counts of another log's :meth:`as_dict` (another process's faults)."""
         for agent, kinds in faults.items():
             for kind, c in kinds.items():
@@ -89,14 +103,14 @@ class FaultLog:
             c.last_t, c.last_detail = new.last_t, new.last_detail
         return False
 
-    def as_dict(self) -> dict[str, dict[str, Any]]:
-        out: dict[str, dict[str, Any]] = {}
+    def as_dict(self) -> Faults:
+        out: Faults = {}
         for (agent, kind), c in sorted(self.counts.items()):
             out.setdefault(agent, {})[kind] = c.as_dict()
         return out
 
 
-def fault_lines(faults: dict[str, dict[str, Any]]) -> list[str]:
+def fault_lines(faults: Faults) -> list[str]:
     """One console line per agent and kind: count, first and last occurrence."""
     lines = []
     for agent, kinds in faults.items():
@@ -140,7 +154,7 @@ MEANINGS = {
 }
 
 
-def fault_meanings(faults: dict[str, dict[str, Any]]) -> list[str]:
+def fault_meanings(faults: Faults) -> list[str]:
     """One line per fault kind present in ``faults`` (summary.json's): what it means. A kind not in
     :data:`MEANINGS` is taken by its longest prefix there (``refused_wrench_non_finite``)."""
     kinds = sorted({kind for per_agent in faults.values() for kind in per_agent})

@@ -1,7 +1,7 @@
 """What a campaign found: ``runs.csv`` (one row per sample, rate and condition: :data:`COLUMNS`), the pass
 rate per control rate and condition with its 95 % Wilson interval (:func:`summarise`), the largest
 delay and loss that still passed (:func:`tolerance`), ``summary.json`` and the figures
-``pass_rate.png``, ``worst_margin.png`` and, with a link grid, ``link_tolerance.png``.
+``pass_rate.png``, ``worst_margin.png`` and, with a link grid, ``link_pass_rate.png``.
 """
 
 from __future__ import annotations

@@ -24,6 +24,7 @@ from rosgraph_msgs.msg import Clock
 
 from formation_agent.synchroniser import LIVE_GAINS
 from formation_bag.contract import ros_type_name
+from formation_bag.writer import offered_qos
 from formation_core.faults import ANSWER_MISMATCH, FaultLog
 from formation_core.formation import FormationSpec, simulator_view
 from formation_deploy.graph_watch import GraphWatch
@@ -143,8 +144,6 @@ class SimNode(Node):
             on_intruder=lambda intruder: print(f"formation-sim: {describe(intruder)}", flush=True),
         )
         if bag is not None:  # what the simulator receives goes into the bag as received
-            from formation_bag.writer import offered_qos  # rosbags: only where a bag is written
-
             for name in self.wrench_topics:
                 bag.add_topic(name, ros_type_name(WrenchStamped), offered_qos(qos.CONTROL), published=False)
             diagnostics = ros_type_name(DiagnosticArray)
@@ -158,8 +157,6 @@ class SimNode(Node):
         publisher = super().create_publisher(msg_type, topic, qos_profile, **kwargs)
         if self.bag is None:
             return publisher
-        from formation_bag.writer import offered_qos
-
         self.bag.add_topic(
             publisher.topic_name, ros_type_name(msg_type), offered_qos(publisher.qos_profile), published=True
         )

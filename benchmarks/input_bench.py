@@ -15,11 +15,11 @@ import time
 import tracemalloc
 from pathlib import Path
 
-from formation_agent.measurement_checks import InputCheck
 from formation_core.errors import FormationSpecError
 from formation_core.loader import parse_document
 from formation_core.spec import load_formation
-from formation_sim.core.wrench_checks import WrenchCheck
+from formation_msgs_py.measurement_checks import InputCheck
+from formation_msgs_py.wrench_checks import WrenchCheck
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -16,6 +16,6 @@ setup(
     zip_safe=True,
     maintainer="formation developers",
     maintainer_email="formation@example.com",
-    description="The messages of formation: topics, CDR codec, QoS profiles, conversions.",
+    description="The messages of formation: topics, CDR codec, message checks, QoS profiles, conversions.",
     license="Apache-2.0",
 )

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from formation_agent import measurement_checks
+from formation_msgs_py import measurement_checks
 from formation_agent.controller import ERROR, AgentController
 from formation_agent.synchroniser import StepSynchroniser
 from formation_core import rotations

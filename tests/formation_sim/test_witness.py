@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from formation_agent.controller import AgentController
-from formation_agent.measurement_checks import InputCheck
 from formation_agent.synchroniser import StepSynchroniser
 from formation_core.formation import FormationSpec, agent_view, simulator_view
 from formation_core.numba_kernels import FORM_INTERPRETED, numeric_platform
 from formation_core.spec import load_formation
 from formation_msgs_py import codec
+from formation_msgs_py.measurement_checks import InputCheck
 from formation_sim.cli.headless import run_headless
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Simulation

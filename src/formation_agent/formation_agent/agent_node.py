@@ -6,7 +6,7 @@
 ``agent_<i>/wrench`` stamped with the stamp of the measurements it answers, plus
 ``/diagnostics`` at most every ``diagnostics_period`` (wall s, ≥ 0.1 s).
 
-The node checks every message first (:mod:`formation_agent.measurement_checks`): a refused value
+The node checks every message first (:mod:`formation_msgs_py.measurement_checks`): a refused value
 (non-finite, not a rotation, out of range) answers its step with a zero wrench and ERROR; a refused
 stamp (too far from the agent's time) or malformed bytes name no step and are dropped. What it does
 with the rest, and its time, is :class:`formation_agent.synchroniser.StepSynchroniser`'s (no ROS).
@@ -38,7 +38,6 @@ from rclpy.node import Node
 
 from formation_agent.controller import ERROR, LEVEL_NAMES, OK, AgentController
 from formation_agent.kernel_cache import warm_up
-from formation_agent.measurement_checks import DROPPED_KINDS, PAST_STAMP, InputCheck, Refusal
 from formation_agent.synchroniser import (
     CODE_FORM_PARAMETER,
     LIVE_GAINS,
@@ -63,6 +62,7 @@ from formation_deploy.publisher_watch import (
 from formation_deploy.transport_check import InsecureTransportError, check_secure_transport
 from formation_msgs_py import topics
 from formation_msgs_py.codec import NS_PER_S
+from formation_msgs_py.measurement_checks import DROPPED_KINDS, PAST_STAMP, InputCheck, Refusal
 from formation_msgs_py.ros import conversions, qos
 from formation_ros import parameters, shutdown
 from formation_ros.rclpy_internals import RCLError, now_ns_reader
@@ -220,7 +220,7 @@ class AgentNode(Node):
         self.sync.on_pose(j, ns, p, R, time.monotonic())
 
     def _refuse(self, ns: int, refusal: Refusal, neighbour: str | None = None) -> None:
-        """A refused measurement (formation_agent.measurement_checks): ERROR, counted; a bad value answers zero."""
+        """A refused measurement (formation_msgs_py.measurement_checks): ERROR, counted; a bad value answers zero."""
         n = self.inputs.counts[refusal.kind]
         t = (ns or self._ros_clock.now().nanoseconds) / NS_PER_S
         self.sync.fault(t, f"refused_{refusal.kind}", refusal.reason)

@@ -5,7 +5,7 @@ and every neighbour's pose with that stamp; a neighbour out of sensing range sen
 ``pose_wait`` wall seconds it answers anyway with a zero wrench and ERROR (as the headless runner
 does), and a lockstep simulator never waits for it. A repeated stamp (the simulator re-sends a step it
 has no answer for) is answered with the same wrench, or, if that answer lacked a neighbour's pose,
-computed again from the resend's poses. A refused value (:mod:`formation_agent.measurement_checks`)
+computed again from the resend's poses. A refused value (:mod:`formation_msgs_py.measurement_checks`)
 answers its step with a zero wrench and ERROR.
 
 Time only from the simulator's measurements. The controller's time is the stamp of the step it
@@ -37,10 +37,10 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from formation_agent.controller import ERROR, OK, AgentController, ControlOutput
-from formation_agent.measurement_checks import MAX_LEAD_NS, PAST_STAMP
 from formation_core.faults import FaultLog
 from formation_core.schema import AGENT_FIELDS, parse_mapping
 from formation_msgs_py.codec import NS_PER_S, control_time
+from formation_msgs_py.measurement_checks import MAX_LEAD_NS, PAST_STAMP
 
 #: Bounded memory of stamps with poses (and of refusals); more only happens when the agent lags.
 _POSE_MEMORY = 8
@@ -88,7 +88,7 @@ class StepSynchroniser:
 
     ``publish(stamp_ns, wrench)`` is called once per answered stamp (and again for a re-sent
     stamp). Times: stamps in integer ns of sim time; ``now`` in wall seconds (monotonic). What
-    comes in has passed the node's input check (:mod:`formation_agent.measurement_checks`); a refused
+    comes in has passed the node's input check (:mod:`formation_msgs_py.measurement_checks`); a refused
     measurement comes through :meth:`refuse` and its step is answered with zero and ERROR.
     """
 
@@ -115,7 +115,7 @@ class StepSynchroniser:
     #: every fault of this agent by kind (formation_core.faults): resets, refusals, zero answers
     faults: FaultLog = field(default_factory=FaultLog)
     last_measurement_wall: float | None = None
-    #: reasons of refused measurements (formation_agent.measurement_checks) by stamp: that step answers zero
+    #: reasons of refused measurements (formation_msgs_py.measurement_checks) by stamp: that step answers zero
     refused: dict[int, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -11,13 +11,13 @@ Who counts what (kinds):
   ``stale_command`` (realtime: a tick applied an agent's older wrench, its answer to the last step
   was not in), ``zero_wrench`` (realtime: that wrench was older than
   ``command_timeout`` and replaced by zero), ``late_tick`` (realtime, agent ``simulator``: a tick
-  more than half a period late), ``refused_wrench_<kind>`` (formation_sim.core.wrench_checks), and from its
+  more than half a period late), ``refused_wrench_<kind>`` (formation_msgs_py.wrench_checks), and from its
   shadow of the controllers ``measurement`` (a neighbour out of sensing range) and ``controller``
   (saturated: outside a funnel);
 - each agent (formation_agent.agent_node, written to its ``faults_file`` when it stops and merged by
   formation-launch): ``clock_jump`` (/clock went back: counted, nothing reset), ``reset``
   (simulation time restarted: /clock and the measurements went back together, as a bag replayed in
-  a loop does; controller and watchdogs reset), ``refused_<kind>`` (formation_agent.measurement_checks;
+  a loop does; controller and watchdogs reset), ``refused_<kind>`` (formation_msgs_py.measurement_checks;
   ``refused_past_stamp``: a velocity stamped before the agent's time that is no resend, refused by
   its synchroniser without an answer), ``missing_pose`` (answered without a neighbour's
   relative pose after ``pose_wait``: out of range or lost; answered with a zero wrench);

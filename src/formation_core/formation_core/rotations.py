@@ -121,7 +121,7 @@ def matrix_from_quaternion(x: float, y: float, z: float, w: float) -> list[list[
     """Rotation matrix (nested lists) of a quaternion; normalises it (:func:`rows_of_quaternion`).
 
     Raises RotationError for a zero or non-finite quaternion (no rotation to give). Messages are
-    checked before they get here (formation_agent.measurement_checks: the norm must be 1 to 1e-6).
+    checked before they get here (formation_msgs_py.measurement_checks: the norm must be 1 to 1e-6).
     """
     n = math.sqrt(x * x + y * y + z * z + w * w)
     if not (n > 1e-12 and math.isfinite(n)):

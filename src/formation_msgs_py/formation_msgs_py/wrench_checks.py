@@ -1,4 +1,4 @@
-"""What the simulator accepts from the agents, and the plant state it can go on with (no ROS).
+"""What the simulator accepts from the agents: the check of a wrench message (no ROS).
 
 A wrench (body frame, [fx, fy, fz, tx, ty, tz] in N and N·m) stamped ``ns`` (integer ns of
 sim time) from agent i is refused (the simulator counts it as the fault ``refused_wrench_<kind>``
@@ -18,8 +18,8 @@ A refused value for a step not yet answered counts as that agent's answer with a
 lockstep run goes on; the fault is in the report); for a step already answered it changes
 nothing; a refused stamp is no answer at all.
 
-A plant state that is no longer finite (:func:`advance_checked`) ends the run as INCOMPLETE with
-the agents named; it is never recorded, so no NaN reaches summary.json.
+What the plant may go on with after an accepted wrench is the simulator's own check
+(:mod:`formation_sim.core.state_checks`).
 """
 
 from __future__ import annotations
@@ -27,9 +27,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
-
-import numpy as np
 
 from formation_msgs_py.codec import step_stamp_ns
 
@@ -99,28 +96,3 @@ class WrenchCheck:
     def malformed() -> WrenchRefusal:
         """Bytes on a wrench topic that do not decode as a WrenchStamped (raw CDR from anyone)."""
         return WrenchRefusal(MALFORMED, "bytes that are not a well-formed WrenchStamped")
-
-
-def advance_checked(sim: Any, u: Any) -> str:
-    """``sim.advance(u)`` (a :class:`formation_sim.core.simulation.Simulation`); "" when the new plant
-    state is finite, else why the run cannot go on, naming the agents (never raises on overflow)."""
-    ids = sim.agent_ids
-    try:
-        sim.advance(u)
-    except (ValueError, OverflowError, FloatingPointError, ZeroDivisionError) as exc:
-        speed = np.abs(sim.state.v).max(axis=1)
-        worst = ids[int(np.argmax(speed))]
-        return f"t={sim.t:.6f} s: integration failed ({exc}); fastest agent {worst} (|v| up to {speed.max():.3g})"
-    s = sim.state
-    with np.errstate(over="ignore", invalid="ignore"):  # a huge finite state may overflow a sum: looked at below
-        total = s.p.sum() + s.R.sum() + s.v.sum()
-    if math.isfinite(total):  # finite sums have finite terms: the usual case, ~5 µs
-        return ""
-    bad = non_finite_agents(ids, s.p, s.R, s.v)
-    return f"t={sim.t:.6f} s: non-finite plant state of agent(s) {', '.join(bad)}" if bad else ""
-
-
-def non_finite_agents(agent_ids: Sequence[str], p: np.ndarray, R: np.ndarray, v: np.ndarray) -> list[str]:
-    """The agents whose position (N,3), attitude (N,3,3) or twist (N,6) is not finite."""
-    ok = np.isfinite(p).all(axis=1) & np.isfinite(R).all(axis=(1, 2)) & np.isfinite(v).all(axis=1)
-    return [a for a, good in zip(agent_ids, ok.tolist()) if not good]

@@ -1,2 +1,3 @@
-"""The ROS-free world and closed loop: plant, signals, measurements, the agents stepped together, the
-compiled run core, rates, accepted inputs, pre-flight and the run recorder. Never imports rclpy."""
+"""The ROS-free world and closed loop: plant, disturbances, measurements, links, the agents stepped
+together, the compiled run core, rates, the plant state a run can go on with, the judge and the run
+recorder. Never imports rclpy."""

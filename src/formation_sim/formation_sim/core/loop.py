@@ -86,8 +86,8 @@ from formation_sim.core.plant import (
 from formation_sim.core.rates import rate_needs
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Simulation
+from formation_sim.core.state_checks import non_finite_agents
 from formation_sim.core.team import note_errors, note_missing, step_faults, team_step
-from formation_sim.core.wrench_checks import non_finite_agents
 
 #: why a chunk ended early (run_sampled, run_continuous)
 EVENT_NONE, EVENT_NON_FINITE = 0, 1
@@ -513,7 +513,7 @@ def run_closed_loop(
     Every control step is checked (:func:`check_step`, ``recorder.add_checked``); faults are recorded as the streaming
     runs record them (:func:`formation_sim.core.team.note_missing` before a step's funnel check,
     :func:`formation_sim.core.team.note_errors` after it). A state that stops being finite ends the
-    run, incomplete, naming the agents (as :func:`formation_sim.core.wrench_checks.advance_checked`).
+    run, incomplete, naming the agents (as :func:`formation_sim.core.state_checks.advance_checked`).
     ``substeps`` overrides the physics steps per control period (default: the file's, and in
     continuous mode at least :func:`continuous_substeps`).
     """

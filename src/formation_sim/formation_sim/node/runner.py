@@ -20,7 +20,7 @@ from formation_core.formation import FormationSpec, agent_view, simulator_view
 from formation_core.options import RunOptions
 from formation_core.verdict import ExitCode, Incomplete
 from formation_msgs_py.codec import step_stamp_ns
-from formation_sim.core import wrench_checks
+from formation_sim.core import state_checks
 from formation_sim.core.links import link_summary
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Measurements, Simulation
@@ -199,7 +199,7 @@ class Runner:
         or if the run's bag could not be written)."""
         if self.node.bag is not None and self.node.bag.failed:
             raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, self.node.bag.failed))
-        reason = wrench_checks.advance_checked(self.sim, u)
+        reason = state_checks.advance_checked(self.sim, u)
         if reason:
             raise RunStoppedError(Incomplete(ExitCode.INCOMPLETE, reason))
 

@@ -29,9 +29,8 @@ from formation_core.faults import ANSWER_MISMATCH, FaultLog
 from formation_core.formation import FormationSpec, simulator_view
 from formation_deploy.graph_watch import GraphWatch
 from formation_deploy.publisher_watch import PublisherWatch, describe, expected_publishers
-from formation_msgs_py import topics
+from formation_msgs_py import topics, wrench_checks
 from formation_msgs_py.ros import conversions, qos
-from formation_sim.core import wrench_checks
 from formation_sim.core.measurement import measurement_ends
 from formation_sim.core.simulation import Measurements, Simulation
 from formation_sim.node.display import DisplayPublisher

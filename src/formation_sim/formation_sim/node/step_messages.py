@@ -4,7 +4,7 @@
 measurement model's quaternion, :mod:`formation_msgs_py.codec`) and every velocity of a step;
 :meth:`StepMessages.decoded` reads them back as the agents do: their decoder
 (:func:`formation_msgs_py.codec.relative_pose_from_values`) and their check of values
-(:class:`formation_agent.measurement_checks.InputCheck`: a pose an agent refuses, e.g. one beyond its
+(:class:`formation_msgs_py.measurement_checks.InputCheck`: a pose an agent refuses, e.g. one beyond its
 sensing radius, is answered with the fault wrench, as a pose not received). The simulator node sends
 these bytes and its witness computes on what :meth:`~StepMessages.decoded` gives.
 """
@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from formation_agent.measurement_checks import InputCheck
 from formation_core.formation import FormationSpec, simulator_view
 from formation_msgs_py import codec
+from formation_msgs_py.measurement_checks import InputCheck
 from formation_sim.core.measurement import measurement_ends
 from formation_sim.core.simulation import Measurements
 

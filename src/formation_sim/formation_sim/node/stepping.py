@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from formation_core.faults import ANSWER_MISMATCH
-from formation_sim.core.wrench_checks import DROPPED_KINDS
+from formation_msgs_py.wrench_checks import DROPPED_KINDS
 from formation_sim.node.witness import AGREES_NEW_GAINS, DIFFERS, AnswerWitness
 
 NS = 1_000_000_000
@@ -198,7 +198,7 @@ def admit(
     witness: AnswerWitness | None,
 ) -> Admission:
     """What to do with agent i's wrench ``u`` stamped ``ns`` that the wrench checks refused as
-    ``refusal_kind`` (formation_sim.core.wrench_checks; None: passed), given the answers kept and,
+    ``refusal_kind`` (formation_msgs_py.wrench_checks; None: passed), given the answers kept and,
     in lockstep, the witness.
 
     A refused stamp answers no step; a refused value answers an unanswered step with zero, except

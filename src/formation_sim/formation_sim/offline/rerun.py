@@ -7,7 +7,7 @@ message of agent i (stamp t, in stamp order, duplicates answered once), the cont
 and, per tree neighbour j, the relative pose with the *same* stamp, at time t = stamp_ns / 1e9.
 A missing pose, or a measurement older than ``measurement_timeout`` behind both the latest recorded
 /clock and the agent's time (its last step computed with a pose: the agent judges stamps against
-its measurement stream, /clock only widens the window; formation_agent.measurement_checks), gives a
+its measurement stream, /clock only widens the window; formation_msgs_py.measurement_checks), gives a
 zero wrench (a fault). The agent computed from exactly these decoded messages, so its wrench
 (stamped t) is reproduced bit for bit by the same code form on the same platform, and elsewhere
 within the step's round-off tolerance (formation_agent.roundoff, docs/controller.md): the default

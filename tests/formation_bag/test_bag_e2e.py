@@ -23,7 +23,7 @@ def _compare(ours: Any, theirs: Any, path: str) -> list[str]:
         assert isinstance(ours, dict) and ours.keys() == theirs.keys(), (path, ours, theirs)
         return [d for k in theirs for d in _compare(ours[k], theirs[k], f"{path}.{k}")]
     if isinstance(theirs, float) and isinstance(ours, float):
-        # as tests/formation_bag/test_bag_analysis.py's assert_same_summary: rotations through quaternions
+        # as tests/formation_sim/test_offline.py's assert_same_summary: rotations through quaternions
         # move the margins by some 1e-13; the velocity margins are the re-run's, within the round-off bound
         return [] if abs(ours - theirs) <= 1e-9 else [f"{path}: {ours!r} != {theirs!r}"]
     return [] if ours == theirs else [f"{path}: {ours!r} != {theirs!r}"]

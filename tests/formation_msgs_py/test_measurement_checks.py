@@ -7,14 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from formation_msgs_py import measurement_checks
 from formation_agent.controller import ERROR, AgentController
 from formation_agent.synchroniser import StepSynchroniser
 from formation_core import rotations
 from formation_core.errors import RotationError
 from formation_core.formation import agent_view, simulator_view
 from formation_core.spec import load_formation
-from formation_msgs_py import codec
+from formation_msgs_py import codec, measurement_checks
 from formation_sim.core.simulation import Simulation
 
 NS = 1_000_000_000

@@ -1,4 +1,4 @@
-"""Offline analysis and controller re-run of recorded runs (no ROS)."""
+"""Offline analysis and controller re-run of recorded runs (no ROS), on the bag tests' synthetic bags."""
 
 from __future__ import annotations
 
@@ -13,6 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "formation_bag"))  # bag_fixtures, bag_helpers, synth
+import bag_fixtures
 from bag_helpers import PAPER, VIOLATING, paper_spec
 
 from formation_bag.contract import KEY_FORMATION_YAML
@@ -26,6 +29,10 @@ from formation_sim.offline.analysis import analyze_run, message_ages
 from formation_sim.offline.rerun import rerun_all
 
 pytestmark = pytest.mark.numeric
+
+# the bag tests' session fixtures, offered to this module's tests
+short_bags = bag_fixtures.short_bags
+violating_bag = bag_fixtures.violating_bag
 
 IGNORED = {"wall_time", "real_time_factor", "bag", "source", "controller", "physics_rate", "mode", "samples"}
 

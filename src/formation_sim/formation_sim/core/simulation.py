@@ -119,7 +119,7 @@ class Simulation:
             self._applied = np.zeros((len(view.agents), 6))
             self._ages = np.zeros(n_links(self.links))
         if warm_up:
-            self._warm_up()
+            self._warm_up(view)
 
     def draw_link_uniforms(self, steps: int) -> np.ndarray:
         """The links' uniforms of the next ``steps`` control steps (the run core draws a chunk at a time;
@@ -127,17 +127,26 @@ class Simulation:
         assert self.links is not None
         return draw_rows(self._link_rng, steps, self.links)
 
-    def _warm_up(self) -> None:
-        """Load (or compile) the kernels now, not at the first step a realtime clock is running for.
+    def _warm_up(self, view: SimulatorView) -> None:
+        """Load (or compile) the kernels now, not at the first step a realtime clock is running for (on a
+        cold cache the link kernels took 1.9 s inside the first tick of a realtime run).
 
-        Every call works on copies: the state and the noise stream are untouched.
+        Every call works on copies: the state, the links' held samples and the noise streams are untouched.
         """
         s = self.state.copy()
-        self.plant.step(0.0, s, np.zeros((len(self.agent_ids), 6)), self.h)
-        self.plant.measured_velocity(0.0, s)
+        n = len(self.agent_ids)
+        self.plant.step(0.0, s, np.zeros((n, 6)), self.h)
+        v = self.plant.measured_velocity(0.0, s)
         m = self.sensors
+        p_rel, q_rel, R_rel, in_range = m.p_rel.copy(), m.q_rel.copy(), m.R_rel.copy(), m.in_range.copy()
         relative_poses(s.p, s.R, m.sensing, np.zeros((0, 0, 3)) if not m.noisy else np.zeros((2, m.n_links, 3)),
-                       m.p_rel.copy(), m.q_rel.copy(), m.R_rel.copy(), m.in_range.copy())  # fmt: skip
+                       p_rel, q_rel, R_rel, in_range)  # fmt: skip
+        if self.links is not None:  # a link set of its own, with the run's types: sense, deliver, link_ages
+            links = new_link_set(view)
+            uniforms = np.zeros((n_links(links), 3))  # draw_rows(..., 1)[0]: float64, C order
+            receive_step(links, 0, uniforms, p_rel, q_rel, R_rel, in_range, v, self._first_end)
+            deliver_step(links, 0, uniforms, np.zeros((n, 6)), np.zeros_like(self._applied), np.zeros_like(self._ages))
+            link_ages(links, 0)
 
     @property
     def t(self) -> float:

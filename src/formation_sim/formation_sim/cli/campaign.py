@@ -49,7 +49,14 @@ from formation_sim.cli.campaign_file import (
     load_campaign,
     reference_markdown,
 )
-from formation_sim.cli.campaign_results import condition_table, row_key, write_results
+from formation_sim.cli.campaign_results import (
+    CampaignRow,
+    CampaignSummary,
+    condition_table,
+    conditions_of,
+    row_key,
+    write_results,
+)
 
 
 @dataclass(frozen=True)
@@ -64,12 +71,12 @@ class Task:
     entropy: int
     spawn_key: tuple[int, ...]
     #: values of :data:`CONDITIONS` (None: the file's)
-    condition: tuple[Any, ...] = (None,) * len(CONDITIONS)
+    condition: tuple[float | None, ...] = (None,) * len(CONDITIONS)
     #: the channels the link values apply to
     apply_to: tuple[str, ...] = ()
 
     @property
-    def key(self) -> tuple[Any, ...]:
+    def key(self) -> tuple[object, ...]:
         return (self.sample, self.control_rate, *self.condition)
 
 
@@ -155,7 +162,9 @@ def sample_spec(task: Task) -> FormationSpec:
     return spec.with_simulation(**changes)
 
 
-def _with_condition(spec: FormationSpec, condition: tuple[Any, ...], apply_to: tuple[str, ...]) -> FormationSpec:
+def _with_condition(
+    spec: FormationSpec, condition: tuple[float | None, ...], apply_to: tuple[str, ...]
+) -> FormationSpec:
     """``spec`` with a run's link values on every agent's links of ``apply_to`` and its gains."""
     from formation_core.formation import EdgeLinks, MeasurementLink, SignalModel, WrenchLink
 
@@ -184,13 +193,13 @@ def _with_condition(spec: FormationSpec, condition: tuple[Any, ...], apply_to: t
     return dataclasses.replace(spec, agents=tuple(agents), edges=edges)
 
 
-def run_task(task: Task) -> dict[str, Any]:
+def run_task(task: Task) -> CampaignRow:
     """One sample's headless run, as a row of ``runs.csv``."""
     from formation_sim.cli.headless import run_headless
 
     spec = sample_spec(task)
     summary = run_headless(spec, stop_on_violation=True).summary
-    fv = summary["first_violation"] or {}
+    fv = summary["first_violation"]
     edges, agents = summary["edges"].values(), summary["agents"].values()
 
     def worst(values: Iterable[float | None]) -> float | None:
@@ -200,13 +209,13 @@ def run_task(task: Task) -> dict[str, Any]:
     return {
         "sample": task.sample,
         "control_rate": task.control_rate,
-        **dict(zip(CONDITIONS, task.condition)),
+        **conditions_of(task.condition),
         "seed": f"{task.entropy}:{'/'.join(map(str, task.spawn_key))}",
         "verdict": summary["verdict"],  # PASS, FAIL or INCOMPLETE
-        "violation_t": fv.get("t"),
-        "violation_kind": fv.get("kind"),
-        "violation_where": fv.get("edge") or fv.get("agent"),
-        "violation_channel": fv.get("channel"),
+        "violation_t": None if fv is None else fv["t"],
+        "violation_kind": None if fv is None else fv["kind"],
+        "violation_where": None if fv is None else fv.get("edge") or fv.get("agent"),
+        "violation_channel": None if fv is None else fv["channel"],
         "worst_margin_e": worst(e["min_margin_e"] for e in edges),
         "worst_margin_psi": worst(e["min_margin_psi"] for e in edges),
         "worst_margin_v": worst(a["min_margin_v"] for a in agents),
@@ -219,16 +228,16 @@ def run_task(task: Task) -> dict[str, Any]:
 # --- running many ------------------------------------------------------------------------------
 
 
-def _finished(log: Path) -> dict[tuple[Any, ...], dict[str, Any]]:
+def _finished(log: Path) -> dict[tuple[object, ...], CampaignRow]:
     """Rows of an earlier (interrupted) campaign in ``log``; a torn last line is ignored."""
-    rows = {}
+    rows: dict[tuple[object, ...], CampaignRow] = {}
     if log.exists():
         for line in log.read_text(encoding="utf-8").splitlines():
             try:
                 row = json.loads(line)
             except json.JSONDecodeError:
                 continue
-            rows[row_key(row)] = row
+            rows[row_key(row)] = row  # a line run_task wrote (a CampaignRow as JSON)
     return rows
 
 
@@ -246,7 +255,7 @@ def run_tasks(todo: list[Task], log: Path, *, workers: int, scheduler: str | Non
         if torn:  # a killed writer left half a line: end it, so that it stays one ignored line
             out.write("\n")
 
-        def record(row: dict[str, Any], done: int) -> None:
+        def record(row: CampaignRow, done: int) -> None:
             out.write(json.dumps(row) + "\n")
             out.flush()
             os.fsync(out.fileno())
@@ -278,7 +287,7 @@ def run_tasks(todo: list[Task], log: Path, *, workers: int, scheduler: str | Non
 
 def run_campaign(
     campaign: Campaign, out: Path, *, workers: int = 1, scheduler: str | None = None, quiet: bool = False
-) -> dict[str, Any]:
+) -> CampaignSummary:
     """Run what ``out/runs.jsonl`` does not hold yet, then write the results."""
     out.mkdir(parents=True, exist_ok=True)
     log = out / "runs.jsonl"

@@ -9,9 +9,9 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Literal, NotRequired, TypedDict
 
 from formation_sim.cli.campaign_file import CONDITIONS, Campaign
 
@@ -34,9 +34,120 @@ COLUMNS = (
 )
 
 
-def row_key(row: Mapping[str, Any]) -> tuple[Any, ...]:
+class Conditions(TypedDict):
+    """A run's values of :data:`CONDITIONS`: link delay and jitter [s], loss probability, sensor rate
+    [Hz], the gains δ and γ (None: the formation file's)."""
+
+    link_delay: float | None
+    link_loss: float | None
+    link_jitter: float | None
+    sensor_rate: float | None
+    delta: float | None
+    gamma: float | None
+
+
+def conditions_of(values: Sequence[float | None]) -> Conditions:
+    """:class:`Conditions` of values in :data:`CONDITIONS`' order (a task's ``condition``)."""
+    delay, loss, jitter, sensor_rate, delta, gamma = values
+    return {
+        "link_delay": delay,
+        "link_loss": loss,
+        "link_jitter": jitter,
+        "sensor_rate": sensor_rate,
+        "delta": delta,
+        "gamma": gamma,
+    }
+
+
+class CampaignRow(Conditions):
+    """One run of a campaign: a line of runs.jsonl and a row of runs.csv (:data:`COLUMNS`)."""
+
+    sample: int
+    control_rate: float  # Hz
+    seed: str  # entropy:spawn key of the sample's plant
+    verdict: str  # PASS, FAIL or INCOMPLETE
+    violation_t: float | None
+    violation_kind: str | None
+    violation_where: str | None
+    violation_channel: str | None
+    worst_margin_e: float | None
+    worst_margin_psi: float | None
+    worst_margin_v: float | None
+    peak_force: float  # N
+    peak_torque: float  # N·m
+    wall_time: float | None  # s
+
+
+class RateResult(TypedDict):
+    """The runs at one control rate: how many passed, the pass rate's 95 % Wilson interval, and the
+    first violations by kind."""
+
+    runs: int
+    passes: int
+    pass_rate: float | None  # None: no runs
+    pass_rate_ci95: list[float]
+    first_violation_kinds: dict[str, int]
+
+
+class ConditionCell(Conditions):
+    """The runs of one condition of a grid at one control rate."""
+
+    control_rate: float
+    runs: int
+    passes: int
+    pass_rate: float | None
+    pass_rate_ci95: list[float]
+
+
+class Tolerance(TypedDict):
+    """The largest delay [s] and loss that still hold (:data:`HOLDS`) for one group of the other conditions."""
+
+    control_rate: float
+    link_jitter: float | None
+    sensor_rate: float | None
+    delta: float | None
+    gamma: float | None
+    largest_delay: float | None
+    largest_loss: float | None
+
+
+class CampaignSummary(TypedDict):
+    """A campaign's summary.json (docs/campaigns.md)."""
+
+    formation: str
+    samples: int
+    seed: int
+    vary: dict[str, object]
+    duration: float | None
+    per_control_rate: dict[str, RateResult]
+    links: NotRequired[dict[str, object]]
+    gains: NotRequired[dict[str, list[float]]]
+    per_condition: NotRequired[list[ConditionCell]]
+    tolerance: NotRequired[list[Tolerance]]
+
+
+def row_key(row: Mapping[str, object]) -> tuple[object, ...]:
     """The :attr:`Task.key` of a finished run's row."""
     return (row["sample"], row["control_rate"], *(row.get(c) for c in CONDITIONS))
+
+
+def _condition_values(row: CampaignRow) -> tuple[float | None, ...]:
+    """A row's values of :data:`CONDITIONS`, in their order (None where absent: a runs.jsonl line of a
+    campaign without grids may lack them, as :func:`row_key` allows)."""
+    return (
+        row.get("link_delay"),
+        row.get("link_loss"),
+        row.get("link_jitter"),
+        row.get("sensor_rate"),
+        row.get("delta"),
+        row.get("gamma"),
+    )
+
+
+def _sort_key(row: CampaignRow) -> tuple[float, ...]:
+    """runs.csv's order: sample, control rate, then the conditions (None, the file's, first)."""
+    values = (row["sample"], row["control_rate"], *_condition_values(row))
+    return tuple(-1.0 if v is None else v for v in values)
 
 
 def wilson(passes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -52,9 +163,9 @@ def wilson(passes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     return max(0.0, min(p, centre - half)), min(1.0, max(p, centre + half))
 
 
-def summarise(rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
+def summarise(rows: list[CampaignRow], campaign: Campaign) -> CampaignSummary:
     """Pass rate and its 95 % interval, worst margins, per control rate."""
-    per_rate = {}
+    per_rate: dict[str, RateResult] = {}
     for rate in campaign.control_rates:
         sel = [r for r in rows if r["control_rate"] == rate]
         passes = sum(r["verdict"] == "PASS" for r in sel)
@@ -70,7 +181,7 @@ def summarise(rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
                 if k
             },
         }
-    out: dict[str, Any] = {
+    out: CampaignSummary = {
         "formation": str(campaign.formation),
         "samples": campaign.samples,
         "seed": campaign.seed,
@@ -81,8 +192,9 @@ def summarise(rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
     if campaign.links or campaign.gains:
         out["links"] = {k: list(v) if isinstance(v, tuple) else v for k, v in campaign.links.items()}
         out["gains"] = {k: list(v) for k, v in campaign.gains.items()}
-        out["per_condition"] = per_condition(rows, campaign)
-        out["tolerance"] = tolerance(out["per_condition"])
+        cells = per_condition(rows, campaign)
+        out["per_condition"] = cells
+        out["tolerance"] = tolerance(cells)
     return out
 
 
@@ -90,9 +202,11 @@ def summarise(rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
 HOLDS = 0.95
 
 
-def _largest(group: list[dict[str, Any]], axis: str, fixed: str) -> float | None:
+def _largest(
+    group: list[ConditionCell], axis: Literal["link_delay", "link_loss"], fixed: Literal["link_delay", "link_loss"]
+) -> float | None:
     """The largest value of ``axis`` up to which every cell passes :data:`HOLDS` (``fixed`` at its least)."""
-    least = min((c[fixed] for c in group if c[fixed] is not None), default=None)
+    least = min((v for c in group if (v := c[fixed]) is not None), default=None)
     line = sorted((c for c in group if c[fixed] == least), key=lambda c: c[axis] or 0.0)
     best = None
     for c in line:
@@ -102,18 +216,18 @@ def _largest(group: list[dict[str, Any]], axis: str, fixed: str) -> float | None
     return best
 
 
-def per_condition(rows: list[dict[str, Any]], campaign: Campaign) -> list[dict[str, Any]]:
+def per_condition(rows: list[CampaignRow], campaign: Campaign) -> list[ConditionCell]:
     """Pass rate and its 95 % interval of every condition of the grids at every control rate."""
-    out = []
+    out: list[ConditionCell] = []
     for condition in campaign.conditions():
         for rate in campaign.control_rates:
-            sel = [r for r in rows if r["control_rate"] == rate and tuple(r.get(c) for c in CONDITIONS) == condition]
+            sel = [r for r in rows if r["control_rate"] == rate and _condition_values(r) == tuple(condition)]
             passes = sum(r["verdict"] == "PASS" for r in sel)
             lo, hi = wilson(passes, len(sel))
             out.append(
                 {
                     "control_rate": rate,
-                    **dict(zip(CONDITIONS, condition)),
+                    **conditions_of(condition),
                     "runs": len(sel),
                     "passes": passes,
                     "pass_rate": passes / len(sel) if sel else None,
@@ -123,16 +237,17 @@ def per_condition(rows: list[dict[str, Any]], campaign: Campaign) -> list[dict[s
     return out
 
 
-def tolerance(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def tolerance(cells: list[ConditionCell]) -> list[Tolerance]:
     """Per group of conditions that differ only in delay and loss: the largest delay at which at least
     :data:`HOLDS` of the runs pass at every delay up to it (at the grid's smallest loss), and the
     largest loss likewise (at the smallest delay); None where even the smallest fails."""
-    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    groups: dict[tuple[float | None, ...], list[ConditionCell]] = {}
     for c in cells:
         key = (c["control_rate"], c["link_jitter"], c["sensor_rate"], c["delta"], c["gamma"])
         groups.setdefault(key, []).append(c)
-    out = []
+    out: list[Tolerance] = []
     for (rate, jitter, sensor, delta, gamma), group in groups.items():
+        assert rate is not None  # a control rate is always given
         out.append(
             {
                 "control_rate": rate,
@@ -147,9 +262,9 @@ def tolerance(cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def write_results(out: Path, rows: list[dict[str, Any]], campaign: Campaign) -> dict[str, Any]:
+def write_results(out: Path, rows: list[CampaignRow], campaign: Campaign) -> CampaignSummary:
     """runs.csv, summary.json and the figures, each written atomically."""
-    rows = sorted(rows, key=lambda r: tuple(-1.0 if v is None else v for v in row_key(r)))
+    rows = sorted(rows, key=_sort_key)
     tmp = out / "runs.csv.tmp"
     with tmp.open("w", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=COLUMNS)
@@ -166,7 +281,7 @@ def write_results(out: Path, rows: list[dict[str, Any]], campaign: Campaign) -> 
     return summary
 
 
-def plot_campaign(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]) -> None:
+def plot_campaign(out: Path, rows: list[CampaignRow], summary: CampaignSummary) -> None:
     """pass_rate.png (pass rate vs control rate, 95 % intervals) and worst_margin.png (histograms)."""
     import matplotlib
     import numpy as np
@@ -212,7 +327,7 @@ def plot_campaign(out: Path, rows: list[dict[str, Any]], summary: dict[str, Any]
     plt.close(fig)
 
 
-def plot_links(out: Path, summary: dict[str, Any]) -> None:
+def plot_links(out: Path, summary: CampaignSummary) -> None:
     """link_pass_rate.png: per group of the other conditions (at most 6), the pass rate of every delay and
     loss of the grid, a cell per pair (the number in it), coloured from red (0) to green (1)."""
     import matplotlib
@@ -221,8 +336,8 @@ def plot_links(out: Path, summary: dict[str, Any]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cells = summary["per_condition"]
-    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    cells = summary.get("per_condition", [])
+    groups: dict[tuple[float | None, ...], list[ConditionCell]] = {}
     for c in cells:
         groups.setdefault((c["control_rate"], c["link_jitter"], c["sensor_rate"], c["delta"], c["gamma"]), []).append(c)
     shown = list(groups.items())[:6]
@@ -258,10 +373,10 @@ def plot_links(out: Path, summary: dict[str, Any]) -> None:
     plt.close(fig)
 
 
-def condition_table(summary: dict[str, Any]) -> str:
+def condition_table(summary: CampaignSummary) -> str:
     """The pass rates of a grid campaign as text, one line per condition, then the tolerances."""
 
-    def fmt(value: Any, scale: float = 1.0, unit: str = "") -> str:
+    def fmt(value: float | None, scale: float = 1.0, unit: str = "") -> str:
         return "file" if value is None else f"{value * scale:g}{unit}"
 
     def sensor(value: float | None) -> str:
@@ -270,14 +385,14 @@ def condition_table(summary: dict[str, Any]) -> str:
         return f"{value:g} Hz"
 
     lines = ["  rate [Hz]  delay     loss   jitter    sensor   delta  gamma   pass    95 % interval"]
-    for c in summary["per_condition"]:
+    for c in summary.get("per_condition", []):
         lo, hi = c["pass_rate_ci95"]
         lines.append(
             f"  {c['control_rate']:>9g}  {fmt(c['link_delay'], 1e3, ' ms'):>8}  {fmt(c['link_loss'], 100, ' %'):>6}  "
             f"{fmt(c['link_jitter'], 1e3, ' ms'):>7}  {sensor(c['sensor_rate']):>8}  {fmt(c['delta']):>5}  "
             f"{fmt(c['gamma']):>5}  {c['passes']:>3}/{c['runs']:<3}  {lo:.2f}-{hi:.2f}"
         )
-    for t in summary["tolerance"]:
+    for t in summary.get("tolerance", []):
         delay = "none" if t["largest_delay"] is None else f"{t['largest_delay'] * 1e3:g} ms"
         loss = "none" if t["largest_loss"] is None else f"{t['largest_loss'] * 100:g} %"
         lines.append(

@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from formation_core import options
 from formation_core.errors import FormationError
@@ -23,12 +23,13 @@ if TYPE_CHECKING:  # the cores (numba) are imported once the options and the fil
     from formation_core.formation import FormationSpec
     from formation_sim.core.loop import ProgressFn
     from formation_sim.core.recorder import RunRecorder
+    from formation_sim.core.summary import RunSummary
 
 
 @dataclass
 class HeadlessResult:
     recorder: RunRecorder
-    summary: dict[str, Any]
+    summary: RunSummary
 
 
 def run_headless(

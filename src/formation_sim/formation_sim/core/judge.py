@@ -28,7 +28,7 @@ the formation file says so (``simulation.contact: fail``; default ``report``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -36,6 +36,7 @@ from formation_core import funnels
 from formation_core.formation import FormationSpec
 from formation_core.funnels import edge_errors
 from formation_core.numba_kernels import formula
+from formation_sim.core.summary import Clearance, Contact, FirstViolation
 
 VELOCITY_CHANNELS = ("vx", "vy", "vz", "wx", "wy", "wz")
 #: Violation kinds that name an edge; ``velocity`` names an agent, ``contact`` a pair of agents.
@@ -199,9 +200,13 @@ class Violation:
     where: str
     channel: str
 
-    def as_dict(self) -> dict[str, Any]:
-        key = "edge" if self.kind in EDGE_KINDS else "pair" if self.kind == CONTACT else "agent"
-        return {"t": self.t, "kind": self.kind, key: self.where, "channel": self.channel}
+    def as_dict(self) -> FirstViolation:
+        """summary.json's ``first_violation``: where is an ``edge``, a ``pair`` or an ``agent``."""
+        if self.kind in EDGE_KINDS:
+            return {"t": self.t, "kind": self.kind, "edge": self.where, "channel": self.channel}
+        if self.kind == CONTACT:
+            return {"t": self.t, "kind": self.kind, "pair": self.where, "channel": self.channel}
+        return {"t": self.t, "kind": self.kind, "agent": self.where, "channel": self.channel}
 
 
 @dataclass
@@ -349,7 +354,7 @@ class Judge:
                     s = settle(s, float(t[first_inside]), True)
                 settled[k] = None if np.isnan(s) else float(s)
 
-    def clearance(self) -> dict[str, Any]:
+    def clearance(self) -> Clearance:
         """summary.json ``clearance``: the smallest clearance of any pair of bodies [m], which pair and when,
         the first contact (null: none) and every pair that touched, with the policy (``simulation.contact``)."""
         policy = "fail" if self.contact_fails else "report"
@@ -357,7 +362,7 @@ class Judge:
             return {"policy": policy, "min": None, "pair": None, "t": None, "first_contact": None, "contacts": []}
         k = int(np.argmin(self.min_clearance))
         touched = np.flatnonzero(~np.isnan(self.contact_t))
-        contacts = [
+        contacts: list[Contact] = [
             {"pair": list(self.pairs.ids[c]), "first_t": float(self.contact_t[c]), "min": float(self.min_clearance[c])}
             for c in touched[np.argsort(self.contact_t[touched], kind="stable")].tolist()
         ]

@@ -28,12 +28,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 
 from formation_core.formation import MeasurementLink, SimulatorView, WrenchLink
 from formation_core.numba_kernels import formula, kernel
+from formation_sim.core.summary import LinkAge, LinkReport, LinkStats, WorstLink
 
 #: columns of :attr:`Links.params`
 P_RATIO, P_DELAY, P_JITTER, P_J_MEAN, P_J_MAX, P_LOSS, P_GOOD_BAD, P_BAD_GOOD, P_LOSS_GOOD, P_LOSS_BAD = range(10)
@@ -398,7 +399,7 @@ def link_names(view: SimulatorView) -> dict[str, list[str]]:
     return {"poses": ends, "velocity": ids, "wrench": list(ids)}
 
 
-def _age_stats(ages: np.ndarray, age_max: int, control_rate: float) -> dict[str, float | None]:
+def _age_stats(ages: np.ndarray, age_max: int, control_rate: float) -> LinkAge:
     """Minimum, median, 99th percentile and maximum [s] of an age histogram (steps spent at each age)."""
     total = int(ages.sum())
     if total == 0:
@@ -416,46 +417,46 @@ def _age_stats(ages: np.ndarray, age_max: int, control_rate: float) -> dict[str,
     }
 
 
-def _stats(counts: np.ndarray, ages: np.ndarray, age_max: int, control_rate: float) -> dict[str, object]:
-    out: dict[str, object] = {name: int(c) for name, c in zip(COUNT_NAMES, counts)}
+def _stats(counts: np.ndarray, ages: np.ndarray, age_max: int, control_rate: float) -> LinkStats:
     sent = int(counts[C_SENT])
-    out["loss_rate"] = int(counts[C_LOST]) / sent if sent else None
-    out["age"] = _age_stats(ages, age_max, control_rate)
-    return out
+    return {
+        "sent": sent,
+        "lost": int(counts[C_LOST]),
+        "delivered": int(counts[C_ARRIVED]),
+        "superseded": int(counts[C_SUPERSEDED]),
+        "steps_without_sample": int(counts[C_EMPTY]),
+        "loss_rate": int(counts[C_LOST]) / sent if sent else None,
+        "age": _age_stats(ages, age_max, control_rate),
+    }
 
 
-def link_summary(links: LinkSet, view: SimulatorView) -> dict[str, object]:
+def link_summary(links: LinkSet, view: SimulatorView) -> LinkReport:
     """summary.json's ``links`` (docs/outputs.md): per channel its links' counts together (sent, lost,
     delivered, superseded, steps without a sample, loss rate) and the held samples' ages over every
     control step [s]; each link alone under ``by_link``; and the worst link (the largest 99th
     percentile of age, then the largest loss rate)."""
     rate = links.control_rate
     names = link_names(view)
-    out: dict[str, object] = {}
-    by_link: dict[str, dict[str, object]] = {}
+    per_channel: dict[str, LinkStats] = {}
+    by_link: dict[str, dict[str, LinkStats]] = {}
     candidates = []
     for channel, ch in zip(CHANNELS, links[:3]):
         if ch.params.shape[0] == 0:
             continue
         width = ch.ages.shape[1]
-        out[channel] = _stats(ch.counts.sum(axis=0), ch.ages.sum(axis=0)[:width], int(ch.age_max.max()), rate)
+        per_channel[channel] = _stats(ch.counts.sum(axis=0), ch.ages.sum(axis=0)[:width], int(ch.age_max.max()), rate)
         by_link[channel] = {}
         for i, name in enumerate(names[channel]):
             stats = _stats(ch.counts[i], ch.ages[i], int(ch.age_max[i]), rate)
             by_link[channel][name] = stats
-            p99 = stats["age"]["p99"]  # type: ignore[index]
+            p99 = stats["age"]["p99"]
             candidates.append((math.inf if p99 is None else p99, stats["loss_rate"] or 0.0, channel, name))
-    out["worst"] = None
+    worst: WorstLink | None = None
     if candidates:
         p99, loss_rate, channel, name = max(candidates)
-        out["worst"] = {
-            "channel": channel,
-            "link": name,
-            "age_p99": None if p99 == math.inf else p99,
-            "loss_rate": loss_rate,
-        }
-    out["by_link"] = by_link
-    return out
+        worst = {"channel": channel, "link": name, "age_p99": None if p99 == math.inf else p99, "loss_rate": loss_rate}
+    # the channels' keys are CHANNELS' names, known to be a LinkReport's only at run time
+    return cast(LinkReport, {**per_channel, "worst": worst, "by_link": by_link})
 
 
 def link_ages(links: LinkSet, k: int) -> np.ndarray:

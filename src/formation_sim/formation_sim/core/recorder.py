@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -18,6 +17,7 @@ from formation_core.formation import FormationSpec
 from formation_core.verdict import ExitCode, Incomplete, Outcome, Verdict, decide
 from formation_deploy.publisher_watch import untrusted_input
 from formation_sim.core.judge import CheckedSteps, EdgeSample, Judge, Violation
+from formation_sim.core.summary import LinkReport, RunnerKeys, RunSummary
 
 #: samples :meth:`RunRecorder.add` queues before checking them together
 CHECK_BATCH = 64
@@ -54,7 +54,7 @@ class RunRecorder:
     control_rate: float = 0.0
     _rows: dict[str, list[np.ndarray]] = field(default_factory=dict)
     #: summary.json's ``links`` (formation_sim.core.links.link_summary), set by a run with a link model
-    links: dict[str, Any] | None = None
+    links: LinkReport | None = None
 
     def __post_init__(self) -> None:
         self.judge = Judge(self.spec)
@@ -244,14 +244,14 @@ class RunRecorder:
         wall_time: float | None,
         requested_duration: float | None = None,
         incomplete: Incomplete | None = None,
-        extra: dict[str, Any] | None = None,
-    ) -> dict[str, Any]:
+        extra: RunnerKeys | None = None,
+    ) -> RunSummary:
         """summary.json (docs/outputs.md); ``requested_duration`` None: whatever was fed is the run.
         An ``extra["security"]`` that names an intruder makes the run INCOMPLETE (untrusted input)."""
         j = self.judge
         result = self.outcome(requested_duration, incomplete, untrusted_input((extra or {}).get("security")))
         duration = self.t_last
-        out: dict[str, Any] = {
+        out: RunSummary = {
             "formation": self.spec.name,
             "formation_file": Path(self.spec.source).name,
             "mode": self.mode,
@@ -288,7 +288,7 @@ class RunRecorder:
                 }
                 for i, a in enumerate(self.spec.agents)
             },
+            **(extra or {}),
         }
-        if extra:
-            out.update(extra)
-        return strict_json(out)
+        summary: RunSummary = strict_json(out)  # the same keys, NaN and numpy scalars made JSON
+        return summary

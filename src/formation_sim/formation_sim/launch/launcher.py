@@ -34,7 +34,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from formation_agent.kernel_cache import compiled_pays
 from formation_bag.foxglove_server import endpoint_problem
@@ -51,6 +51,7 @@ from formation_sim.preflight import InvalidRunError, Prepared, launch_outputs, p
 if TYPE_CHECKING:
     from formation_core.formation import FormationSpec
     from formation_deploy.secure_transport import SecureRun
+    from formation_sim.core.summary import LaunchReport, RunSummary
 
 #: child name -> formation-keys process name, where they differ
 _KEY_NAMES = {"sim": "simulator"}
@@ -485,7 +486,10 @@ class Launcher:
         return tls_reason(summary["security"])
 
     def summary(self) -> dict[str, Any]:
-        """The simulator's summary, completed with what only the launcher knows."""
+        """The simulator's summary, completed with what only the launcher knows.
+
+        JSON another process wrote, taken as it is (or, when it wrote none, a stub with the verdict's
+        keys only): a :class:`formation_sim.core.summary.RunSummary` once the simulator wrote one."""
         path = self.out / "summary.json"
         try:
             summary = json.loads(path.read_text(encoding="utf-8"))
@@ -536,7 +540,7 @@ class Launcher:
             summary["incomplete_reason"] = f"{summary.get('incomplete_reason')}; {tls}"
         t = self.timing
         done = min(t.get("stepping_done", t["stop_from"]), t["stop_from"])  # stepped to the end, or stopped
-        summary["launch"] = {
+        launch: LaunchReport = {
             "ros_domain_id": int(self.sup.env["ROS_DOMAIN_ID"]),
             "discovery_range": self.sup.env["ROS_AUTOMATIC_DISCOVERY_RANGE"],
             "transport": dds_env.transport_name(self.sup.env),
@@ -551,6 +555,7 @@ class Launcher:
             "wall_sim_outputs_s": t["stop_from"] - done if "stepping_done" in t else None,
             "wall_figures_s": t.get("figures_s"),  # part of wall_stop_s
         }
+        summary["launch"] = launch
         return summary
 
 
@@ -666,10 +671,12 @@ def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
         code = ExitCode.INCOMPLETE
     if launcher.simulator_verdict not in (None, (summary.get("verdict"), summary.get("incomplete_reason"))):
         try:  # the simulator's figures are captioned with its verdict, which the launcher's replaces
-            redraw_figures(out, launcher.spec, summary)
+            redraw_figures(out, launcher.spec, cast("RunSummary", summary))  # the simulator's, completed
         except OSError as exc:
             print(f"formation-launch: the figures still show the simulator's verdict: {exc}", file=sys.stderr)
-    print(format_summary(summary) if "edges" in summary else verdict_line(summary), flush=True)
+    # without "edges" the simulator wrote no summary: the launcher's stub holds the keys verdict_line reads
+    full = cast("RunSummary", summary)
+    print(format_summary(full) if "edges" in summary else verdict_line(full), flush=True)
     if args.animate and (out / "trajectory.npz").exists():
         import numpy as np
 

@@ -39,6 +39,7 @@ from formation_bag.contract import KEY_LINKS, KEY_RUN_STOPPED, STAMPED_TYPES
 from formation_bag.writer import McapFileWriter, SegmentedBagWriter
 from formation_core.errors import BagError, BagExistsError
 from formation_msgs_py.codec import stamp_of
+from formation_sim.core.summary import LinkReport
 
 #: the view file's name in OUT
 VIEW_FILE = "view.mcap"
@@ -201,7 +202,7 @@ class RunBag:
             "writer": "simulator",
         }
 
-    def close(self, stopped: tuple[int, str] | None = None, links: dict[str, Any] | None = None) -> dict[str, Any]:
+    def close(self, stopped: tuple[int, str] | None = None, links: LinkReport | None = None) -> dict[str, Any]:
         """Close the bag with its counts in custom_data, why the run stopped before its end if it did
         (``stopped``: exit status, reason; :data:`formation_bag.contract.KEY_RUN_STOPPED`) and its
         link model's statistics (:data:`formation_bag.contract.KEY_LINKS`); the run summary's

@@ -24,6 +24,7 @@ from formation_sim.core import state_checks
 from formation_sim.core.links import link_summary
 from formation_sim.core.recorder import RunRecorder
 from formation_sim.core.simulation import Measurements, Simulation
+from formation_sim.core.summary import RunnerKeys, RunSummary
 from formation_sim.node.simulator_node import SimNode, number_value, parameter_values, text_value
 from formation_sim.node.stepping import (
     NS,
@@ -367,25 +368,27 @@ class Runner:
         rec.set_inputs(u)
         self.shadow.team.note_errors(meas.t, errors, rec)
 
-    def summary(self, wall: float, incomplete: Incomplete | None, extra: dict[str, Any]) -> dict[str, Any]:
+    def summary(self, wall: float, incomplete: Incomplete | None, extra: RunnerKeys) -> RunSummary:
+        """summary.json: the recorder's, with the simulator's rates, timing, security and witness, and ``extra``."""
         s = self.spec.simulation
-        info = {
+        timing = self.node.timing.summary(self.spec.agent_ids, self.period)
+        stamps = self.node.wrenches.stamp
+        info: RunnerKeys = {
             "physics_rate": s.physics_rate,
             "steps": self.step,
             "clock_rate": s.control_rate / self.clock_every,
             "ground_truth_rate": s.control_rate / self.gt_every,
             "velocity_margins": "shadow controllers on the published measurements",
+            **timing,
+            "security": self.node.watch.watch.report(),
+            "witness": self.shadow.report(),
+            # the step each agent last answered (None: never): the launcher dates an agent's death by it
+            "last_answer_t": {a: stamps[i] / NS if stamps[i] >= 0 else None for i, a in enumerate(self.node.ids)},
+            **extra,
         }
-        info.update(self.node.timing.summary(self.spec.agent_ids, self.period))
-        info["security"] = self.node.watch.watch.report()
-        info["witness"] = self.shadow.report()
-        # the step each agent last answered (None: never): the launcher dates an agent's death by it
-        stamps = self.node.wrenches.stamp
-        info["last_answer_t"] = {a: stamps[i] / NS if stamps[i] >= 0 else None for i, a in enumerate(self.node.ids)}
         if self.sim.links is not None:
             links = link_summary(self.sim.links, self.sim.view)
             if self.args.mode == "realtime":  # what the real network added, under the emulated links
-                links["real_latency_ms"] = info.get("latency_ms")
+                links["real_latency_ms"] = timing.get("latency_ms")
             self.recorder.links = links
-        info.update(extra)
         return self.recorder.summary(wall_time=wall, requested_duration=s.duration, incomplete=incomplete, extra=info)

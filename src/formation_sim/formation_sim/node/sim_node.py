@@ -62,6 +62,7 @@ from formation_deploy.transport_check import InsecureTransportError, check_secur
 from formation_ros import shutdown
 from formation_ros.rclpy_internals import RCLError
 from formation_sim.core.links import link_summary
+from formation_sim.core.summary import RunnerKeys
 from formation_sim.node.display import DEFAULT_MARKER_RATE, declare_simulator_parameters
 from formation_sim.node.run_bag import VIEW_FILE, RunBag
 from formation_sim.node.runner import Runner, RunStoppedError, StopRequestedError
@@ -105,7 +106,7 @@ class SimProcess:
         self.node: SimNode | None = None
         self.executor: Any = None
         self.runner: Runner | None = None
-        self.extra: dict[str, Any] = {}
+        self.extra: RunnerKeys = {}
 
     def start(self) -> Runner:
         """rclpy, the node (secure transport checked), the executor, the runner; every agent matched."""
@@ -236,7 +237,7 @@ def main(argv: list[str] | None = None, *, prepared: Prepared | None = None) -> 
 
 
 def _write_outputs(
-    runner: Runner, out: Path, args: RunOptions, wall: float, incomplete: Incomplete | None, extra: dict[str, Any]
+    runner: Runner, out: Path, args: RunOptions, wall: float, incomplete: Incomplete | None, extra: RunnerKeys
 ) -> int:
     """Write OUT (summary, trajectory, figures unless stopped early or --no-plots), print the summary;
     the exit status."""

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
+
+from formation_sim.core.summary import RunnerKeys
 
 
 @dataclass
@@ -33,8 +34,9 @@ class Timing:
         self.on_time = [0] * self.n_agents
         self.answered = [0] * self.n_agents
 
-    def summary(self, ids: tuple[str, ...], period: float) -> dict[str, Any]:
-        out: dict[str, Any] = {"resends": self.resends, "duplicate_answers": self.duplicates}
+    def summary(self, ids: tuple[str, ...], period: float) -> RunnerKeys:
+        """summary.json's timing keys: resends, duplicates, latency [ms], on-time fractions, realtime lag [s]."""
+        out: RunnerKeys = {"resends": self.resends, "duplicate_answers": self.duplicates}
         if self.latencies:
             lat = np.array(self.latencies) * 1e3
             out["latency_ms"] = {

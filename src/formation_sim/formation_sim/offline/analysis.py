@@ -42,7 +42,7 @@ from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -54,6 +54,7 @@ from formation_core.errors import BagError, FormationError
 from formation_core.faults import write_json
 from formation_core.verdict import ExitCode, Incomplete, guarded
 from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.summary import BagReport, LinkReport, RunSummary
 from formation_sim.offline.parsers import VELOCITY_MARGIN_MODES, analyze_parser
 from formation_sim.offline.rerun import AgentRerun, rerun_all
 from formation_sim.preflight import prepare_out_dir
@@ -321,7 +322,7 @@ def run_stopped(custom_data: dict[str, str]) -> Incomplete | None:
     return Incomplete(code, reason)
 
 
-def recorded_links(custom_data: dict[str, str]) -> dict[str, Any] | None:
+def recorded_links(custom_data: dict[str, str]) -> LinkReport | None:
     """The link model's statistics the simulator wrote into the bag (:data:`formation_bag.contract.KEY_LINKS`:
     counted at every control step, which a bag's messages cannot show), or None."""
     text = custom_data.get(KEY_LINKS)
@@ -331,7 +332,8 @@ def recorded_links(custom_data: dict[str, str]) -> dict[str, Any] | None:
         links = json.loads(text)
     except ValueError:
         return None
-    return links if isinstance(links, dict) else None
+    # written by link_summary (JSON of a LinkReport); a bag's custom data is only read back, never checked
+    return cast(LinkReport, links) if isinstance(links, dict) else None
 
 
 def analyze_run(
@@ -340,7 +342,7 @@ def analyze_run(
     velocity_margins: str = "rerun",
     reruns: dict[str, AgentRerun] | None = None,
     prog: str = "formation-analyze",
-) -> tuple[RunRecorder, dict[str, Any], dict[str, AgentRerun]]:
+) -> tuple[RunRecorder, RunSummary, dict[str, AgentRerun]]:
     """Check every funnel on a decoded run; returns (recorder, summary, re-runs)."""
     if velocity_margins not in VELOCITY_MARGIN_MODES:
         raise ValueError(f"velocity_margins {velocity_margins!r} is not one of {VELOCITY_MARGIN_MODES}")
@@ -379,7 +381,7 @@ def analyze_run(
 
 def bag_report(
     run: RunData, settings: RunSettings, missing: list[str], replay: _StepReplay, velocity_margins: str
-) -> dict[str, Any]:
+) -> BagReport:
     """The summary's ``bag`` entry: what the bag held and lacked, and how the re-runs compared."""
     gt = run.ground_truth
     gaps = stamp_gaps(gt.stamps, settings.gt_rate, settings.duration)

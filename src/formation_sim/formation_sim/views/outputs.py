@@ -19,10 +19,11 @@ from formation_core.formation import FormationSpec
 from formation_core.verdict import ExitCode, Verdict
 from formation_deploy.publisher_watch import intruder_lines
 from formation_sim.core.recorder import RunRecorder
+from formation_sim.core.summary import Clearance, FirstViolation, LinkReport, RunSummary
 from formation_sim.views.foxglove_layout import write_layout
 
 
-def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any], *, plots: bool = True) -> float:
+def write_outputs(out_dir: Path, recorder: RunRecorder, summary: RunSummary, *, plots: bool = True) -> float:
     """trajectory.npz, the figures (:mod:`formation_sim.views.figures`) and the formation's Foxglove layout
     (:mod:`formation_sim.views.foxglove_layout`) unless ``plots`` is false, then
     summary.json; each written under a temporary name and renamed. summary.json comes last and names what is there.
@@ -63,7 +64,7 @@ def write_outputs(out_dir: Path, recorder: RunRecorder, summary: dict[str, Any],
 
 
 def write_figures(
-    out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], summary: dict[str, Any], written: list[str]
+    out_dir: Path, spec: FormationSpec, arrays: dict[str, np.ndarray], summary: RunSummary, written: list[str]
 ) -> None:
     """The figures (:mod:`formation_sim.views.figures`) captioned with ``summary``'s verdict, drawn in
     a staging directory and each renamed into ``out_dir``; appends each name to ``written`` once there."""
@@ -80,7 +81,7 @@ def write_figures(
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def redraw_figures(out_dir: Path, spec: FormationSpec, summary: dict[str, Any]) -> list[str]:
+def redraw_figures(out_dir: Path, spec: FormationSpec, summary: RunSummary) -> list[str]:
     """The figures ``summary["outputs"]`` lists, drawn again from OUT/trajectory.npz with ``summary``'s
     verdict in their caption (formation-launch's verdict, when it differs from the simulator's); the
     names written. Raises OSError."""
@@ -103,7 +104,7 @@ def report_animation(out_dir: Path, spec: FormationSpec, arrays: dict[str, np.nd
     return path
 
 
-def format_summary(summary: dict[str, Any]) -> str:
+def format_summary(summary: RunSummary) -> str:
     """A short human-readable summary of a run (printed by every command): the verdict line, the
     margins per edge and agent, and every fault kind with its first and last occurrence."""
     wall = summary["wall_time"]
@@ -124,8 +125,8 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"{_f(s['settle_time_e']):>12}   {_f(s['settle_time_psi']):>14}"
         )
     lines.append("  agent    peak force [N]   peak torque [N·m]   min margin v")
-    for aid, s in summary["agents"].items():
-        lines.append(f"  {aid:<8} {s['peak_force']:>14.4g}   {s['peak_torque']:>17.4g}   {_f(s['min_margin_v']):>12}")
+    for aid, a in summary["agents"].items():
+        lines.append(f"  {aid:<8} {a['peak_force']:>14.4g}   {a['peak_torque']:>17.4g}   {_f(a['min_margin_v']):>12}")
     lines.extend(clearance_lines(summary.get("clearance")))
     lines.extend(link_lines(summary.get("links")))
     lines.extend(fault_lines(summary.get("faults") or {}))
@@ -137,13 +138,13 @@ def _ms(seconds: float | None) -> str:
     return "-" if seconds is None else f"{seconds * 1e3:.3g} ms"
 
 
-def link_lines(links: dict[str, Any] | None) -> list[str]:
+def link_lines(links: LinkReport | None) -> list[str]:
     """Per channel of a link model: samples sent, lost, and the held samples' ages; the worst link."""
     if not links:
         return []
     lines = []
-    for channel in ("poses", "velocity", "wrench"):
-        c = links.get(channel)
+    channels = (("poses", links.get("poses")), ("velocity", links.get("velocity")), ("wrench", links.get("wrench")))
+    for channel, c in channels:
         if not c:
             continue
         age = c["age"]
@@ -167,7 +168,7 @@ def link_lines(links: dict[str, Any] | None) -> list[str]:
     return lines
 
 
-def contact_note(summary: dict[str, Any]) -> str:
+def contact_note(summary: RunSummary) -> str:
     """``; but agents 1 and 3 touched at t=0.2000 s`` after a PASS with a contact reported, else ``""``."""
     first = (summary.get("clearance") or {}).get("first_contact")
     if not first:
@@ -176,9 +177,9 @@ def contact_note(summary: dict[str, Any]) -> str:
     return f"; but agents {a} and {b} touched at t={first['t']:.4f} s (not a funnel: simulation.contact: report)"
 
 
-def clearance_lines(clearance: dict[str, Any] | None) -> list[str]:
+def clearance_lines(clearance: Clearance | None) -> list[str]:
     """The smallest clearance between any two bodies, and every contact (a contact is never silent)."""
-    if not clearance or clearance.get("min") is None:
+    if not clearance or clearance.get("min") is None or clearance["pair"] is None:
         return []
     a, b = clearance["pair"]
     lines = [f"  clearance: smallest {clearance['min']:.4g} m, agents {a} and {b} at t={clearance['t']:.4f} s"]
@@ -194,7 +195,7 @@ def clearance_lines(clearance: dict[str, Any] | None) -> list[str]:
     return lines
 
 
-def verdict_line(summary: dict[str, Any]) -> str:
+def verdict_line(summary: RunSummary) -> str:
     """``PASS: …``, ``FAIL: first violation …`` or ``INCOMPLETE: reason``, then one line per intruder."""
     verdict = summary["verdict"]
     fv = summary["first_violation"]
@@ -216,7 +217,7 @@ def verdict_line(summary: dict[str, Any]) -> str:
     return "\n".join([text, *(f"  intruder: {line}" for line in intruders)])
 
 
-def after_violation(summary: dict[str, Any]) -> str:
+def after_violation(summary: RunSummary) -> str:
     """What a FAIL's ``incomplete_reason`` adds to its first violation: ``; then the run stopped early:
     REASON`` when it did (its data ends short of the requested duration), else ``; then REASON`` (a
     realtime run that went on after an agent died, a duration nobody requested), or nothing."""
@@ -230,9 +231,11 @@ def after_violation(summary: dict[str, Any]) -> str:
     return f"; then the run stopped early: {reason}" if early else f"; then {reason}"
 
 
-def violation_text(fv: dict[str, Any]) -> str:
+def violation_text(fv: FirstViolation | None) -> str:
     """``at t=2.0345 s: velocity 1 (vx)``: a first violation of summary.json (time [s], kind, edge or
-    agent, channel)."""
+    agent, channel); a FAIL always has one, a summary edited by hand may not."""
+    if fv is None:
+        return "(not in the summary)"
     where = fv.get("edge") or fv.get("pair") or fv.get("agent")
     return f"at t={fv['t']:.4f} s: {fv['kind']} {where} ({fv['channel']})"
 
@@ -241,7 +244,7 @@ def violation_text(fv: dict[str, Any]) -> str:
 CAPTION_REASON_CHARS = 120
 
 
-def run_caption(summary: dict[str, Any], t_start: float) -> str:
+def run_caption(summary: RunSummary, t_start: float) -> str:
     """The verdict with its short reason and the simulated time covered of the requested duration,
     for a figure's title: ``INCOMPLETE: duration not reached: t=2.159 s of 5 s — t = 0–2.159 s of 5 s``.
 

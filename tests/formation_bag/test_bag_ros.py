@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import signal
+import subprocess
 import time
 from pathlib import Path
 
@@ -282,6 +283,9 @@ def test_recorder_started_after_the_run_says_what_it_missed(ros_procs, tmp_path:
     analysis of its bag is INCOMPLETE with the missing start listed (never PASS, never FAIL)."""
     from formation_core.spec import load_formation
 
+    # record.sh runs setup.sh first: after an edit of src/ that compiles the kernels (~20 s), long
+    # enough for the run to end before the recorder starts. Done here, it is a no-op there.
+    subprocess.run([str(REPO / "ros2_ws" / "setup.sh")], check=True, timeout=900, capture_output=True)
     spec = load_formation(PAPER)
     for a in spec.agents:
         ros_procs.start(

@@ -11,7 +11,7 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Literal, NotRequired, TypedDict
+from typing import Literal, NotRequired, TypedDict, cast
 
 from formation_sim.cli.campaign_file import CONDITIONS, Campaign
 
@@ -126,22 +126,15 @@ class CampaignSummary(TypedDict):
     tolerance: NotRequired[list[Tolerance]]
 
 
+def _condition_values(row: Mapping[str, object]) -> tuple[float | None, ...]:
+    """A row's values of :data:`CONDITIONS`, in their order (None where absent: a runs.jsonl line of a
+    campaign without grids may lack them)."""
+    return tuple(cast("float | None", row.get(c)) for c in CONDITIONS)
+
+
 def row_key(row: Mapping[str, object]) -> tuple[object, ...]:
     """The :attr:`Task.key` of a finished run's row."""
-    return (row["sample"], row["control_rate"], *(row.get(c) for c in CONDITIONS))
-
-
-def _condition_values(row: CampaignRow) -> tuple[float | None, ...]:
-    """A row's values of :data:`CONDITIONS`, in their order (None where absent: a runs.jsonl line of a
-    campaign without grids may lack them, as :func:`row_key` allows)."""
-    return (
-        row.get("link_delay"),
-        row.get("link_loss"),
-        row.get("link_jitter"),
-        row.get("sensor_rate"),
-        row.get("delta"),
-        row.get("gamma"),
-    )
+    return (row["sample"], row["control_rate"], *_condition_values(row))
 
 
 def _sort_key(row: CampaignRow) -> tuple[float, ...]:

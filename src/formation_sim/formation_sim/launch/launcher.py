@@ -669,14 +669,15 @@ def _finish(launcher: Launcher, secure: SecureRun | None) -> int:
     except OSError as exc:
         print(f"formation-launch: INCOMPLETE: could not write {out}: {exc}", file=sys.stderr)
         code = ExitCode.INCOMPLETE
+    # the simulator's summary, completed; without "edges" the simulator wrote none, and the launcher's
+    # stub holds the keys verdict_line reads
+    typed = cast("RunSummary", summary)
     if launcher.simulator_verdict not in (None, (summary.get("verdict"), summary.get("incomplete_reason"))):
         try:  # the simulator's figures are captioned with its verdict, which the launcher's replaces
-            redraw_figures(out, launcher.spec, cast("RunSummary", summary))  # the simulator's, completed
+            redraw_figures(out, launcher.spec, typed)
         except OSError as exc:
             print(f"formation-launch: the figures still show the simulator's verdict: {exc}", file=sys.stderr)
-    # without "edges" the simulator wrote no summary: the launcher's stub holds the keys verdict_line reads
-    full = cast("RunSummary", summary)
-    print(format_summary(full) if "edges" in summary else verdict_line(full), flush=True)
+    print(format_summary(typed) if "edges" in summary else verdict_line(typed), flush=True)
     if args.animate and (out / "trajectory.npz").exists():
         import numpy as np
 
